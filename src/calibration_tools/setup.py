@@ -1,0 +1,26 @@
+from setuptools import find_packages, setup
+
+package_name = 'calibration_tools'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    include_package_data=True,
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='galvoscan developers',
+    maintainer_email='galvoscan-dev@example.com',
+    description='Calibration of the galvoscan rig (intrinsics, dynamic camera, laser plane and axis, joint correction) as ROS services and offline commands; the galvoscan command.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'calibration_node = calibration_tools.calibration_node:main',
+            'galvoscan = calibration_tools.cli:main',
+        ],
+    },
+)

@@ -1,0 +1,25 @@
+from setuptools import find_packages, setup
+
+package_name = 'galvo_driver'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    include_package_data=True,
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='galvoscan developers',
+    maintainer_email='galvoscan-dev@example.com',
+    description='Galvo driver for galvoscan: publishes galvo voltages and camera frames from the physical rig simulator, a serial DAC board or a bag.',
+    license='Apache-2.0',
+    entry_points={
+        'console_scripts': [
+            'galvo_driver = galvo_driver.driver_node:main',
+        ],
+    },
+)

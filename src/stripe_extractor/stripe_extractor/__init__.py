@@ -1,0 +1,1 @@
+"""Sub-pixel laser-stripe centre extraction (Steger, centre of gravity) and its node."""

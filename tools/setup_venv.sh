@@ -1,0 +1,72 @@
+#!/usr/bin/env bash
+# Set up .venv for galvoscan without a system ROS install.
+#
+#   tools/setup_venv.sh deps   create .venv, install pinned wheels (requirements.txt + constraints.txt)
+#   tools/setup_venv.sh msgs   build msgs/ (galvoscan_msgs) with cmake into the venv prefix
+#   tools/setup_venv.sh src    install the four src/ packages into the venv (editable)
+#
+# The Makefile calls each step only when its inputs changed. Nothing outside the
+# repository is modified.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+VENV=$ROOT/.venv
+PY=$VENV/bin/python
+PYTHON=${PYTHON:-python3}
+
+step_deps() {
+  if [ ! -x "$PY" ]; then
+    echo "[setup] creating .venv with $($PYTHON --version)"
+    "$PYTHON" -m venv "$VENV"
+  fi
+  echo "[setup] installing pinned packages (first run: a few minutes, mostly downloads)"
+  "$PY" -m pip install --disable-pip-version-check -q -r requirements.txt -c constraints.txt
+  # open3d links libusb-1.0.so.0; the ROS wheels' start-up hook puts .venv/lib on
+  # LD_LIBRARY_PATH, so a link there is found without touching the system.
+  local libusb
+  libusb=$("$PY" -c 'import libusb_package, os; print(os.path.join(os.path.dirname(libusb_package.__file__), "libusb-1.0.so"))')
+  ln -sf "$libusb" "$VENV/lib/libusb-1.0.so.0"
+  "$PY" -c 'import rclpy, numpy, scipy, cv2, open3d, rosbags, mcap, serial' 
+}
+
+step_msgs() {
+  # Known defect of the wheels: their exported CMake files name the wheel builder's
+  # Python include and numpy include paths. Rewrite them to this interpreter's, inside
+  # the venv only.
+  local pyinc npinc
+  pyinc=$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
+  npinc=$("$PY" -c 'import numpy; print(numpy.get_include())')
+  grep -rlE '/opt/python/cp311-cp311/(include/python3.11|lib/python3.11/site-packages/numpy/_core/include)' \
+      "$VENV/share" --include='*.cmake' 2>/dev/null | while read -r f; do
+    sed -i -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$npinc#g" \
+           -e "s#/opt/python/cp311-cp311/include/python3.11#$pyinc#g" "$f"
+  done
+  local build=$ROOT/build/msgs
+  rm -rf "$build"
+  mkdir -p "$build"
+  echo "[setup] building galvoscan_msgs"
+  (
+    cd "$build"
+    export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
+    # The generators run with the venv's python and must find its site-packages.
+    export PATH=$VENV/bin:$PATH
+    cmake "$ROOT/msgs" -DCMAKE_INSTALL_PREFIX="$VENV" -DPython3_EXECUTABLE="$PY" \
+          -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >cmake.log 2>&1 \
+      || { tail -40 cmake.log; echo "[setup] cmake configure of msgs failed (log: $build/cmake.log)"; exit 1; }
+    make -j"$(nproc)" install >make.log 2>&1 \
+      || { tail -40 make.log; echo "[setup] build of msgs failed (log: $build/make.log)"; exit 1; }
+  )
+  (cd /tmp && env -u AMENT_PREFIX_PATH "$PY" -c 'import galvoscan_msgs.msg, galvoscan_msgs.srv')
+  echo "[setup] galvoscan_msgs installed into .venv"
+}
+
+step_src() {
+  echo "[setup] installing src packages (editable)"
+  local args=()
+  for p in galvo_driver stripe_extractor reconstructor calibration_tools; do
+    args+=(-e "src/$p")
+  done
+  "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation --use-pep517 "${args[@]}"
+}
+
+for s in "$@"; do "step_$s"; done
