@@ -1,0 +1,54 @@
+# galvoscan: two commands on a fresh machine.
+#   make demo   set up .venv if needed, then run the main job on the simulated rig
+#   make test   set up .venv if needed, then lint and run every test
+#
+# Setup is split into stamped steps so that a second run with nothing changed only checks.
+
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP_DEPS := $(VENV)/.stamp-deps
+STAMP_MSGS := $(VENV)/.stamp-msgs
+STAMP_SRC := $(VENV)/.stamp-src
+MSG_FILES := $(shell find msgs -type f 2>/dev/null)
+SRC_META := $(wildcard src/*/setup.py src/*/setup.cfg src/*/package.xml)
+DEMO_OUT ?= out
+PYTEST_ARGS ?=
+
+.PHONY: setup test lint pytest demo clean distclean
+
+setup: $(STAMP_SRC)
+	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvo_driver, stripe_extractor, reconstructor, calibration_tools' \
+	  || { echo "[setup] the venv is broken: run 'make distclean' and try again"; exit 1; }
+
+$(STAMP_DEPS): requirements.txt constraints.txt tools/setup_venv.sh
+	PYTHON=$(PYTHON) tools/setup_venv.sh deps
+	@touch $@
+
+$(STAMP_MSGS): $(STAMP_DEPS) $(MSG_FILES)
+	tools/setup_venv.sh msgs
+	@touch $@
+
+$(STAMP_SRC): $(STAMP_MSGS) $(SRC_META)
+	tools/setup_venv.sh src
+	@touch $@
+
+lint: setup
+	$(VENV)/bin/ruff check .
+
+# pytest exits 5 when it collects no tests; that is a failure here, and says so.
+pytest: setup
+	@$(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
+	  if [ $$rc -eq 5 ]; then echo "ERROR: pytest collected no tests"; fi; exit $$rc
+
+test: lint pytest
+
+demo: setup
+	$(VENV)/bin/galvoscan demo --out $(DEMO_OUT)
+
+clean:
+	rm -rf build $(DEMO_OUT) .pytest_cache .ruff_cache
+
+distclean: clean
+	rm -rf $(VENV)
