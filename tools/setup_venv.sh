@@ -36,8 +36,8 @@ step_msgs() {
   local pyinc npinc
   pyinc=$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["include"])')
   npinc=$("$PY" -c 'import numpy; print(numpy.get_include())')
-  grep -rlE '/opt/python/cp311-cp311/(include/python3.11|lib/python3.11/site-packages/numpy/_core/include)' \
-      "$VENV/share" --include='*.cmake' 2>/dev/null | while read -r f; do
+  { grep -rlE '/opt/python/cp311-cp311/(include/python3.11|lib/python3.11/site-packages/numpy/_core/include)' \
+      "$VENV/share" --include='*.cmake' 2>/dev/null || true; } | while read -r f; do
     sed -i -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$npinc#g" \
            -e "s#/opt/python/cp311-cp311/include/python3.11#$pyinc#g" "$f"
   done

@@ -1,0 +1,279 @@
+"""Pinhole camera with OpenCV plumb_bob distortion: intrinsics, projection and undistortion.
+
+Normalised image coordinates are ``x = X/Z, y = Y/Z`` in the optical camera frame (z forward,
+x right, y down). The plumb_bob model (OpenCV, ROS CameraInfo ``d``) maps undistorted
+``(x, y)`` to distorted ``(xd, yd)``::
+
+    r2 = x^2 + y^2,  radial = 1 + k1 r2 + k2 r2^2 + k3 r2^3
+    xd = x radial + 2 p1 x y + p2 (r2 + 2 x^2)
+    yd = y radial + p1 (r2 + 2 y^2) + 2 p2 x y
+    u = fx xd + cx,  v = fy yd + cy
+
+The inverse has no closed form. :func:`undistort_points` runs the fixed-point iteration
+``x <- (xd - tangential(x)) / radial(x)`` (the same iteration as OpenCV) for a fixed number of
+steps that is chosen once per :class:`CameraIntrinsics`: enough for every point of the image,
+plus a 10 % margin, to move by less than ``UNDISTORT_STEP_TOL`` in its last step. Points that
+have not converged by then (far outside the image) keep iterating, up to ``UNDISTORT_MAX_ITER``
+steps; points that still have not converged (beyond the fold of the distortion polynomial) are
+reported as not converged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from types import SimpleNamespace
+
+import numpy as np
+
+from .checks import as_points, finite_scalar, finite_vector
+
+#: Convergence threshold of the iterative undistortion, on the last step, normalised units.
+#: The remaining error is about ``rho / (1 - rho)`` times the step, where rho < 1 is the local
+#: contraction of the iteration (about 3 k1 r^2, 0.01 or less for the rig's telephoto lens).
+UNDISTORT_STEP_TOL = 1e-14
+#: Iteration cap of the iterative undistortion.
+UNDISTORT_MAX_ITER = 200
+# Margin around the image, as a fraction of its size, covered by the fixed iteration count.
+_GRID_MARGIN = 0.1
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics with plumb_bob distortion.
+
+    Parameters
+    ----------
+    fx, fy : float
+        Focal lengths, pixels (> 0).
+    cx, cy : float
+        Principal point, pixels.
+    dist : tuple of 5 float
+        Plumb_bob coefficients ``(k1, k2, p1, p2, k3)``, dimensionless (OpenCV order).
+    width, height : int
+        Image size, pixels (> 0).
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float]
+    width: int
+    height: int
+
+    def __post_init__(self):
+        for name in ('fx', 'fy', 'cx', 'cy'):
+            object.__setattr__(self, name, finite_scalar(getattr(self, name), name))
+        for name in ('fx', 'fy'):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
+        dist = finite_vector(self.dist, 'dist', 5)
+        object.__setattr__(self, 'dist', tuple(float(x) for x in dist))
+        for name in ('width', 'height'):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not float(value).is_integer() or value <= 0:
+                raise ValueError(f'{name} must be a positive integer, got {value!r}')
+            object.__setattr__(self, name, int(value))
+
+    def matrix(self) -> np.ndarray:
+        """Return the camera matrix K, shape (3, 3), pixels."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @cached_property
+    def _plan(self) -> SimpleNamespace:
+        """Constants of the undistortion and projection hot paths (depend on self only)."""
+        k1, k2, p1, p2, k3 = self.dist
+        plan = SimpleNamespace(
+            c=np.array([[self.cx], [self.cy]]),
+            f=np.array([[self.fx], [self.fy]]),
+            finv=np.array([[1.0 / self.fx], [1.0 / self.fy]]),
+            k1=k1,
+            k2=k2,
+            k3=k3,
+            has_k3=k3 != 0.0,
+            has_tangential=p1 != 0.0 or p2 != 0.0,
+            pp=np.array([[2.0 * p1], [2.0 * p2]]),
+            ps=np.array([[p2], [p1]]),
+            distorted=any(v != 0.0 for v in self.dist),
+            n_fast=0,
+        )
+        if plan.distorted:
+            plan.n_fast = _fixed_iteration_count(self, plan)
+        return plan
+
+
+def _iterate(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One fixed-point undistortion step; ``xd`` and ``x`` shape (2, n). Return (x_new, r2(x))."""
+    x2 = x * x
+    r2 = x2[0] + x2[1]
+    if plan.has_k3:
+        radial = 1.0 + r2 * (plan.k1 + r2 * (plan.k2 + r2 * plan.k3))
+    else:
+        radial = 1.0 + r2 * (plan.k1 + r2 * plan.k2)
+    if plan.has_tangential:
+        delta = (x[0] * x[1]) * plan.pp + (x2 + x2 + r2) * plan.ps
+        return (xd - delta) / radial, r2
+    return xd / radial, r2
+
+
+def _distort(plan: SimpleNamespace, x: np.ndarray) -> np.ndarray:
+    """Apply plumb_bob distortion to normalised points ``x`` shape (2, n); return shape (2, n)."""
+    x2 = x * x
+    r2 = x2[0] + x2[1]
+    radial = 1.0 + r2 * (plan.k1 + r2 * (plan.k2 + r2 * plan.k3))
+    return x * radial + (x[0] * x[1]) * plan.pp + (x2 + x2 + r2) * plan.ps
+
+
+def _iterate_until_converged(plan, xd, x, max_iter):
+    """Iterate all columns until their step is below tolerance; return (x, r2, converged, n)."""
+    n = xd.shape[1]
+    converged = np.zeros(n, dtype=bool)
+    r2 = np.zeros(n)
+    active = np.arange(n)
+    x = x.copy()
+    count = 0
+    with np.errstate(all='ignore'):
+        while active.size and count < max_iter:
+            x_new, r2_a = _iterate(plan, xd[:, active], x[:, active])
+            step = np.abs(x_new - x[:, active]).max(axis=0)
+            x[:, active] = x_new
+            r2[active] = r2_a
+            count += 1
+            done = step <= UNDISTORT_STEP_TOL
+            converged[active[done]] = True
+            # Drop converged columns and columns that blew up (no preimage).
+            keep = ~done & np.isfinite(step)
+            active = active[keep]
+    return x, r2, converged, count
+
+
+def _fixed_iteration_count(intr: CameraIntrinsics, plan: SimpleNamespace) -> int:
+    """Steps after which every point of the image (plus margin) has converged."""
+    mw, mh = _GRID_MARGIN * intr.width, _GRID_MARGIN * intr.height
+    us = np.linspace(-mw, intr.width + mw, 41)
+    vs = np.linspace(-mh, intr.height + mh, 31)
+    uu, vv = np.meshgrid(us, vs)
+    xd = (np.stack([uu.ravel(), vv.ravel()]) - plan.c) * plan.finv
+    n = xd.shape[1]
+    x = xd.copy()
+    step_needed = np.zeros(n, dtype=int)
+    active = np.ones(n, dtype=bool)
+    with np.errstate(all='ignore'):
+        for it in range(1, UNDISTORT_MAX_ITER + 1):
+            x_new, _ = _iterate(plan, xd, x)
+            step = np.abs(x_new - x).max(axis=0)
+            x = x_new
+            done = active & (step <= UNDISTORT_STEP_TOL)
+            step_needed[done] = it
+            active &= ~done
+            if not active.any():
+                break
+    # Grid points that never converge (beyond the fold) do not set the count.
+    return max(1, int(step_needed.max())) if step_needed.any() else UNDISTORT_MAX_ITER
+
+
+def undistort_normalised(intr: CameraIntrinsics, xd: np.ndarray):
+    """Undistort finite distorted normalised points.
+
+    Parameters
+    ----------
+    intr : CameraIntrinsics
+    xd : ndarray, shape (2, n), normalised image units
+        Distorted normalised coordinates ``((u - cx)/fx, (v - cy)/fy)``; must be finite.
+
+    Returns
+    -------
+    x : ndarray, shape (2, n)
+        Undistorted normalised coordinates (meaningless where not converged).
+    r2 : ndarray, shape (n,)
+        ``x^2 + y^2`` of the second-to-last iterate (accurate to ~1e-13, for thresholds).
+    converged : ndarray of bool, shape (n,), or None
+        None when every point converged (the common case).
+    """
+    plan = intr._plan
+    if not plan.distorted:
+        return xd, xd[0] * xd[0] + xd[1] * xd[1], None
+    x = xd
+    x_prev = xd
+    r2 = None
+    for _ in range(plan.n_fast):
+        x_prev = x
+        x, r2 = _iterate(plan, xd, x)
+    step = np.abs(x - x_prev)
+    if step.max() <= UNDISTORT_STEP_TOL:
+        return x, r2, None
+    # Slow path: points that need more steps (outside the image) or never converge.
+    bad = np.flatnonzero(~(step <= UNDISTORT_STEP_TOL).all(axis=0))
+    x = x.copy()
+    xb, r2b, conv_b, _ = _iterate_until_converged(
+        plan, xd[:, bad], x[:, bad], UNDISTORT_MAX_ITER - plan.n_fast
+    )
+    x[:, bad] = xb
+    r2 = r2.copy()
+    r2[bad] = r2b
+    converged = np.ones(xd.shape[1], dtype=bool)
+    converged[bad] = conv_b
+    return x, r2, converged
+
+
+def undistort_points(intr: CameraIntrinsics, uv) -> np.ndarray:
+    """Undistort pixel coordinates into normalised image coordinates (rays ``(x, y, 1)``).
+
+    Parameters
+    ----------
+    intr : CameraIntrinsics
+    uv : array_like, shape (n, 2), pixels
+        Observed (distorted) pixel coordinates.
+
+    Returns
+    -------
+    ndarray, shape (n, 2), normalised image units
+        Undistorted ``(x, y)`` with ``x = X/Z, y = Y/Z``. Rows whose input is non-finite or
+        whose iteration did not converge (no preimage under the distortion) are NaN.
+    """
+    uv = as_points(uv, 'uv', 2)
+    plan = intr._plan
+    finite = np.isfinite(uv).all(axis=1)
+    all_finite = bool(finite.all())
+    if not all_finite:
+        uv = np.where(finite[:, None], uv, plan.c[:, 0])
+    xd = np.ascontiguousarray((uv.T - plan.c) * plan.finv)
+    x, _, converged = undistort_normalised(intr, xd)
+    out = x.T.copy()
+    bad = ~finite if converged is None else ~(finite & converged)
+    out[bad] = np.nan
+    return out
+
+
+def distort_normalised(intr: CameraIntrinsics, x: np.ndarray) -> np.ndarray:
+    """Apply plumb_bob distortion; ``x`` shape (2, n) normalised, returns shape (2, n)."""
+    return _distort(intr._plan, x)
+
+
+def project_points(intr: CameraIntrinsics, p_C) -> np.ndarray:
+    """Project points in the camera frame to pixels, with distortion.
+
+    Parameters
+    ----------
+    intr : CameraIntrinsics
+    p_C : array_like, shape (n, 3), metres
+        Points in the optical camera frame (z forward).
+
+    Returns
+    -------
+    ndarray, shape (n, 2), pixels
+        Distorted pixel coordinates. Rows with ``Z <= 0`` or non-finite input are NaN. Points
+        far outside the field of view may land inside the image (the distortion polynomial
+        folds back); check bounds against the undistorted field of view where that matters.
+    """
+    p_C = as_points(p_C, 'p_C', 3)
+    plan = intr._plan
+    z = p_C[:, 2]
+    ok = (z > 0.0) & np.isfinite(p_C).all(axis=1)
+    with np.errstate(all='ignore'):
+        x = p_C[:, :2].T / z
+        xd = _distort(plan, x) if plan.distorted else x
+        uv = (xd * plan.f + plan.c).T.copy()
+    uv[~ok] = np.nan
+    return uv

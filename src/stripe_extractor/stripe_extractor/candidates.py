@@ -1,0 +1,146 @@
+"""Per-column candidate peaks and secondary peaks: one streaming pass over the image.
+
+No rclpy here. The only step that touches every pixel: for each column, the row of the
+largest 3x3 box sum (the candidate peak, around which the extractors open their region of
+interest) and the row of the largest 3x3 box sum that lies more than ``excl`` rows away from
+it and is a local maximum (a secondary-peak candidate: a reflection, a speck, ...).
+
+The pass runs row by row (memory order) with the column loop innermost, so it vectorises.
+Box maxima of blocks of ``BLOCK_ROWS`` rows are kept on the way; the secondary search then
+reads those block maxima and rescans only the (at most two) blocks cut by the exclusion zone.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+#: Rows per block of the block-maximum table.
+BLOCK_ROWS = 8
+
+
+@numba.njit(cache=True, nogil=True, inline='always')
+def _row_sum3(img, r, out):
+    """out[c] = img[r, c-1] + img[r, c] + img[r, c+1] (columns clamped at the borders)."""
+    W = img.shape[1]
+    for c in range(1, W - 1):
+        out[c] = np.int32(img[r, c - 1]) + np.int32(img[r, c]) + np.int32(img[r, c + 1])
+    out[0] = 2 * np.int32(img[r, 0]) + np.int32(img[r, 1])
+    out[W - 1] = 2 * np.int32(img[r, W - 1]) + np.int32(img[r, W - 2])
+
+
+@numba.njit(cache=True, nogil=True)
+def box3(img, r, c):
+    """3x3 box sum at (r, c), 1 <= r <= H-2; columns clamped at the borders."""
+    W = img.shape[1]
+    s = np.int32(0)
+    for dc in (-1, 0, 1):
+        cc = min(max(c + dc, 0), W - 1)
+        s += np.int32(img[r - 1, cc]) + np.int32(img[r, cc]) + np.int32(img[r + 1, cc])
+    return s
+
+
+@numba.njit(cache=True, nogil=True)
+def column_peaks(img, excl, cand, sec):
+    """Candidate and secondary-candidate row of every column.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8 or uint16, C-contiguous; H, W >= 3
+    excl : int
+        Half size of the zone around the candidate in which no secondary is sought [px].
+    cand : ndarray, shape (W,), int32 (output)
+        Row of the largest 3x3 box sum, in 1..H-2.
+    sec : ndarray, shape (W,), int32 (output)
+        Row of the largest 3x3 box sum with ``|row - cand| > excl`` that is a local maximum
+        of the column's box sums, or -1 if there is none.
+    """
+    H, W = img.shape
+    B = BLOCK_ROWS
+    nb = (H + B - 1) // B
+    best = np.full(W, -1, np.int32)
+    bmax = np.full((nb, W), -1, np.int32)
+    barg = np.zeros((nb, W), np.int32)
+    hs = np.empty((3, W), np.int32)
+    _row_sum3(img, 0, hs[0])
+    _row_sum3(img, 1, hs[1])
+    for r in range(1, H - 1):
+        _row_sum3(img, r + 1, hs[(r + 1) % 3])
+        a = hs[(r - 1) % 3]
+        b = hs[r % 3]
+        d = hs[(r + 1) % 3]
+        bm = bmax[r // B]
+        ba = barg[r // B]
+        for c in range(W):
+            s = a[c] + b[c] + d[c]
+            if s > best[c]:
+                best[c] = s
+                cand[c] = r
+            if s > bm[c]:
+                bm[c] = s
+                ba[c] = r
+    # Secondary: largest box sum outside [cand - excl, cand + excl].
+    sv = np.full(W, -1, np.int32)
+    for c in range(W):
+        sec[c] = -1
+    for k in range(nb):
+        r0 = k * B
+        r1 = min(r0 + B, H) - 1
+        for c in range(W):
+            lo = cand[c] - excl
+            hi = cand[c] + excl
+            if r1 < lo or r0 > hi:
+                if bmax[k, c] > sv[c]:
+                    sv[c] = bmax[k, c]
+                    sec[c] = barg[k, c]
+    for c in range(W):
+        lo = cand[c] - excl
+        hi = cand[c] + excl
+        for k in (lo // B, hi // B):
+            if k < 0 or k >= nb or bmax[k, c] <= sv[c]:
+                continue
+            if barg[k, c] < lo or barg[k, c] > hi:
+                sv[c] = bmax[k, c]
+                sec[c] = barg[k, c]
+                continue
+            for r in range(max(k * B, 1), min(k * B + B, H - 1)):
+                if r < lo or r > hi:
+                    s = box3(img, r, c)
+                    if s > sv[c]:
+                        sv[c] = s
+                        sec[c] = r
+        # A maximum right at the zone's edge that rises into the zone is the main peak's tail.
+        r = sec[c]
+        if r >= 0:
+            if r == lo - 1 and lo <= H - 2 and box3(img, lo, c) >= sv[c]:
+                sec[c] = -1
+            elif r == hi + 1 and hi >= 1 and box3(img, hi, c) >= sv[c]:
+                sec[c] = -1
+
+
+def find_candidates(img: np.ndarray, excl: int) -> tuple[np.ndarray, np.ndarray]:
+    """Candidate and secondary rows per column (see :func:`column_peaks`).
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8 or uint16, DN
+    excl : int
+        Secondary exclusion half size [px], >= 1.
+
+    Returns
+    -------
+    cand, sec : ndarray, shape (W,), int32
+    """
+    if not isinstance(img, np.ndarray) or img.ndim != 2 or img.shape[0] < 3 or \
+            img.shape[1] < 3:
+        raise ValueError('img must be a 2-D array of at least 3x3 px')
+    if img.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f'img dtype must be uint8 or uint16, got {img.dtype}')
+    if int(excl) < 1:
+        raise ValueError(f'excl must be >= 1, got {excl}')
+    img = np.ascontiguousarray(img)
+    W = img.shape[1]
+    cand = np.empty(W, np.int32)
+    sec = np.empty(W, np.int32)
+    column_peaks(img, int(excl), cand, sec)
+    return cand, sec

@@ -1,0 +1,254 @@
+"""Steger's sub-pixel line-centre method, evaluated only in a window around each column's peak.
+
+No rclpy here. For each column (stripe mostly horizontal; the caller transposes otherwise):
+
+1. The candidate row ``p`` from :mod:`.candidates` (largest 3x3 box sum of the column).
+2. Region of interest: rows ``p - R .. p + R`` of this column, ``R = roi_half_height``. The
+   column profile smoothed by the Gaussian ``g_sigma`` is evaluated there; its maximum is the
+   pixel ``r0`` and the smaller of its two end values is the background.
+3. At ``r0`` the Hessian ``H = [[r_uu, r_uv], [r_uv, r_vv]]`` and the gradient ``(r_u, r_v)``
+   are computed from separable Gaussian-derivative kernels (scale sigma) on the
+   ``(2K+3) x (2K+1)`` pixels around it (K = ceil(3 sigma)). The stripe normal ``n`` is the
+   eigenvector of the most negative eigenvalue ``lambda``; the sub-pixel offset along it is
+   ``t = -(grad . n) / lambda``. The point ``(c + t n_u, r0 + t n_v)`` is accepted if
+   ``|t n_u| <= 0.5`` and ``|t n_v| <= 0.5`` (Steger's condition: the line point lies in this
+   pixel); otherwise the neighbouring pixel in the direction of ``t n_v`` is tried once.
+4. ``strength`` = smoothed value at the sub-pixel point minus background;
+   ``width = 2.3548 sqrt(S^2 - sigma^2)`` with ``S^2 = -strength / lambda`` (for a Gaussian
+   profile of std s, smoothing gives std S = sqrt(s^2 + sigma^2) and curvature -peak/S^2).
+5. The secondary candidate of the column (if any) is smoothed the same way; if its strength
+   reaches ``min_strength`` it is rejected and counted.
+
+Columns closer than K to the left/right border use the column profile only (normal fixed to
+the column, the one-dimensional case of the same formulae). Rows closer than K + 1 to the
+top/bottom border give no centre. Work per column is O(R K + K^2): the full image is never
+filtered.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from .candidates import column_peaks
+from .extractor import FWHM_PER_SIGMA, ExtractorConfig, gaussian_kernels
+
+
+@numba.njit(cache=True, nogil=True, inline='always')
+def roi_profile_peak(img, c, a, b, K, g0):
+    """Row of the maximum of the column-``c`` profile smoothed by g0 over rows a..b, the
+    smoothed value there and the background (smaller smoothed value of rows a and b)."""
+    best = -1.0
+    r0 = a
+    va = 0.0
+    vb = 0.0
+    for r in range(a, b + 1):
+        s = g0[0] * img[r, c]
+        for k in range(1, K + 1):
+            s += g0[k] * (np.float64(img[r + k, c]) + np.float64(img[r - k, c]))
+        if s > best:
+            best = s
+            r0 = r
+        if r == a:
+            va = s
+        if r == b:
+            vb = s
+    return r0, best, min(va, vb)
+
+
+@numba.njit(cache=True, nogil=True, inline='always')
+def smooth_at(img, r, c, K, g0):
+    """2-D Gaussian-smoothed value at pixel (r, c); indices clamped at the image borders."""
+    H, W = img.shape
+    s = 0.0
+    for j in range(-K, K + 1):
+        rr = min(max(r + j, 0), H - 1)
+        h = 0.0
+        for k in range(-K, K + 1):
+            cc = min(max(c + k, 0), W - 1)
+            h += g0[abs(k)] * img[rr, cc]
+        s += g0[abs(j)] * h
+    return s
+
+
+@numba.njit(cache=True, nogil=True, inline='always')
+def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
+    """Steger at one pixel from horizontally filtered rows h* (row j0 is the pixel).
+
+    Returns (t*n_u, t*n_v, lambda, smoothed value at the point); lambda >= 0 means no ridge.
+    """
+    rr = g0[0] * h0[j0]
+    rv = 0.0
+    rvv = d2[0] * h0[j0]
+    ru = g0[0] * h1[j0]
+    ruv = 0.0
+    ruu = g0[0] * h2[j0]
+    for k in range(1, K + 1):
+        s0 = h0[j0 + k] + h0[j0 - k]
+        a0 = h0[j0 + k] - h0[j0 - k]
+        rr += g0[k] * s0
+        rv += d1[k] * a0
+        rvv += d2[k] * s0
+        ru += g0[k] * (h1[j0 + k] + h1[j0 - k])
+        ruv += d1[k] * (h1[j0 + k] - h1[j0 - k])
+        ruu += g0[k] * (h2[j0 + k] + h2[j0 - k])
+    half = 0.5 * (ruu - rvv)
+    root = math.sqrt(half * half + ruv * ruv)
+    lam = 0.5 * (ruu + rvv) - root
+    if lam >= 0.0:
+        return 0.0, 0.0, lam, rr
+    # Eigenvector of lam: (ruv, lam - ruu) or (lam - rvv, ruv); take the better conditioned.
+    ax = ruv
+    ay = lam - ruu
+    bx = lam - rvv
+    by = ruv
+    if ax * ax + ay * ay >= bx * bx + by * by:
+        nx = ax
+        ny = ay
+    else:
+        nx = bx
+        ny = by
+    norm = math.sqrt(nx * nx + ny * ny)
+    if norm == 0.0:                     # isotropic: normal along the column
+        nx = 0.0
+        ny = 1.0
+    else:
+        nx /= norm
+        ny /= norm
+    g = ru * nx + rv * ny
+    t = -g / lam
+    return t * nx, t * ny, lam, rr + 0.5 * t * g
+
+
+@numba.njit(cache=True, nogil=True, inline='always')
+def _line_point_1d(img, r, c, K, g0, d1, d2):
+    """Column-only Steger at pixel (r, c): normal = column direction."""
+    rr = g0[0] * img[r, c]
+    rv = 0.0
+    rvv = d2[0] * img[r, c]
+    for k in range(1, K + 1):
+        p = np.float64(img[r + k, c])
+        m = np.float64(img[r - k, c])
+        rr += g0[k] * (p + m)
+        rv += d1[k] * (p - m)
+        rvv += d2[k] * (p + m)
+    if rvv >= 0.0:
+        return 0.0, 0.0, rvv, rr
+    t = -rv / rvv
+    return 0.0, t, rvv, rr + 0.5 * t * rv
+
+
+@numba.njit(cache=True, nogil=True)
+def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
+                   out_u, out_v, out_w, out_s):
+    """Steger centre of every column (see module docstring). Returns (n, rejected_secondary)."""
+    H, W = img.shape
+    n = 0
+    nsec = 0
+    L = 2 * K + 3
+    h0 = np.empty(L)
+    h1 = np.empty(L)
+    h2 = np.empty(L)
+    for c in range(W):
+        p = cand[c]
+        a = max(p - R, K + 1)
+        b = min(p + R, H - 2 - K)
+        if b < a:
+            continue
+        r0, _, bg = roi_profile_peak(img, c, a, b, K, g0)
+        full = K <= c < W - K
+        r = r0
+        ok = False
+        du = 0.0
+        dv = 0.0
+        lam = 0.0
+        val = 0.0
+        if full:
+            # Horizontal Gaussian-derivative filtering of rows r0-K-1 .. r0+K+1 at column c.
+            for j in range(L):
+                rj = r0 - K - 1 + j
+                x0 = np.float64(img[rj, c])
+                s0 = g0[0] * x0
+                s1 = 0.0
+                s2 = d2[0] * x0
+                for k in range(1, K + 1):
+                    p_ = np.float64(img[rj, c + k])
+                    m_ = np.float64(img[rj, c - k])
+                    s0 += g0[k] * (p_ + m_)
+                    s1 += d1[k] * (p_ - m_)
+                    s2 += d2[k] * (p_ + m_)
+                h0[j] = s0
+                h1[j] = s1
+                h2[j] = s2
+            for attempt in range(2):
+                du, dv, lam, val = _line_point(h0, h1, h2, r - r0 + K + 1, K, g0, d1, d2)
+                if lam >= 0.0:
+                    break
+                if abs(du) <= 0.5 and abs(dv) <= 0.5:
+                    ok = True
+                    break
+                if attempt == 0 and abs(dv) > 0.5:
+                    r = r0 + 1 if dv > 0 else r0 - 1
+                else:
+                    break
+        else:
+            for attempt in range(2):
+                du, dv, lam, val = _line_point_1d(img, r, c, K, g0, d1, d2)
+                if lam >= 0.0:
+                    break
+                if abs(dv) <= 0.5:
+                    ok = True
+                    break
+                if attempt == 0:
+                    r2 = r0 + 1 if dv > 0 else r0 - 1
+                    if r2 < K + 1 or r2 > H - 2 - K:
+                        break
+                    r = r2
+                else:
+                    break
+        if not ok:
+            continue
+        strength = val - bg
+        if strength < min_strength:
+            continue
+        S2 = -strength / lam
+        out_u[n] = c + du
+        out_v[n] = r + dv
+        out_s[n] = strength
+        out_w[n] = FWHM_PER_SIGMA * math.sqrt(max(S2 - sigma * sigma, 0.0))
+        n += 1
+        q = sec[c]
+        if q >= 0 and smooth_at(img, q, c, K, g0) - bg >= min_strength:
+            nsec += 1
+    return n, nsec
+
+
+def extract_columns(img: np.ndarray, config: ExtractorConfig):
+    """Steger centres of a C-contiguous uint8/uint16 image, one per column at most.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8 or uint16, DN
+        Already validated and C-contiguous (see :func:`.extractor.check_image`).
+    config : ExtractorConfig
+
+    Returns
+    -------
+    u, v, width, strength : ndarray, shape (n,), float32
+        Column [px], row [px], FWHM [px], strength [DN].
+    rejected_secondary : int
+    """
+    sigma = config.sigma
+    g0, d1, d2 = gaussian_kernels(sigma)
+    K = g0.shape[0] - 1
+    W = img.shape[1]
+    cand = np.empty(W, np.int32)
+    sec = np.empty(W, np.int32)
+    column_peaks(img, config.roi_half_height, cand, sec)
+    out = np.empty((4, W), np.float32)
+    n, nsec = steger_columns(img, cand, sec, config.roi_half_height, K, g0, d1, d2, sigma,
+                             config.min_strength, out[0], out[1], out[2], out[3])
+    out = out[:, :n]
+    return out[0].copy(), out[1].copy(), out[2].copy(), out[3].copy(), nsec
