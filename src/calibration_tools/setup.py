@@ -15,7 +15,7 @@ setup(
     zip_safe=False,
     maintainer='galvoscan developers',
     maintainer_email='galvoscan-dev@example.com',
-    description='Calibration of the galvoscan rig (intrinsics, dynamic camera, laser plane and axis, joint correction) as ROS services and offline commands; the galvoscan command.',
+    description='galvoscan calibration stages, bring-up and the galvoscan command',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

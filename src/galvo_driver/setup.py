@@ -15,7 +15,7 @@ setup(
     zip_safe=False,
     maintainer='galvoscan developers',
     maintainer_email='galvoscan-dev@example.com',
-    description='Galvo driver for galvoscan: publishes galvo voltages and camera frames from the physical rig simulator, a serial DAC board or a bag.',
+    description='galvoscan galvo driver: sim, serial and replay backends',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -15,7 +15,7 @@ setup(
     zip_safe=False,
     maintainer='galvoscan developers',
     maintainer_email='galvoscan-dev@example.com',
-    description='Geometric model of the dynamic camera and dynamic laser, triangulation, and the node publishing PointCloud2 in V0.',
+    description='galvoscan geometric model, triangulation and point-cloud node',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

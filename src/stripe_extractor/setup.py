@@ -15,7 +15,7 @@ setup(
     zip_safe=False,
     maintainer='galvoscan developers',
     maintainer_email='galvoscan-dev@example.com',
-    description='Sub-pixel laser-stripe centre extraction (Steger, centre of gravity) and its node.',
+    description='galvoscan sub-pixel laser-stripe centre extraction',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -1,1 +1,2 @@
-"""Sub-pixel laser-stripe centre extraction (Steger, centre of gravity) and its node."""
+"""Sub-pixel laser-stripe centre extraction (Steger, centre of gravity) and its node.
+"""

@@ -32,33 +32,54 @@ import math
 import numba
 import numpy as np
 
-from .candidates import column_peaks
+from .candidates import box3, column_peaks
 from .extractor import FWHM_PER_SIGMA, ExtractorConfig, gaussian_kernels
 
 
-@numba.njit(cache=True, nogil=True, inline='always')
-def roi_profile_peak(img, c, a, b, K, g0):
-    """Row of the maximum of the column-``c`` profile smoothed by g0 over rows a..b, the
-    smoothed value there and the background (smaller smoothed value of rows a and b)."""
-    best = -1.0
-    r0 = a
-    va = 0.0
-    vb = 0.0
-    for r in range(a, b + 1):
-        s = g0[0] * img[r, c]
-        for k in range(1, K + 1):
-            s += g0[k] * (np.float64(img[r + k, c]) + np.float64(img[r - k, c]))
-        if s > best:
-            best = s
-            r0 = r
-        if r == a:
-            va = s
-        if r == b:
-            vb = s
-    return r0, best, min(va, vb)
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def smooth_column(img, r, c, K, g0):
+    """Column profile at (r, c) smoothed by the 1-D Gaussian g0 (rows r-K..r+K must exist)."""
+    s = g0[0] * img[r, c]
+    for k in range(1, K + 1):
+        s += g0[k] * (np.float64(img[r + k, c]) + np.float64(img[r - k, c]))
+    return s
 
 
-@numba.njit(cache=True, nogil=True, inline='always')
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def roi_profile_peak(img, c, p, a, b, K, g0):
+    """Peak of the Gaussian-smoothed profile of column c inside the ROI rows a..b.
+
+    Climbs the smoothed profile from the candidate row p (clamped to a..b) to its local
+    maximum. Returns (row of the maximum, smoothed value there, background), the background
+    being the smaller of the smoothed values at the ROI ends a and b.
+    """
+    r0 = min(max(p, a), b)
+    best = smooth_column(img, r0, c, K, g0)
+    step = 0
+    if r0 < b:
+        nxt = smooth_column(img, r0 + 1, c, K, g0)
+        if nxt > best:
+            best = nxt
+            r0 += 1
+            step = 1
+    if step == 0 and r0 > a:
+        prv = smooth_column(img, r0 - 1, c, K, g0)
+        if prv > best:
+            best = prv
+            r0 -= 1
+            step = -1
+    if step != 0:
+        while a <= r0 + step <= b:
+            nxt = smooth_column(img, r0 + step, c, K, g0)
+            if nxt <= best:
+                break
+            best = nxt
+            r0 += step
+    bg = min(smooth_column(img, a, c, K, g0), smooth_column(img, b, c, K, g0))
+    return r0, best, bg
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
 def smooth_at(img, r, c, K, g0):
     """2-D Gaussian-smoothed value at pixel (r, c); indices clamped at the image borders."""
     H, W = img.shape
@@ -73,7 +94,21 @@ def smooth_at(img, r, c, K, g0):
     return s
 
 
-@numba.njit(cache=True, nogil=True, inline='always')
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def is_secondary(img, q, c, K, g0, bg, min_strength):
+    """True if row q (-1: none) of column c holds a peak of strength >= min_strength.
+
+    The 3x3 box mean, which attenuates a peak less than the Gaussian, screens first so the
+    (2K+1)^2 smoothing runs only for plausible peaks.
+    """
+    if q < 0:
+        return False
+    if box3(img, q, c) / 9.0 - bg < 0.5 * min_strength:
+        return False
+    return smooth_at(img, q, c, K, g0) - bg >= min_strength
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
 def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
     """Steger at one pixel from horizontally filtered rows h* (row j0 is the pixel).
 
@@ -122,7 +157,7 @@ def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
     return t * nx, t * ny, lam, rr + 0.5 * t * g
 
 
-@numba.njit(cache=True, nogil=True, inline='always')
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
 def _line_point_1d(img, r, c, K, g0, d1, d2):
     """Column-only Steger at pixel (r, c): normal = column direction."""
     rr = g0[0] * img[r, c]
@@ -140,7 +175,23 @@ def _line_point_1d(img, r, c, K, g0, d1, d2):
     return 0.0, t, rvv, rr + 0.5 * t * rv
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def _filter_row(img, r, c, K, g0, d1, d2):
+    """Row r around column c correlated with g0, d1 and d2 (columns c-K..c+K must exist)."""
+    x0 = np.float64(img[r, c])
+    s0 = g0[0] * x0
+    s1 = 0.0
+    s2 = d2[0] * x0
+    for k in range(1, K + 1):
+        p = np.float64(img[r, c + k])
+        m = np.float64(img[r, c - k])
+        s0 += g0[k] * (p + m)
+        s1 += d1[k] * (p - m)
+        s2 += d2[k] * (p + m)
+    return s0, s1, s2
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
                    out_u, out_v, out_w, out_s):
     """Steger centre of every column (see module docstring). Returns (n, rejected_secondary)."""
@@ -157,7 +208,7 @@ def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
         b = min(p + R, H - 2 - K)
         if b < a:
             continue
-        r0, _, bg = roi_profile_peak(img, c, a, b, K, g0)
+        r0, _, bg = roi_profile_peak(img, c, p, a, b, K, g0)
         full = K <= c < W - K
         r = r0
         ok = False
@@ -166,22 +217,10 @@ def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
         lam = 0.0
         val = 0.0
         if full:
-            # Horizontal Gaussian-derivative filtering of rows r0-K-1 .. r0+K+1 at column c.
-            for j in range(L):
-                rj = r0 - K - 1 + j
-                x0 = np.float64(img[rj, c])
-                s0 = g0[0] * x0
-                s1 = 0.0
-                s2 = d2[0] * x0
-                for k in range(1, K + 1):
-                    p_ = np.float64(img[rj, c + k])
-                    m_ = np.float64(img[rj, c - k])
-                    s0 += g0[k] * (p_ + m_)
-                    s1 += d1[k] * (p_ - m_)
-                    s2 += d2[k] * (p_ + m_)
-                h0[j] = s0
-                h1[j] = s1
-                h2[j] = s2
+            # Horizontal Gaussian-derivative filtering of rows r0-K .. r0+K at column c
+            # (slot j holds row r0 - K - 1 + j; slots 0 and L-1 are filled on a step).
+            for j in range(1, L - 1):
+                h0[j], h1[j], h2[j] = _filter_row(img, r0 - K - 1 + j, c, K, g0, d1, d2)
             for attempt in range(2):
                 du, dv, lam, val = _line_point(h0, h1, h2, r - r0 + K + 1, K, g0, d1, d2)
                 if lam >= 0.0:
@@ -190,7 +229,13 @@ def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
                     ok = True
                     break
                 if attempt == 0 and abs(dv) > 0.5:
-                    r = r0 + 1 if dv > 0 else r0 - 1
+                    if dv > 0:
+                        r = r0 + 1
+                        h0[L - 1], h1[L - 1], h2[L - 1] = _filter_row(
+                            img, r0 + K + 1, c, K, g0, d1, d2)
+                    else:
+                        r = r0 - 1
+                        h0[0], h1[0], h2[0] = _filter_row(img, r0 - K - 1, c, K, g0, d1, d2)
                 else:
                     break
         else:
@@ -219,8 +264,7 @@ def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
         out_s[n] = strength
         out_w[n] = FWHM_PER_SIGMA * math.sqrt(max(S2 - sigma * sigma, 0.0))
         n += 1
-        q = sec[c]
-        if q >= 0 and smooth_at(img, q, c, K, g0) - bg >= min_strength:
+        if is_secondary(img, sec[c], c, K, g0, bg, min_strength):
             nsec += 1
     return n, nsec
 

@@ -26,7 +26,7 @@ offset  size    field       meaning
 3+n     4       crc         CRC-32 (IEEE 802.3, as ``binascii.crc32``) of bytes 0..3+n
 ======  ======  ==========  ===============================================================
 
-A packet is at most 247 bytes, its COBS encoding at most 249 bytes; a receiver discards any
+A packet is at most 247 bytes, its COBS encoding at most 248 bytes; a receiver discards any
 frame longer than :data:`MAX_ENCODED_FRAME` (256 bytes) without buffering it.
 
 Sequence numbers, ACK/NAK and retry

@@ -1,0 +1,344 @@
+"""``galvo_driver``: the lifecycle node in front of a galvo backend (sim, serial or replay).
+
+Topics (published reliable; consumers subscribe with sensor-data QoS):
+    camera/image_raw   sensor_msgs/Image (mono8), stamp = middle of the exposure
+    camera/camera_info sensor_msgs/CameraInfo, same stamp
+    galvo/state        galvoscan_msgs/GalvoState, same stamp and the frame's sequence number
+Services:
+    scan/start     galvoscan_msgs/StartScan
+    scan/stop      galvoscan_msgs/StopScan
+    scan/progress  galvoscan_msgs/GetScanProgress
+    sim/set_scene  galvoscan_msgs/SetScene (sim backend only)
+
+Lifecycle: configure opens the backend, activate arms it, deactivate/error/shutdown drive the
+galvos to 0 V with the laser off. ``autostart`` (default true) configures and activates at
+start-up. ``main`` puts the hardware in the safe state in its ``finally``, since rclpy does
+not run ``on_shutdown`` on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import rclpy
+from galvoscan_msgs.msg import GalvoState
+from galvoscan_msgs.srv import GetScanProgress, SetScene, StartScan, StopScan
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException
+from rclpy.lifecycle import Node as LifecycleNode
+from rclpy.lifecycle import TransitionCallbackReturn
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Image
+
+from galvo_driver import patterns
+from galvo_driver.backend import BackendError
+
+BACKENDS = ('sim', 'serial', 'replay')
+
+
+def make_backend(name: str, params: dict):
+    """Instantiate a backend by name from the node's parameter values."""
+    if name == 'sim':
+        from galvo_driver.sim_backend import SimBackend
+        return SimBackend(rig=params['rig'], scene=params['scene'], seed=params['seed'])
+    if name == 'serial':
+        from galvo_driver.serial_link.backend import SerialBackend
+        return SerialBackend(params['serial_port'])
+    if name == 'replay':
+        from galvo_driver.replay_backend import ReplayBackend
+        return ReplayBackend(params['replay_bag'], rate=params['replay_rate'])
+    raise ValueError(f"backend: unknown '{name}'; known: {', '.join(BACKENDS)}")
+
+
+def _stamp(msg_stamp, t: float):
+    sec = int(np.floor(t))
+    msg_stamp.sec = sec
+    msg_stamp.nanosec = min(int(round((t - sec) * 1e9)), 999_999_999)
+
+
+class GalvoDriverNode(LifecycleNode):
+    """Lifecycle node publishing frames and galvo states from one backend."""
+
+    def __init__(self, **kwargs):
+        super().__init__('galvo_driver', **kwargs)
+        d = self._declare
+        d('backend', 'sim', f"frame source: {', '.join(BACKENDS)}")
+        d('rig', 'reference', 'sim: rig description (name of a shipped rig or a YAML path)')
+        d('scene', 'stair', 'sim: scene (name of a shipped scene or a YAML path)')
+        d('seed', 0, 'sim: random seed for noise and jitter', ints=(0, 2 ** 31 - 1))
+        d('serial_port', '', 'serial: pyserial port or URL of the DAC board')
+        d('replay_bag', '', 'replay: rosbag2 directory to publish')
+        d('replay_rate', 1.0, 'replay: speed factor (0 = as fast as possible)',
+          floats=(0.0, 100.0))
+        d('frame_rate', 500.0, 'default scan frame rate [Hz]', floats=(1.0, 2000.0))
+        d('camera_frame_id', 'camera_optical', 'frame_id of images and camera info')
+        d('output_frame_id', 'v0', 'frame_id of galvo states (the fixed output frame)')
+        d('autostart', True, 'configure and activate at start-up')
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.backend = None
+        self._pubs = ()
+        self._timer = None
+        self._scan = {'scan_id': '', 'state': 'idle', 'total': 0, 'done': 0, 'dropped': 0,
+                      't0': 0.0, 'last_seq': None}
+        self._scan_count = 0
+        self.create_service(StartScan, 'scan/start', self._on_start)
+        self.create_service(StopScan, 'scan/stop', self._on_stop)
+        self.create_service(GetScanProgress, 'scan/progress', self._on_progress)
+        self.create_service(SetScene, 'sim/set_scene', self._on_set_scene)
+        if self.get_parameter('autostart').value:
+            self.trigger_configure()
+            if self.backend is not None:
+                self.trigger_activate()
+
+    # -- parameters -------------------------------------------------------------------
+    def _declare(self, name, default, description, floats=None, ints=None):
+        desc = ParameterDescriptor(description=description)
+        if floats:
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=floats[0], to_value=floats[1], step=0.0)]
+        if ints:
+            desc.integer_range = [IntegerRange(from_value=ints[0], to_value=ints[1], step=1)]
+        self.declare_parameter(name, default, desc)
+
+    def _on_set_parameters(self, params):
+        for p in params:
+            if p.name == 'backend' and p.value not in BACKENDS:
+                return SetParametersResult(
+                    successful=False, reason=f"backend must be one of {', '.join(BACKENDS)}")
+            if p.name in ('rig', 'scene', 'seed', 'backend', 'serial_port', 'replay_bag') \
+                    and self.backend is not None:
+                return SetParametersResult(
+                    successful=False, reason=f'{p.name} can only change while unconfigured')
+        return SetParametersResult(successful=True)
+
+    def _params(self):
+        return {n: self.get_parameter(n).value for n in (
+            'backend', 'rig', 'scene', 'seed', 'serial_port', 'replay_bag', 'replay_rate')}
+
+    # -- lifecycle --------------------------------------------------------------------
+    def on_configure(self, state):
+        params = self._params()
+        try:
+            self.backend = make_backend(params['backend'], params)
+            self.backend.open()
+        except (BackendError, ValueError, OSError) as exc:
+            self.get_logger().error(f'configure failed: {exc}')
+            self.backend = None
+            return TransitionCallbackReturn.FAILURE
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self._pubs = (self.create_lifecycle_publisher(Image, 'camera/image_raw', qos),
+                      self.create_lifecycle_publisher(CameraInfo, 'camera/camera_info', qos),
+                      self.create_lifecycle_publisher(GalvoState, 'galvo/state', qos))
+        self._camera_info = self._make_camera_info()
+        self.get_logger().info(f'configured backend {self.backend.name}')
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_activate(self, state):
+        self.backend.arm()
+        self._timer = self.create_timer(0.001, self._tick)
+        self.get_logger().info('active')
+        return super().on_activate(state)
+
+    def on_deactivate(self, state):
+        self._stop_timer()
+        self.make_safe()
+        return super().on_deactivate(state)
+
+    def on_cleanup(self, state):
+        self._close()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_shutdown(self, state):
+        self._stop_timer()
+        self._close()
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_error(self, state):
+        self._stop_timer()
+        self.make_safe()
+        return TransitionCallbackReturn.SUCCESS
+
+    def _stop_timer(self):
+        if self._timer is not None:
+            self.destroy_timer(self._timer)
+            self._timer = None
+
+    def _close(self):
+        if self.backend is not None:
+            self.make_safe()
+            try:
+                self.backend.close()
+            except Exception as exc:  # noqa: BLE001 - closing must not raise
+                self.get_logger().error(f'closing backend: {exc}')
+            self.backend = None
+
+    def make_safe(self):
+        """Galvos to 0 V, laser off. Safe to call at any time, never raises."""
+        if self.backend is not None:
+            try:
+                self.backend.safe()
+            except Exception as exc:  # noqa: BLE001 - the safe path must not raise
+                self.get_logger().error(f'safe state failed: {exc}')
+        if self._scan['state'] == 'running':
+            self._scan['state'] = 'stopped'
+
+    # -- frames -----------------------------------------------------------------------
+    def _make_camera_info(self):
+        info = CameraInfo()
+        cam = getattr(self.backend, 'camera_info', None)
+        if cam:
+            info.width, info.height = int(cam['width']), int(cam['height'])
+            info.distortion_model = 'plumb_bob'
+            info.d = [float(x) for x in cam['dist']]
+            info.k = [float(x) for x in np.asarray(cam['K'], float).ravel()]
+            info.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+            k = info.k
+            info.p = [k[0], 0.0, k[2], 0.0, 0.0, k[4], k[5], 0.0, 0.0, 0.0, 1.0, 0.0]
+        info.header.frame_id = self.get_parameter('camera_frame_id').value
+        return info
+
+    def _tick(self):
+        if self.backend is None:
+            return
+        try:
+            frames = self.backend.poll(0.0)
+        except BackendError as exc:
+            self.get_logger().error(f'backend fault, going safe: {exc}')
+            self._scan['state'] = 'fault'
+            self.make_safe()
+            return
+        for frame in frames:
+            self._publish(frame)
+        if self._scan['state'] == 'running' and not self.backend.running:
+            self._scan['state'] = 'done'
+            self.get_logger().info(
+                f"scan {self._scan['scan_id']} done: {self._scan['done']} frames, "
+                f"{self._scan['dropped']} dropped")
+
+    def _publish(self, frame):
+        img_pub, info_pub, state_pub = self._pubs
+        scan = self._scan
+        if scan['last_seq'] is not None and frame.seq != scan['last_seq'] + 1:
+            gap = frame.seq - scan['last_seq'] - 1
+            scan['dropped'] += max(gap, 0)
+            self.get_logger().warning(f"sequence gap: {scan['last_seq']} -> {frame.seq}")
+        scan['last_seq'] = frame.seq
+        scan['done'] += 1
+        state = GalvoState()
+        _stamp(state.header.stamp, frame.stamp)
+        state.header.frame_id = self.get_parameter('output_frame_id').value
+        state.seq = int(frame.seq)
+        (state.g1_pan_voltage, state.g1_tilt_voltage,
+         state.g2_pan_voltage, state.g2_tilt_voltage) = (float(v) for v in frame.voltages)
+        state.laser_on = bool(frame.laser_on)
+        state.status = int(frame.status)
+        if frame.image is not None:
+            img = Image()
+            img.header.stamp = state.header.stamp
+            img.header.frame_id = self.get_parameter('camera_frame_id').value
+            img.height, img.width = frame.image.shape
+            img.encoding = 'mono8' if frame.image.dtype == np.uint8 else 'mono16'
+            img.step = frame.image.strides[0]
+            img.data = frame.image.tobytes()
+            img_pub.publish(img)
+            self._camera_info.header.stamp = state.header.stamp
+            info_pub.publish(self._camera_info)
+        state_pub.publish(state)
+
+    # -- services ---------------------------------------------------------------------
+    def _on_start(self, req, resp):
+        if self.backend is None or self._timer is None:
+            resp.success, resp.message = False, 'driver is not active'
+            return resp
+        if self.backend.running:
+            resp.success, resp.message = False, f"scan {self._scan['scan_id']} still running"
+            return resp
+        try:
+            voltages = patterns.from_request(req)
+            rate = req.frame_rate or self.get_parameter('frame_rate').value
+            if not (np.isfinite(rate) and 0 < rate <= 2000):
+                raise ValueError(f'frame_rate: {rate} Hz outside (0, 2000]')
+            total = self.backend.start(voltages, rate, bool(req.laser_on))
+        except (ValueError, BackendError) as exc:
+            resp.success, resp.message = False, f'scan refused: {exc}'
+            self.get_logger().warning(resp.message)
+            return resp
+        self._scan_count += 1
+        scan_id = req.scan_id or f'scan{self._scan_count:04d}'
+        self._scan.update(scan_id=scan_id, state='running', total=total, done=0, dropped=0,
+                          t0=time.monotonic(), last_seq=None)
+        resp.success, resp.scan_id, resp.frames_total = True, scan_id, total
+        resp.expected_duration = total / rate
+        resp.message = f"{req.pattern} scan '{scan_id}': {total} frames at {rate:g} Hz"
+        self.get_logger().info(resp.message)
+        return resp
+
+    def _on_stop(self, req, resp):
+        scan = self._scan
+        running = self.backend is not None and self.backend.running
+        if self.backend is not None:
+            self.backend.stop()
+        if running:
+            scan['state'] = 'stopped'
+        resp.success = True
+        resp.scan_id = scan['scan_id'] if running else ''
+        resp.frames_done = scan['done']
+        resp.message = (f"stopped {scan['scan_id']} after {scan['done']} frames" if running
+                        else 'no scan was running; galvos at 0 V, laser off')
+        return resp
+
+    def _on_progress(self, req, resp):
+        scan = self._scan
+        resp.success = True
+        resp.scan_id, resp.state = scan['scan_id'], scan['state']
+        resp.frames_done, resp.frames_total = scan['done'], scan['total']
+        resp.frames_dropped = scan['dropped']
+        resp.elapsed = time.monotonic() - scan['t0'] if scan['t0'] else 0.0
+        rate = scan['done'] / resp.elapsed if resp.elapsed > 0 else 0.0
+        left = max(scan['total'] - scan['done'], 0)
+        resp.remaining = left / rate if rate > 0 else float('nan') if left else 0.0
+        resp.message = f"{scan['state']}: {scan['done']}/{scan['total']} frames"
+        return resp
+
+    def _on_set_scene(self, req, resp):
+        set_scene = getattr(self.backend, 'set_scene', None)
+        if set_scene is None:
+            resp.success, resp.message = False, 'set_scene needs the sim backend, configured'
+            return resp
+        if self.backend.running:
+            resp.success, resp.message = False, 'cannot change the scene during a scan'
+            return resp
+        try:
+            resp.objects = set_scene(path=req.scene_path or None, text=req.scene_yaml or None)
+        except (ValueError, OSError) as exc:
+            resp.success, resp.message = False, str(exc)
+            return resp
+        resp.success, resp.message = True, f'scene set: {resp.objects} objects'
+        return resp
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = GalvoDriverNode()
+    executor = rclpy.executors.SingleThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.make_safe()
+        node._close()
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

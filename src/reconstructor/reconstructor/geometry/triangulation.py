@@ -1,0 +1,284 @@
+"""Triangulation of stripe pixels against the dynamic laser plane (DESIGN.md §2, Eq. 8), and
+prediction of pixels from V0 points.
+
+For an undistorted normalised ray ``r = (x, y, 1)`` in V and the laser plane
+``pi_V = (a, b, c, e)`` in V: ``Z = -e / (a x + b y + c)``, ``p_V = Z r``,
+``p_V0 = V0_T_V @ p_V`` (then the joint correction, if the model has one).
+
+A point is invalid when its pixel or any voltage of its frame is non-finite, when its
+undistortion does not converge, when its ray meets the plane at less than ``min_angle``
+(nearly parallel), or when the intersection is not in front of the camera (``Z <= 0``).
+Invalid points keep their row, are set to 0 in ``p_v`` and ``p_v0`` (never NaN) and are False
+in ``valid``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import CameraIntrinsics, project_points, undistort_normalised
+from .checks import as_float_array, as_points, as_scalar
+from .galvo import rigid_inverse
+from .laser import laser_plane_v0, laser_plane_v0_scalar, transform_plane
+from .rig import RigModel, v0_T_v, v0_T_v_scalar
+
+#: Default smallest angle between a pixel ray and the laser plane, radians.
+DEFAULT_MIN_RAY_PLANE_ANGLE = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class TriangulationResult:
+    """Triangulated points; one row per input pixel.
+
+    Attributes
+    ----------
+    p_v : ndarray, shape (n, 3), metres
+        Points in their frame's virtual camera V (0 where invalid).
+    p_v0 : ndarray, shape (n, 3), metres
+        Points in V0, after the joint correction if the model has one (0 where invalid).
+    valid : ndarray of bool, shape (n,)
+    n_nonfinite : int
+        Points with a non-finite pixel or a non-finite voltage in their frame.
+    n_unconverged : int
+        Points whose undistortion did not converge (no preimage under the lens distortion).
+    n_parallel : int
+        Points whose ray is within ``min_angle`` of parallel to the laser plane.
+    n_behind : int
+        Points whose intersection is not in front of the camera (Z <= 0).
+
+    ``p_v`` and ``p_v0`` may be transposed views of (3, n) arrays (not C-contiguous).
+    """
+
+    p_v: np.ndarray
+    p_v0: np.ndarray
+    valid: np.ndarray
+    n_nonfinite: int = 0
+    n_unconverged: int = 0
+    n_parallel: int = 0
+    n_behind: int = 0
+
+    @property
+    def n_invalid(self) -> int:
+        """Total number of invalid points."""
+        return self.n_nonfinite + self.n_unconverged + self.n_parallel + self.n_behind
+
+
+def _check_min_angle(min_angle) -> float:
+    a = as_scalar(min_angle, 'min_angle')
+    if not 0.0 <= a < math.pi / 2:
+        raise ValueError(f'min_angle must be in [0, pi/2), got {a}')
+    return a
+
+
+def _rays(intr: CameraIntrinsics, uv: np.ndarray):
+    """Undistorted rays of pixels: (x shape (2, n), r2 (n,), finite mask or None, conv or None)."""
+    plan = intr._plan
+    finite = None
+    if not math.isfinite(uv.sum()):
+        finite = np.isfinite(uv).all(axis=1)
+        uv = np.where(finite[:, None], uv, plan.c[:, 0])
+        if finite.all():  # the sum overflowed, every entry is finite
+            finite = None
+    xd = np.subtract(uv.T, plan.c, order='C')
+    xd *= plan.finv
+    x, r2, converged = undistort_normalised(intr, xd)
+    return x, r2, finite, converged
+
+
+def _bookkeeping(p_v, p_v0, ok, front, finite, converged):
+    """Zero invalid rows and count the reasons; arrays are (3, n)."""
+    n = ok.shape[0]
+    good_in = np.ones(n, dtype=bool) if finite is None else finite.copy()
+    conv = np.ones(n, dtype=bool) if converged is None else converged
+    unconv = good_in & ~conv
+    reach = good_in & conv
+    parallel = reach & ~ok
+    behind = reach & ok & ~front
+    valid = reach & ok & front
+    p_v[:, ~valid] = 0.0
+    p_v0[:, ~valid] = 0.0
+    return TriangulationResult(
+        p_v=p_v.T,
+        p_v0=p_v0.T,
+        valid=valid,
+        n_nonfinite=int(n - np.count_nonzero(good_in)),
+        n_unconverged=int(np.count_nonzero(unconv)),
+        n_parallel=int(np.count_nonzero(parallel)),
+        n_behind=int(np.count_nonzero(behind)),
+    )
+
+
+def _all_invalid(n: int) -> TriangulationResult:
+    return TriangulationResult(
+        p_v=np.zeros((n, 3)), p_v0=np.zeros((n, 3)), valid=np.zeros(n, dtype=bool), n_nonfinite=n
+    )
+
+
+def triangulate(
+    model: RigModel,
+    uv,
+    u1_pan,
+    u1_tilt,
+    u2_tilt,
+    *,
+    min_angle: float = DEFAULT_MIN_RAY_PLANE_ANGLE,
+) -> TriangulationResult:
+    """Triangulate the stripe pixels of one frame.
+
+    Parameters
+    ----------
+    model : RigModel
+    uv : array_like, shape (n, 2), pixels
+        Distorted stripe-centre pixel coordinates (undistorted here).
+    u1_pan, u1_tilt, u2_tilt : float, volts
+        G1 pan, G1 tilt and G2 tilt voltages of the frame (non-finite -> all points invalid).
+    min_angle : float, radians
+        Rays meeting the laser plane at a smaller angle are invalid.
+
+    Returns
+    -------
+    TriangulationResult
+    """
+    uv = as_points(uv, 'uv', 2)
+    u1p = as_scalar(u1_pan, 'u1_pan')
+    u1t = as_scalar(u1_tilt, 'u1_tilt')
+    u2t = as_scalar(u2_tilt, 'u2_tilt')
+    sin_min = math.sin(_check_min_angle(min_angle))
+    n = uv.shape[0]
+    if not (math.isfinite(u1p) and math.isfinite(u1t) and math.isfinite(u2t)):
+        return _all_invalid(n)
+    T = v0_T_v_scalar(model, u1p, u1t)
+    plane_v = T.T @ np.array(laser_plane_v0_scalar(model, u2t))
+    if model.correction is not None:
+        T = np.asarray(model.correction.V0c_T_V0(u1p, u1t), dtype=np.float64) @ T
+    with np.errstate(all='ignore'):
+        x, r2, finite, converged = _rays(model.intrinsics, uv)
+        denom = plane_v[:2] @ x
+        denom += plane_v[2]
+        # |cos(normal, ray)| >= sin(min_angle), with |ray| = sqrt(1 + r2) and a unit normal.
+        ok = denom * denom >= (sin_min * sin_min) * (1.0 + r2)
+        all_ok = finite is None and converged is None and bool(ok.all())
+        if all_ok:
+            Z = (-plane_v[3]) / denom
+        else:
+            Z = np.divide(-plane_v[3], denom, out=np.zeros_like(denom), where=ok)
+        front = Z > 0.0
+        p_v = np.empty((3, n))
+        np.multiply(x, Z, out=p_v[:2])
+        p_v[2] = Z
+        p_v0 = T[:3, :3] @ p_v
+        p_v0 += T[:3, 3:]
+        if all_ok and front.all():
+            return TriangulationResult(p_v=p_v.T, p_v0=p_v0.T, valid=front)
+        return _bookkeeping(p_v, p_v0, ok, front, finite, converged)
+
+
+def triangulate_batch(
+    model: RigModel,
+    uv,
+    frame_index,
+    voltages,
+    *,
+    min_angle: float = DEFAULT_MIN_RAY_PLANE_ANGLE,
+) -> TriangulationResult:
+    """Triangulate the stripe pixels of several frames at once.
+
+    Parameters
+    ----------
+    model : RigModel
+    uv : array_like, shape (n, 2), pixels
+        Distorted stripe-centre pixel coordinates of all frames.
+    frame_index : array_like of int, shape (n,)
+        Row of ``voltages`` that each pixel belongs to, in [0, m).
+    voltages : array_like, shape (m, 4), volts
+        Per frame ``(U1_pan, U1_tilt, U2_pan, U2_tilt)``. U2_pan does not enter the model
+        (the paper's model has no G2 pan term) but a non-finite value still invalidates the
+        frame, like any other non-finite voltage.
+    min_angle : float, radians
+        Rays meeting the laser plane at a smaller angle are invalid.
+
+    Returns
+    -------
+    TriangulationResult
+    """
+    uv = as_points(uv, 'uv', 2)
+    volts = as_points(voltages, 'voltages', 4)
+    fi = frame_index if isinstance(frame_index, np.ndarray) else np.asarray(frame_index)
+    n, m = uv.shape[0], volts.shape[0]
+    if fi.shape != (n,):
+        raise ValueError(f'frame_index must have shape ({n},) like uv, got {fi.shape}')
+    if n and not np.issubdtype(fi.dtype, np.integer):
+        raise ValueError(f'frame_index must be integers, got dtype {fi.dtype}')
+    if n and (fi.min() < 0 or fi.max() >= m):
+        raise ValueError(f'frame_index must be in [0, {m}), got [{fi.min()}, {fi.max()}]')
+    sin_min = math.sin(_check_min_angle(min_angle))
+    frame_ok = np.isfinite(volts).all(axis=1)
+    v = np.where(frame_ok[:, None], volts, 0.0)
+    T = v0_T_v(model, v[:, 0], v[:, 1])
+    plane_v = transform_plane(T, laser_plane_v0(model, v[:, 3]))
+    if model.correction is not None:
+        C = np.asarray(model.correction.V0c_T_V0(v[:, 0], v[:, 1]), dtype=np.float64)
+        T = C @ T
+    with np.errstate(all='ignore'):
+        x, r2, finite, converged = _rays(model.intrinsics, uv)
+        if not frame_ok.all():
+            point_ok = frame_ok[fi]
+            finite = point_ok if finite is None else finite & point_ok
+        pl = plane_v[fi].T  # (4, n)
+        denom = pl[0] * x[0] + pl[1] * x[1] + pl[2]
+        ok = denom * denom >= (sin_min * sin_min) * (1.0 + r2)
+        Z = np.divide(-pl[3], denom, out=np.zeros_like(denom), where=ok)
+        front = Z > 0.0
+        p_v = np.empty((3, n))
+        np.multiply(x, Z, out=p_v[:2])
+        p_v[2] = Z
+        Tp = T[fi]
+        p_v0 = (Tp[:, :3, :3] @ p_v.T[:, :, None])[:, :, 0].T + Tp[:, :3, 3].T
+        return _bookkeeping(p_v, p_v0, ok, front, finite, converged)
+
+
+def predict_pixels(model: RigModel, p_v0, u1_pan, u1_tilt) -> tuple[np.ndarray, np.ndarray]:
+    """Project V0 points into the image for given G1 voltages, with distortion.
+
+    Parameters
+    ----------
+    model : RigModel
+    p_v0 : array_like, shape (n, 3), metres
+        Points in V0 (the corrected V0 if the model has a joint correction, i.e. the frame
+        that :func:`triangulate` outputs).
+    u1_pan, u1_tilt : float or array_like of shape (n,), volts
+        G1 voltages, one pair for all points or one pair per point.
+
+    Returns
+    -------
+    uv : ndarray, shape (n, 2), pixels
+        Distorted pixel coordinates; NaN where ``in_front`` is False.
+    in_front : ndarray of bool, shape (n,)
+        True where the point is finite and in front of the virtual camera (Z > 0). Image
+        bounds are not checked.
+    """
+    p = as_points(p_v0, 'p_v0', 3)
+    n = p.shape[0]
+    up = as_float_array(u1_pan, 'u1_pan')
+    ut = as_float_array(u1_tilt, 'u1_tilt')
+    for name, arr in (('u1_pan', up), ('u1_tilt', ut)):
+        if arr.shape not in ((), (n,)):
+            raise ValueError(f'{name} must be a scalar or have shape ({n},), got {arr.shape}')
+    T = v0_T_v(model, up, ut)
+    if model.correction is not None:
+        C = np.asarray(model.correction.V0c_T_V0(up, ut), dtype=np.float64)
+        T = C @ T
+        V_T_V0 = np.linalg.inv(T)
+    else:
+        V_T_V0 = rigid_inverse(T)
+    with np.errstate(all='ignore'):
+        if V_T_V0.ndim == 2:
+            p_v = p @ V_T_V0[:3, :3].T + V_T_V0[:3, 3]
+        else:
+            p_v = (V_T_V0[:, :3, :3] @ p[:, :, None])[:, :, 0] + V_T_V0[:, :3, 3]
+    uv = project_points(model.intrinsics, p_v)
+    in_front = np.isfinite(uv).all(axis=1)
+    return uv, in_front
