@@ -5,7 +5,8 @@ largest 3x3 box sum (the candidate peak, around which the extractors open their 
 interest) and the row of the largest 3x3 box sum that lies more than ``excl`` rows away from
 it and is a local maximum (a secondary-peak candidate: a reflection, a speck, ...).
 
-The pass runs row by row (memory order) with the column loop innermost, so it vectorises.
+The pass runs row by row (memory order) with the column loop innermost; box sums are taken
+at every second row (their 3-row windows still cover the image).
 Box maxima of blocks of ``BLOCK_ROWS`` rows are kept on the way; the secondary search then
 reads those block maxima and rescans only the (at most two) blocks cut by the exclusion zone.
 """
@@ -44,16 +45,20 @@ def box3(img, r, c):
 def column_peaks(img, excl, cand, sec):
     """Candidate and secondary-candidate row of every column.
 
+    The 3x3 box sums are evaluated at the odd rows 1, 3, 5, ... only: their windows still
+    cover every row, and the extractors refine the peak row on the smoothed profile.
+
     Parameters
     ----------
     img : ndarray, shape (H, W), uint8 or uint16, C-contiguous; H, W >= 3
     excl : int
         Half size of the zone around the candidate in which no secondary is sought [px].
     cand : ndarray, shape (W,), int32 (output)
-        Row of the largest 3x3 box sum, in 1..H-2.
+        Odd row of the largest 3x3 box sum, in 1..H-2.
     sec : ndarray, shape (W,), int32 (output)
-        Row of the largest 3x3 box sum with ``|row - cand| > excl`` that is a local maximum
-        of the column's box sums, or -1 if there is none.
+        Row of a local maximum of the column's box sums outside ``[cand - excl, cand + excl]``
+        (the largest one found at the odd rows, climbed to its local maximum), or -1 if there
+        is none or if it is only the main peak's flank rising into the zone.
     """
     H, W = img.shape
     B = BLOCK_ROWS
@@ -61,25 +66,25 @@ def column_peaks(img, excl, cand, sec):
     best = np.full(W, -1, np.int32)
     bmax = np.full((nb, W), -1, np.int32)
     barg = np.zeros((nb, W), np.int32)
-    hs = np.empty((3, W), np.int32)
-    _row_sum3(img, 0, hs[0])
-    _row_sum3(img, 1, hs[1])
-    for r in range(1, H - 1):
-        _row_sum3(img, r + 1, hs[(r + 1) % 3])
-        a = hs[(r - 1) % 3]
-        b = hs[r % 3]
-        d = hs[(r + 1) % 3]
+    hprev = np.empty(W, np.int32)
+    hmid = np.empty(W, np.int32)
+    hnext = np.empty(W, np.int32)
+    _row_sum3(img, 0, hprev)
+    for r in range(1, H - 1, 2):
+        _row_sum3(img, r, hmid)
+        _row_sum3(img, r + 1, hnext)
         bm = bmax[r // B]
         ba = barg[r // B]
         for c in range(W):
-            s = a[c] + b[c] + d[c]
+            s = hprev[c] + hmid[c] + hnext[c]
+            hprev[c] = hnext[c]
             if s > best[c]:
                 best[c] = s
                 cand[c] = r
             if s > bm[c]:
                 bm[c] = s
                 ba[c] = r
-    # Secondary: largest box sum outside [cand - excl, cand + excl].
+    # Secondary: largest box sum (odd rows) outside [cand - excl, cand + excl].
     sv = np.full(W, -1, np.int32)
     for c in range(W):
         sec[c] = -1
@@ -87,9 +92,7 @@ def column_peaks(img, excl, cand, sec):
         r0 = k * B
         r1 = min(r0 + B, H) - 1
         for c in range(W):
-            lo = cand[c] - excl
-            hi = cand[c] + excl
-            if r1 < lo or r0 > hi:
+            if r1 < cand[c] - excl or r0 > cand[c] + excl:
                 if bmax[k, c] > sv[c]:
                     sv[c] = bmax[k, c]
                     sec[c] = barg[k, c]
@@ -103,19 +106,28 @@ def column_peaks(img, excl, cand, sec):
                 sv[c] = bmax[k, c]
                 sec[c] = barg[k, c]
                 continue
-            for r in range(max(k * B, 1), min(k * B + B, H - 1)):
+            for r in range(k * B + 1, min(k * B + B, H - 1), 2):
                 if r < lo or r > hi:
                     s = box3(img, r, c)
                     if s > sv[c]:
                         sv[c] = s
                         sec[c] = r
-        # A maximum right at the zone's edge that rises into the zone is the main peak's tail.
+        # Climb to the local maximum; reaching the zone means the main peak's flank.
         r = sec[c]
-        if r >= 0:
-            if r == lo - 1 and lo <= H - 2 and box3(img, lo, c) >= sv[c]:
-                sec[c] = -1
-            elif r == hi + 1 and hi >= 1 and box3(img, hi, c) >= sv[c]:
-                sec[c] = -1
+        if r < 0:
+            continue
+        v = sv[c]
+        for step in (1, -1):
+            while 1 <= r + step <= H - 2:
+                nv = box3(img, r + step, c)
+                if nv <= v:
+                    break
+                v = nv
+                r += step
+        if lo <= r <= hi:
+            sec[c] = -1
+        else:
+            sec[c] = r
 
 
 def find_candidates(img: np.ndarray, excl: int) -> tuple[np.ndarray, np.ndarray]:

@@ -16,14 +16,20 @@ import numba
 import numpy as np
 
 from .candidates import column_peaks
-from .extractor import FWHM_PER_SIGMA, ExtractorConfig, gaussian_kernels
+from .extractor import FWHM_PER_SIGMA, ExtractorConfig, stacked_kernels
 from .steger import is_secondary, roi_profile_peak
 
 
 @numba.njit(cache=True, nogil=True)
-def cog_columns(img, cand, sec, R, K, g0, h, min_strength, out_u, out_v, out_w, out_s):
-    """Centre of gravity of every column. Returns (n, rejected_secondary)."""
+def cog_columns(img, R, kern, h, min_strength, out):
+    """Centre of gravity of every column; arguments as :func:`.steger.steger_columns`, plus
+    the half window ``h`` [px]. Returns (n, rejected_secondary)."""
     H, W = img.shape
+    g0 = kern[0]
+    K = kern.shape[1] - 1
+    cand = np.empty(W, np.int32)
+    sec = np.empty(W, np.int32)
+    column_peaks(img, R, cand, sec)
     n = 0
     nsec = 0
     for c in range(W):
@@ -50,10 +56,10 @@ def cog_columns(img, cand, sec, R, K, g0, h, min_strength, out_u, out_v, out_w, 
             continue
         mean = s1 / s0
         var = max(s2 / s0 - mean * mean, 0.0)
-        out_u[n] = c
-        out_v[n] = r0 + mean
-        out_w[n] = FWHM_PER_SIGMA * math.sqrt(var)
-        out_s[n] = strength
+        out[0, n] = c
+        out[1, n] = r0 + mean
+        out[2, n] = FWHM_PER_SIGMA * math.sqrt(var)
+        out[3, n] = strength
         n += 1
         if is_secondary(img, sec[c], c, K, g0, bg, min_strength):
             nsec += 1
@@ -73,15 +79,8 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig):
     u, v, width, strength : ndarray, shape (n,), float32
     rejected_secondary : int
     """
-    g0, _, _ = gaussian_kernels(config.sigma)
-    K = g0.shape[0] - 1
-    W = img.shape[1]
-    cand = np.empty(W, np.int32)
-    sec = np.empty(W, np.int32)
-    column_peaks(img, config.roi_half_height, cand, sec)
     h = max(2, int(math.ceil(config.line_width_px)))
-    out = np.empty((4, W), np.float32)
-    n, nsec = cog_columns(img, cand, sec, config.roi_half_height, K, g0, h,
-                          config.min_strength, out[0], out[1], out[2], out[3])
-    out = out[:, :n]
-    return out[0].copy(), out[1].copy(), out[2].copy(), out[3].copy(), nsec
+    out = np.empty((4, img.shape[1]), np.float32)
+    n, nsec = cog_columns(img, config.roi_half_height, stacked_kernels(config.sigma), h,
+                          config.min_strength, out)
+    return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec

@@ -20,6 +20,7 @@ Conventions
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -172,6 +173,14 @@ def gaussian_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     d2 /= 0.5 * np.sum(k * k * d2)            # sum k^2 d2 / 2 = 1: exact on f = x^2
     return (np.ascontiguousarray(g0[K:]), np.ascontiguousarray(d1[K:]),
             np.ascontiguousarray(d2[K:]))
+
+
+@functools.lru_cache(maxsize=32)
+def stacked_kernels(sigma: float) -> np.ndarray:
+    """``gaussian_kernels(sigma)`` stacked to shape (3, K + 1), float64, read-only (cached)."""
+    kern = np.ascontiguousarray(np.stack(gaussian_kernels(sigma)))
+    kern.setflags(write=False)
+    return kern
 
 
 def check_image(image) -> np.ndarray:

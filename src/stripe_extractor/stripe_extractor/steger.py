@@ -33,7 +33,7 @@ import numba
 import numpy as np
 
 from .candidates import box3, column_peaks
-from .extractor import FWHM_PER_SIGMA, ExtractorConfig, gaussian_kernels
+from .extractor import FWHM_PER_SIGMA, ExtractorConfig, stacked_kernels
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
@@ -41,7 +41,7 @@ def smooth_column(img, r, c, K, g0):
     """Column profile at (r, c) smoothed by the 1-D Gaussian g0 (rows r-K..r+K must exist)."""
     s = g0[0] * img[r, c]
     for k in range(1, K + 1):
-        s += g0[k] * (np.float64(img[r + k, c]) + np.float64(img[r - k, c]))
+        s += g0[k] * (np.float32(img[r + k, c]) + np.float32(img[r - k, c]))
     return s
 
 
@@ -83,10 +83,10 @@ def roi_profile_peak(img, c, p, a, b, K, g0):
 def smooth_at(img, r, c, K, g0):
     """2-D Gaussian-smoothed value at pixel (r, c); indices clamped at the image borders."""
     H, W = img.shape
-    s = 0.0
+    s = np.float32(0.0)
     for j in range(-K, K + 1):
         rr = min(max(r + j, 0), H - 1)
-        h = 0.0
+        h = np.float32(0.0)
         for k in range(-K, K + 1):
             cc = min(max(c + k, 0), W - 1)
             h += g0[abs(k)] * img[rr, cc]
@@ -115,10 +115,10 @@ def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
     Returns (t*n_u, t*n_v, lambda, smoothed value at the point); lambda >= 0 means no ridge.
     """
     rr = g0[0] * h0[j0]
-    rv = 0.0
+    rv = np.float32(0.0)
     rvv = d2[0] * h0[j0]
     ru = g0[0] * h1[j0]
-    ruv = 0.0
+    ruv = np.float32(0.0)
     ruu = g0[0] * h2[j0]
     for k in range(1, K + 1):
         s0 = h0[j0 + k] + h0[j0 - k]
@@ -147,7 +147,7 @@ def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
         ny = by
     norm = math.sqrt(nx * nx + ny * ny)
     if norm == 0.0:                     # isotropic: normal along the column
-        nx = 0.0
+        nx = np.float32(0.0)
         ny = 1.0
     else:
         nx /= norm
@@ -161,11 +161,11 @@ def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
 def _line_point_1d(img, r, c, K, g0, d1, d2):
     """Column-only Steger at pixel (r, c): normal = column direction."""
     rr = g0[0] * img[r, c]
-    rv = 0.0
+    rv = np.float32(0.0)
     rvv = d2[0] * img[r, c]
     for k in range(1, K + 1):
-        p = np.float64(img[r + k, c])
-        m = np.float64(img[r - k, c])
+        p = np.float32(img[r + k, c])
+        m = np.float32(img[r - k, c])
         rr += g0[k] * (p + m)
         rv += d1[k] * (p - m)
         rvv += d2[k] * (p + m)
@@ -178,13 +178,13 @@ def _line_point_1d(img, r, c, K, g0, d1, d2):
 @numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
 def _filter_row(img, r, c, K, g0, d1, d2):
     """Row r around column c correlated with g0, d1 and d2 (columns c-K..c+K must exist)."""
-    x0 = np.float64(img[r, c])
+    x0 = np.float32(img[r, c])
     s0 = g0[0] * x0
-    s1 = 0.0
+    s1 = np.float32(0.0)
     s2 = d2[0] * x0
     for k in range(1, K + 1):
-        p = np.float64(img[r, c + k])
-        m = np.float64(img[r, c - k])
+        p = np.float32(img[r, c + k])
+        m = np.float32(img[r, c - k])
         s0 += g0[k] * (p + m)
         s1 += d1[k] * (p - m)
         s2 += d2[k] * (p + m)
@@ -192,16 +192,26 @@ def _filter_row(img, r, c, K, g0, d1, d2):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
-                   out_u, out_v, out_w, out_s):
-    """Steger centre of every column (see module docstring). Returns (n, rejected_secondary)."""
+def steger_columns(img, R, kern, sigma, min_strength, out):
+    """Steger centre of every column (see module docstring).
+
+    ``kern`` stacks the half kernels (g0, d1, d2), shape (3, K + 1); ``out`` (shape (4, W))
+    receives u, v, width, strength in its first n columns. Returns (n, rejected_secondary).
+    """
     H, W = img.shape
+    g0 = kern[0]
+    d1 = kern[1]
+    d2 = kern[2]
+    K = kern.shape[1] - 1
+    cand = np.empty(W, np.int32)
+    sec = np.empty(W, np.int32)
+    column_peaks(img, R, cand, sec)
     n = 0
     nsec = 0
     L = 2 * K + 3
-    h0 = np.empty(L)
-    h1 = np.empty(L)
-    h2 = np.empty(L)
+    h0 = np.empty(L, np.float32)
+    h1 = np.empty(L, np.float32)
+    h2 = np.empty(L, np.float32)
     for c in range(W):
         p = cand[c]
         a = max(p - R, K + 1)
@@ -212,10 +222,10 @@ def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
         full = K <= c < W - K
         r = r0
         ok = False
-        du = 0.0
-        dv = 0.0
-        lam = 0.0
-        val = 0.0
+        du = np.float32(0.0)
+        dv = np.float32(0.0)
+        lam = np.float32(0.0)
+        val = np.float32(0.0)
         if full:
             # Horizontal Gaussian-derivative filtering of rows r0-K .. r0+K at column c
             # (slot j holds row r0 - K - 1 + j; slots 0 and L-1 are filled on a step).
@@ -259,10 +269,10 @@ def steger_columns(img, cand, sec, R, K, g0, d1, d2, sigma, min_strength,
         if strength < min_strength:
             continue
         S2 = -strength / lam
-        out_u[n] = c + du
-        out_v[n] = r + dv
-        out_s[n] = strength
-        out_w[n] = FWHM_PER_SIGMA * math.sqrt(max(S2 - sigma * sigma, 0.0))
+        out[0, n] = c + du
+        out[1, n] = r + dv
+        out[3, n] = strength
+        out[2, n] = FWHM_PER_SIGMA * math.sqrt(max(S2 - sigma * sigma, 0.0))
         n += 1
         if is_secondary(img, sec[c], c, K, g0, bg, min_strength):
             nsec += 1
@@ -285,14 +295,7 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig):
     rejected_secondary : int
     """
     sigma = config.sigma
-    g0, d1, d2 = gaussian_kernels(sigma)
-    K = g0.shape[0] - 1
-    W = img.shape[1]
-    cand = np.empty(W, np.int32)
-    sec = np.empty(W, np.int32)
-    column_peaks(img, config.roi_half_height, cand, sec)
-    out = np.empty((4, W), np.float32)
-    n, nsec = steger_columns(img, cand, sec, config.roi_half_height, K, g0, d1, d2, sigma,
-                             config.min_strength, out[0], out[1], out[2], out[3])
-    out = out[:, :n]
-    return out[0].copy(), out[1].copy(), out[2].copy(), out[3].copy(), nsec
+    out = np.empty((4, img.shape[1]), np.float32)
+    n, nsec = steger_columns(img, config.roi_half_height, stacked_kernels(sigma).astype(np.float32), sigma,
+                             config.min_strength, out)
+    return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec

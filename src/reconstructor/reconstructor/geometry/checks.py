@@ -12,10 +12,10 @@ def as_points(arr, name: str, width: int) -> np.ndarray:
     """Return ``arr`` as a float64 array of shape (n, width), or raise ValueError naming it."""
     a = arr if isinstance(arr, np.ndarray) else np.asarray(arr)
     if a.ndim != 2 or a.shape[1] != width:
-        raise ValueError(f'{name} must have shape (n, {width}), got {a.shape}')
+        raise ValueError(f"{name} must have shape (n, {width}), got {a.shape}")
     if a.dtype != np.float64:
         if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-            raise ValueError(f'{name} must be a real numeric array, got dtype {a.dtype}')
+            raise ValueError(f"{name} must be a real numeric array, got dtype {a.dtype}")
         a = a.astype(np.float64)
     return a
 
@@ -26,16 +26,16 @@ def as_scalar(value, name: str) -> float:
         return value
     if isinstance(value, numbers.Real) and not isinstance(value, bool):
         return float(value)
-    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in 'fiu':
+    if isinstance(value, np.ndarray) and value.shape == () and value.dtype.kind in "fiu":
         return float(value)
-    raise ValueError(f'{name} must be a real scalar, got {type(value).__name__} {value!r}')
+    raise ValueError(f"{name} must be a real scalar, got {type(value).__name__} {value!r}")
 
 
 def finite_scalar(value, name: str) -> float:
     """Return a finite real scalar as float, or raise ValueError naming it."""
     v = as_scalar(value, name)
     if not math.isfinite(v):
-        raise ValueError(f'{name} must be finite, got {v}')
+        raise ValueError(f"{name} must be finite, got {v}")
     return v
 
 
@@ -44,11 +44,11 @@ def finite_vector(value, name: str, length: int) -> np.ndarray:
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f'{name} must be a numeric vector of length {length}: {exc}') from None
+        raise ValueError(f"{name} must be a numeric vector of length {length}: {exc}") from None
     if a.shape != (length,):
-        raise ValueError(f'{name} must have shape ({length},), got {a.shape}')
+        raise ValueError(f"{name} must have shape ({length},), got {a.shape}")
     if not np.all(np.isfinite(a)):
-        raise ValueError(f'{name} must be finite, got {a.tolist()}')
+        raise ValueError(f"{name} must be finite, got {a.tolist()}")
     a.flags.writeable = False
     return a
 
@@ -57,7 +57,7 @@ def as_float_array(value, name: str) -> np.ndarray:
     """Return a real float64 array of any shape, or raise ValueError naming it."""
     a = value if isinstance(value, np.ndarray) else np.asarray(value)
     if a.dtype != np.float64:
-        if a.dtype.kind not in 'fiu':
-            raise ValueError(f'{name} must be real numeric, got dtype {a.dtype}')
+        if a.dtype.kind not in "fiu":
+            raise ValueError(f"{name} must be real numeric, got dtype {a.dtype}")
         a = a.astype(np.float64)
     return a

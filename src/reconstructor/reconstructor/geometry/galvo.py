@@ -37,11 +37,11 @@ class MirrorParams:
     poly: tuple[float, ...] = ()
 
     def __post_init__(self):
-        object.__setattr__(self, 'theta0', finite_scalar(self.theta0, 'theta0'))
-        object.__setattr__(self, 'k', finite_scalar(self.k, 'k'))
+        object.__setattr__(self, "theta0", finite_scalar(self.theta0, "theta0"))
+        object.__setattr__(self, "k", finite_scalar(self.k, "k"))
         poly = tuple(self.poly) if not isinstance(self.poly, tuple) else self.poly
-        poly = finite_vector(poly, 'poly', len(poly)) if poly else ()
-        object.__setattr__(self, 'poly', tuple(float(c) for c in poly))
+        poly = finite_vector(poly, "poly", len(poly)) if poly else ()
+        object.__setattr__(self, "poly", tuple(float(c) for c in poly))
 
     def angle(self, u):
         """Mirror angle for voltage ``u``.
@@ -82,11 +82,11 @@ class MirrorParams:
             NaN where Newton did not converge (no monotonic inverse there).
         """
         if self.k == 0.0:
-            raise ValueError('k must be non-zero to invert the mirror response')
+            raise ValueError("k must be non-zero to invert the mirror response")
         th = np.asarray(theta, dtype=np.float64)
         u = (th - self.theta0) / self.k
         if self.poly:
-            with np.errstate(all='ignore'):
+            with np.errstate(all="ignore"):
                 for _ in range(max_iter):
                     du = (self.angle(u) - th) / self.slope(u)
                     u = u - du
@@ -97,7 +97,7 @@ class MirrorParams:
 
     def to_dict(self) -> dict:
         """Plain-float dict ``{'theta0', 'k', 'poly'}`` (SI: rad, rad/V, rad/V^n)."""
-        return {'theta0': self.theta0, 'k': self.k, 'poly': list(self.poly)}
+        return {"theta0": self.theta0, "k": self.k, "poly": list(self.poly)}
 
 
 def _angles(theta, name: str) -> np.ndarray:
@@ -116,7 +116,7 @@ def pan_factor(theta_pan) -> np.ndarray:
     -------
     ndarray, shape (..., 4, 4)
     """
-    t = 2.0 * _angles(theta_pan, 'theta_pan')
+    t = 2.0 * _angles(theta_pan, "theta_pan")
     c, s = np.cos(t), np.sin(t)
     out = np.zeros(t.shape + (4, 4))
     out[..., 0, 0] = -c
@@ -142,8 +142,8 @@ def tilt_factor(theta_tilt, d: float) -> np.ndarray:
     -------
     ndarray, shape (..., 4, 4)
     """
-    d = finite_scalar(d, 'd')
-    t = 2.0 * _angles(theta_tilt, 'theta_tilt')
+    d = finite_scalar(d, "d")
+    t = 2.0 * _angles(theta_tilt, "theta_tilt")
     c, s = np.cos(t), np.sin(t)
     out = np.zeros(t.shape + (4, 4))
     out[..., 0, 0] = 1.0
@@ -169,7 +169,7 @@ def m0_factor(l: float) -> np.ndarray:
     -------
     ndarray, shape (4, 4)
     """
-    l = finite_scalar(l, 'l')
+    l = finite_scalar(l, "l")
     return np.array(
         [[0.0, 0.0, 1.0, -l], [1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
     )
@@ -190,13 +190,13 @@ def g_T_v(theta_pan, theta_tilt, l: float, d: float) -> np.ndarray:
     ndarray, shape (..., 4, 4)
         ``G_T_V``: maps V coordinates to G coordinates.
     """
-    tp = _angles(theta_pan, 'theta_pan')
-    tt = _angles(theta_tilt, 'theta_tilt')
+    tp = _angles(theta_pan, "theta_pan")
+    tt = _angles(theta_tilt, "theta_tilt")
     try:
         shape = np.broadcast_shapes(tp.shape, tt.shape)
     except ValueError:
         raise ValueError(
-            f'theta_pan shape {tp.shape} and theta_tilt shape {tt.shape} do not broadcast'
+            f"theta_pan shape {tp.shape} and theta_tilt shape {tt.shape} do not broadcast"
         ) from None
     tilt = tilt_factor(np.broadcast_to(tt, shape), d)
     pan = pan_factor(np.broadcast_to(tp, shape))
@@ -231,9 +231,9 @@ def rigid_inverse(A_T_B) -> np.ndarray:
     ndarray, shape (..., 4, 4)
         ``B_T_A``.
     """
-    T = as_float_array(A_T_B, 'A_T_B')
+    T = as_float_array(A_T_B, "A_T_B")
     if T.ndim < 2 or T.shape[-2:] != (4, 4):
-        raise ValueError(f'A_T_B must have shape (..., 4, 4), got {T.shape}')
+        raise ValueError(f"A_T_B must have shape (..., 4, 4), got {T.shape}")
     R = T[..., :3, :3]
     t = T[..., :3, 3]
     out = np.zeros(T.shape)

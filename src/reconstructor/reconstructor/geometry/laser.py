@@ -37,17 +37,17 @@ def transform_plane(A_T_B, pi_A) -> np.ndarray:
     ndarray, shape (broadcast ..., 4)
         Plane in B. Not renormalised (a rigid transform keeps a unit normal unit).
     """
-    T = as_float_array(A_T_B, 'A_T_B')
-    pi = as_float_array(pi_A, 'pi_A')
+    T = as_float_array(A_T_B, "A_T_B")
+    pi = as_float_array(pi_A, "pi_A")
     if T.ndim < 2 or T.shape[-2:] != (4, 4):
-        raise ValueError(f'A_T_B must have shape (..., 4, 4), got {T.shape}')
+        raise ValueError(f"A_T_B must have shape (..., 4, 4), got {T.shape}")
     if pi.ndim < 1 or pi.shape[-1] != 4:
-        raise ValueError(f'pi_A must have shape (..., 4), got {pi.shape}')
+        raise ValueError(f"pi_A must have shape (..., 4), got {pi.shape}")
     try:
         np.broadcast_shapes(T.shape[:-2], pi.shape[:-1])
     except ValueError:
         raise ValueError(
-            f'A_T_B shape {T.shape} and pi_A shape {pi.shape} do not broadcast'
+            f"A_T_B shape {T.shape} and pi_A shape {pi.shape} do not broadcast"
         ) from None
     return (np.swapaxes(T, -1, -2) @ pi[..., None])[..., 0]
 
@@ -65,7 +65,7 @@ def laser_plane_v0(model: RigModel, u2_tilt) -> np.ndarray:
     ndarray, shape (..., 4)
         Planes (a, b, c, e) with unit normals, e in metres.
     """
-    u = as_float_array(u2_tilt, 'u2_tilt')
+    u = as_float_array(u2_tilt, "u2_tilt")
     pre = model._pre
     alpha = 2.0 * (model.g2_tilt.angle(u) - model.g2_tilt.theta0)
     c = np.cos(alpha)[..., None]

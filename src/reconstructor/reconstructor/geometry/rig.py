@@ -68,32 +68,32 @@ class RigModel:
 
     def __post_init__(self):
         if not isinstance(self.intrinsics, CameraIntrinsics):
-            raise ValueError('intrinsics must be a CameraIntrinsics')
-        for name in ('g1_pan', 'g1_tilt', 'g2_tilt'):
+            raise ValueError("intrinsics must be a CameraIntrinsics")
+        for name in ("g1_pan", "g1_tilt", "g2_tilt"):
             if not isinstance(getattr(self, name), MirrorParams):
-                raise ValueError(f'{name} must be a MirrorParams')
-        object.__setattr__(self, 'l', finite_scalar(self.l, 'l'))
-        object.__setattr__(self, 'd', finite_scalar(self.d, 'd'))
-        plane = finite_vector(self.laser_plane_v0, 'laser_plane_v0', 4)
+                raise ValueError(f"{name} must be a MirrorParams")
+        object.__setattr__(self, "l", finite_scalar(self.l, "l"))
+        object.__setattr__(self, "d", finite_scalar(self.d, "d"))
+        plane = finite_vector(self.laser_plane_v0, "laser_plane_v0", 4)
         norm = float(np.linalg.norm(plane[:3]))
         if norm < 1e-12:
-            raise ValueError('laser_plane_v0 must have a non-zero normal (a, b, c)')
+            raise ValueError("laser_plane_v0 must have a non-zero normal (a, b, c)")
         plane = plane / norm
         plane.flags.writeable = False
-        object.__setattr__(self, 'laser_plane_v0', plane)
-        axis = finite_vector(self.laser_axis_dir, 'laser_axis_dir', 3)
+        object.__setattr__(self, "laser_plane_v0", plane)
+        axis = finite_vector(self.laser_axis_dir, "laser_axis_dir", 3)
         norm = float(np.linalg.norm(axis))
         if norm < 1e-12:
-            raise ValueError('laser_axis_dir must be non-zero')
+            raise ValueError("laser_axis_dir must be non-zero")
         axis = axis / norm
         axis.flags.writeable = False
-        object.__setattr__(self, 'laser_axis_dir', axis)
-        point = finite_vector(self.laser_axis_point, 'laser_axis_point', 3)
-        object.__setattr__(self, 'laser_axis_point', point)
+        object.__setattr__(self, "laser_axis_dir", axis)
+        point = finite_vector(self.laser_axis_point, "laser_axis_point", 3)
+        object.__setattr__(self, "laser_axis_point", point)
         if self.correction is not None and not callable(
-            getattr(self.correction, 'V0c_T_V0', None)
+            getattr(self.correction, "V0c_T_V0", None)
         ):
-            raise ValueError('correction must be None or have a V0c_T_V0(u1_pan, u1_tilt) method')
+            raise ValueError("correction must be None or have a V0c_T_V0(u1_pan, u1_tilt) method")
 
     @cached_property
     def _pre(self) -> SimpleNamespace:
@@ -124,23 +124,23 @@ class RigModel:
         """Plain floats and lists in SI units, suitable for YAML. ``correction`` is omitted."""
         i = self.intrinsics
         return {
-            'intrinsics': {
-                'fx': i.fx,
-                'fy': i.fy,
-                'cx': i.cx,
-                'cy': i.cy,
-                'dist': list(i.dist),
-                'width': i.width,
-                'height': i.height,
+            "intrinsics": {
+                "fx": i.fx,
+                "fy": i.fy,
+                "cx": i.cx,
+                "cy": i.cy,
+                "dist": list(i.dist),
+                "width": i.width,
+                "height": i.height,
             },
-            'g1_pan': self.g1_pan.to_dict(),
-            'g1_tilt': self.g1_tilt.to_dict(),
-            'l': self.l,
-            'd': self.d,
-            'laser_plane_v0': [float(v) for v in self.laser_plane_v0],
-            'laser_axis_dir': [float(v) for v in self.laser_axis_dir],
-            'laser_axis_point': [float(v) for v in self.laser_axis_point],
-            'g2_tilt': self.g2_tilt.to_dict(),
+            "g1_pan": self.g1_pan.to_dict(),
+            "g1_tilt": self.g1_tilt.to_dict(),
+            "l": self.l,
+            "d": self.d,
+            "laser_plane_v0": [float(v) for v in self.laser_plane_v0],
+            "laser_axis_dir": [float(v) for v in self.laser_axis_dir],
+            "laser_axis_point": [float(v) for v in self.laser_axis_point],
+            "g2_tilt": self.g2_tilt.to_dict(),
         }
 
     @classmethod
@@ -153,77 +153,77 @@ class RigModel:
             Naming the key (dotted path, e.g. ``intrinsics.fx``) that is missing, unknown,
             non-finite or of the wrong shape.
         """
-        _check_keys(data, _TOP_KEYS, '')
-        intr = data['intrinsics']
-        _check_keys(intr, _INTR_KEYS, 'intrinsics.')
-        intr_values = {key: _num(intr[key], f'intrinsics.{key}') for key in _INTR_KEYS[:4]}
-        intr_values['dist'] = _vec(intr['dist'], 'intrinsics.dist', 5)
-        intr_values['width'] = _num(intr['width'], 'intrinsics.width')
-        intr_values['height'] = _num(intr['height'], 'intrinsics.height')
-        intrinsics = _wrap('intrinsics', lambda: CameraIntrinsics(**intr_values))
+        _check_keys(data, _TOP_KEYS, "")
+        intr = data["intrinsics"]
+        _check_keys(intr, _INTR_KEYS, "intrinsics.")
+        intr_values = {key: _num(intr[key], f"intrinsics.{key}") for key in _INTR_KEYS[:4]}
+        intr_values["dist"] = _vec(intr["dist"], "intrinsics.dist", 5)
+        intr_values["width"] = _num(intr["width"], "intrinsics.width")
+        intr_values["height"] = _num(intr["height"], "intrinsics.height")
+        intrinsics = _wrap("intrinsics", lambda: CameraIntrinsics(**intr_values))
         mirrors = {name: _mirror_from_dict(data[name], name) for name in _MIRROR_NAMES}
         return cls(
             intrinsics=intrinsics,
-            l=_num(data['l'], 'l'),
-            d=_num(data['d'], 'd'),
-            laser_plane_v0=_vec(data['laser_plane_v0'], 'laser_plane_v0', 4),
-            laser_axis_dir=_vec(data['laser_axis_dir'], 'laser_axis_dir', 3),
-            laser_axis_point=_vec(data['laser_axis_point'], 'laser_axis_point', 3),
+            l=_num(data["l"], "l"),
+            d=_num(data["d"], "d"),
+            laser_plane_v0=_vec(data["laser_plane_v0"], "laser_plane_v0", 4),
+            laser_axis_dir=_vec(data["laser_axis_dir"], "laser_axis_dir", 3),
+            laser_axis_point=_vec(data["laser_axis_point"], "laser_axis_point", 3),
             correction=correction,
             **mirrors,
         )
 
 
 _TOP_KEYS = (
-    'intrinsics',
-    'g1_pan',
-    'g1_tilt',
-    'l',
-    'd',
-    'laser_plane_v0',
-    'laser_axis_dir',
-    'laser_axis_point',
-    'g2_tilt',
+    "intrinsics",
+    "g1_pan",
+    "g1_tilt",
+    "l",
+    "d",
+    "laser_plane_v0",
+    "laser_axis_dir",
+    "laser_axis_point",
+    "g2_tilt",
 )
-_INTR_KEYS = ('fx', 'fy', 'cx', 'cy', 'dist', 'width', 'height')
-_MIRROR_KEYS = ('theta0', 'k', 'poly')
-_MIRROR_NAMES = ('g1_pan', 'g1_tilt', 'g2_tilt')
+_INTR_KEYS = ("fx", "fy", "cx", "cy", "dist", "width", "height")
+_MIRROR_KEYS = ("theta0", "k", "poly")
+_MIRROR_NAMES = ("g1_pan", "g1_tilt", "g2_tilt")
 
 
 def _check_keys(data, keys, prefix):
     if not isinstance(data, dict):
-        raise ValueError(f'{prefix.rstrip(".") or "model"} must be a mapping, got {type(data)}')
+        raise ValueError(f"{prefix.rstrip('.') or 'model'} must be a mapping, got {type(data)}")
     for key in keys:
         if key not in data:
-            raise ValueError(f'missing key {prefix}{key}')
+            raise ValueError(f"missing key {prefix}{key}")
     for key in data:
         if key not in keys:
-            raise ValueError(f'unknown key {prefix}{key}')
+            raise ValueError(f"unknown key {prefix}{key}")
 
 
 def _num(value, key) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-        raise ValueError(f'{key} must be a number, got {value!r}')
+        raise ValueError(f"{key} must be a number, got {value!r}")
     v = float(value)
     if not math.isfinite(v):
-        raise ValueError(f'{key} must be finite, got {v}')
+        raise ValueError(f"{key} must be finite, got {v}")
     return v
 
 
 def _vec(value, key, length) -> list[float]:
     if not isinstance(value, (list, tuple, np.ndarray)) or len(value) != length:
-        raise ValueError(f'{key} must be a list of {length} numbers, got {value!r}')
-    return [_num(v, f'{key}[{i}]') for i, v in enumerate(value)]
+        raise ValueError(f"{key} must be a list of {length} numbers, got {value!r}")
+    return [_num(v, f"{key}[{i}]") for i, v in enumerate(value)]
 
 
 def _mirror_from_dict(data, name) -> MirrorParams:
-    _check_keys(data, _MIRROR_KEYS, f'{name}.')
-    poly = data['poly']
+    _check_keys(data, _MIRROR_KEYS, f"{name}.")
+    poly = data["poly"]
     if not isinstance(poly, (list, tuple)):
-        raise ValueError(f'{name}.poly must be a list of numbers, got {poly!r}')
-    theta0 = _num(data['theta0'], f'{name}.theta0')
-    k = _num(data['k'], f'{name}.k')
-    coeffs = tuple(_num(c, f'{name}.poly[{i}]') for i, c in enumerate(poly))
+        raise ValueError(f"{name}.poly must be a list of numbers, got {poly!r}")
+    theta0 = _num(data["theta0"], f"{name}.theta0")
+    k = _num(data["k"], f"{name}.k")
+    coeffs = tuple(_num(c, f"{name}.poly[{i}]") for i, c in enumerate(poly))
     return _wrap(name, lambda: MirrorParams(theta0=theta0, k=k, poly=coeffs))
 
 
@@ -232,7 +232,7 @@ def _wrap(prefix, build):
     try:
         return build()
     except ValueError as exc:
-        raise ValueError(f'{prefix}.{exc}') from None
+        raise ValueError(f"{prefix}.{exc}") from None
 
 
 # --------------------------------------------------------------------- dynamic camera
@@ -250,8 +250,8 @@ def v0_T_v(model: RigModel, u1_pan, u1_tilt) -> np.ndarray:
     ndarray, shape (..., 4, 4)
         ``V0_T_V`` (identity at U1 = 0). The joint correction is not included.
     """
-    up = as_float_array(u1_pan, 'u1_pan')
-    ut = as_float_array(u1_tilt, 'u1_tilt')
+    up = as_float_array(u1_pan, "u1_pan")
+    ut = as_float_array(u1_tilt, "u1_tilt")
     return model._pre.g0_inv @ g_T_v(
         model.g1_pan.angle(up), model.g1_tilt.angle(ut), model.l, model.d
     )
@@ -282,7 +282,7 @@ def nominal_example_rig(dist=(0.0, 0.0, 0.0, 0.0, 0.0), standoff: float = 0.65) 
     k = math.radians(20.0) / 10.0
     axis_point = np.array([0.0, -0.19593, 0.25797])
     axis_dir = np.array([1.0, 0.0, 0.0])
-    target = np.array([0.0, 0.0, finite_scalar(standoff, 'standoff')])
+    target = np.array([0.0, 0.0, finite_scalar(standoff, "standoff")])
     normal = np.cross(axis_dir, target - axis_point)
     normal /= np.linalg.norm(normal)
     plane = np.append(normal, -normal @ axis_point)

@@ -67,9 +67,9 @@ class TriangulationResult:
 
 
 def _check_min_angle(min_angle) -> float:
-    a = as_scalar(min_angle, 'min_angle')
+    a = as_scalar(min_angle, "min_angle")
     if not 0.0 <= a < math.pi / 2:
-        raise ValueError(f'min_angle must be in [0, pi/2), got {a}')
+        raise ValueError(f"min_angle must be in [0, pi/2), got {a}")
     return a
 
 
@@ -82,7 +82,7 @@ def _rays(intr: CameraIntrinsics, uv: np.ndarray):
         uv = np.where(finite[:, None], uv, plan.c[:, 0])
         if finite.all():  # the sum overflowed, every entry is finite
             finite = None
-    xd = np.subtract(uv.T, plan.c, order='C')
+    xd = np.subtract(uv.T, plan.c, order="C")
     xd *= plan.finv
     x, r2, converged = undistort_normalised(intr, xd)
     return x, r2, finite, converged
@@ -142,10 +142,10 @@ def triangulate(
     -------
     TriangulationResult
     """
-    uv = as_points(uv, 'uv', 2)
-    u1p = as_scalar(u1_pan, 'u1_pan')
-    u1t = as_scalar(u1_tilt, 'u1_tilt')
-    u2t = as_scalar(u2_tilt, 'u2_tilt')
+    uv = as_points(uv, "uv", 2)
+    u1p = as_scalar(u1_pan, "u1_pan")
+    u1t = as_scalar(u1_tilt, "u1_tilt")
+    u2t = as_scalar(u2_tilt, "u2_tilt")
     sin_min = math.sin(_check_min_angle(min_angle))
     n = uv.shape[0]
     if not (math.isfinite(u1p) and math.isfinite(u1t) and math.isfinite(u2t)):
@@ -154,26 +154,37 @@ def triangulate(
     plane_v = T.T @ np.array(laser_plane_v0_scalar(model, u2t))
     if model.correction is not None:
         T = np.asarray(model.correction.V0c_T_V0(u1p, u1t), dtype=np.float64) @ T
-    with np.errstate(all='ignore'):
+    s2 = sin_min * sin_min
+    with np.errstate(all="ignore"):
         x, r2, finite, converged = _rays(model.intrinsics, uv)
         denom = plane_v[:2] @ x
         denom += plane_v[2]
-        # |cos(normal, ray)| >= sin(min_angle), with |ray| = sqrt(1 + r2) and a unit normal.
-        ok = denom * denom >= (sin_min * sin_min) * (1.0 + r2)
-        all_ok = finite is None and converged is None and bool(ok.all())
-        if all_ok:
+        # A ray is valid when |cos(normal, ray)| >= sin(min_angle); |ray| = sqrt(1 + r2) and
+        # the normal is unit. Fast path: one sufficient test for all rays, then Z > 0.
+        fast = finite is None and converged is None and n > 0
+        if fast:
+            dmin = np.abs(denom).min()
+            fast = dmin * dmin >= s2 * (1.0 + r2.max())
+        if fast:
             Z = (-plane_v[3]) / denom
-        else:
-            Z = np.divide(-plane_v[3], denom, out=np.zeros_like(denom), where=ok)
-        front = Z > 0.0
-        p_v = np.empty((3, n))
-        np.multiply(x, Z, out=p_v[:2])
-        p_v[2] = Z
-        p_v0 = T[:3, :3] @ p_v
-        p_v0 += T[:3, 3:]
-        if all_ok and front.all():
-            return TriangulationResult(p_v=p_v.T, p_v0=p_v0.T, valid=front)
-        return _bookkeeping(p_v, p_v0, ok, front, finite, converged)
+            fast = Z.min() > 0.0
+        if fast:
+            p_v, p_v0 = _points(x, Z, T)
+            return TriangulationResult(p_v=p_v.T, p_v0=p_v0.T, valid=np.ones(n, dtype=bool))
+        ok = denom * denom >= s2 * (1.0 + r2)
+        Z = np.divide(-plane_v[3], denom, out=np.zeros_like(denom), where=ok)
+        p_v, p_v0 = _points(x, Z, T)
+        return _bookkeeping(p_v, p_v0, ok, Z > 0.0, finite, converged)
+
+
+def _points(x: np.ndarray, Z: np.ndarray, T: np.ndarray):
+    """Points in V and in V0 (via ``T``, shape (4, 4)), both shape (3, n)."""
+    p_v = np.empty((3, Z.shape[0]))
+    np.multiply(x, Z, out=p_v[:2])
+    p_v[2] = Z
+    p_v0 = T[:3, :3] @ p_v
+    p_v0 += T[:3, 3:]
+    return p_v, p_v0
 
 
 def triangulate_batch(
@@ -204,16 +215,16 @@ def triangulate_batch(
     -------
     TriangulationResult
     """
-    uv = as_points(uv, 'uv', 2)
-    volts = as_points(voltages, 'voltages', 4)
+    uv = as_points(uv, "uv", 2)
+    volts = as_points(voltages, "voltages", 4)
     fi = frame_index if isinstance(frame_index, np.ndarray) else np.asarray(frame_index)
     n, m = uv.shape[0], volts.shape[0]
     if fi.shape != (n,):
-        raise ValueError(f'frame_index must have shape ({n},) like uv, got {fi.shape}')
+        raise ValueError(f"frame_index must have shape ({n},) like uv, got {fi.shape}")
     if n and not np.issubdtype(fi.dtype, np.integer):
-        raise ValueError(f'frame_index must be integers, got dtype {fi.dtype}')
+        raise ValueError(f"frame_index must be integers, got dtype {fi.dtype}")
     if n and (fi.min() < 0 or fi.max() >= m):
-        raise ValueError(f'frame_index must be in [0, {m}), got [{fi.min()}, {fi.max()}]')
+        raise ValueError(f"frame_index must be in [0, {m}), got [{fi.min()}, {fi.max()}]")
     sin_min = math.sin(_check_min_angle(min_angle))
     frame_ok = np.isfinite(volts).all(axis=1)
     v = np.where(frame_ok[:, None], volts, 0.0)
@@ -222,7 +233,7 @@ def triangulate_batch(
     if model.correction is not None:
         C = np.asarray(model.correction.V0c_T_V0(v[:, 0], v[:, 1]), dtype=np.float64)
         T = C @ T
-    with np.errstate(all='ignore'):
+    with np.errstate(all="ignore"):
         x, r2, finite, converged = _rays(model.intrinsics, uv)
         if not frame_ok.all():
             point_ok = frame_ok[fi]
@@ -260,13 +271,13 @@ def predict_pixels(model: RigModel, p_v0, u1_pan, u1_tilt) -> tuple[np.ndarray, 
         True where the point is finite and in front of the virtual camera (Z > 0). Image
         bounds are not checked.
     """
-    p = as_points(p_v0, 'p_v0', 3)
+    p = as_points(p_v0, "p_v0", 3)
     n = p.shape[0]
-    up = as_float_array(u1_pan, 'u1_pan')
-    ut = as_float_array(u1_tilt, 'u1_tilt')
-    for name, arr in (('u1_pan', up), ('u1_tilt', ut)):
+    up = as_float_array(u1_pan, "u1_pan")
+    ut = as_float_array(u1_tilt, "u1_tilt")
+    for name, arr in (("u1_pan", up), ("u1_tilt", ut)):
         if arr.shape not in ((), (n,)):
-            raise ValueError(f'{name} must be a scalar or have shape ({n},), got {arr.shape}')
+            raise ValueError(f"{name} must be a scalar or have shape ({n},), got {arr.shape}")
     T = v0_T_v(model, up, ut)
     if model.correction is not None:
         C = np.asarray(model.correction.V0c_T_V0(up, ut), dtype=np.float64)
@@ -274,7 +285,7 @@ def predict_pixels(model: RigModel, p_v0, u1_pan, u1_tilt) -> tuple[np.ndarray, 
         V_T_V0 = np.linalg.inv(T)
     else:
         V_T_V0 = rigid_inverse(T)
-    with np.errstate(all='ignore'):
+    with np.errstate(all="ignore"):
         if V_T_V0.ndim == 2:
             p_v = p @ V_T_V0[:3, :3].T + V_T_V0[:3, 3]
         else:

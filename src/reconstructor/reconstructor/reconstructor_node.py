@@ -1,0 +1,281 @@
+"""``reconstructor``: stripe centres in, PointCloud2 in V0 out.
+
+Subscribes
+    stripe/centers   galvoscan_msgs/StripeCenters
+Publishes
+    points           sensor_msgs/PointCloud2, one per frame, in ``frame_id`` (default v0), metres;
+                     fields x, y, z, intensity (stripe strength, DN), width (stripe width, px)
+    points/scan      sensor_msgs/PointCloud2, the accumulated cloud of the last scan
+                     (transient-local, depth 1), published when frames stop for
+                     ``scan_end_timeout`` seconds
+    markers          visualization_msgs/MarkerArray: the current laser plane and the camera's
+                     field of view, for an rviz-style viewer
+Services
+    reconstructor/reload_calibration  galvoscan_msgs/LoadCalibration (empty path: same file)
+    reconstructor/save_scan           galvoscan_msgs/SaveScan (.ply or .pcd, via open3d)
+
+Bad input (mismatched array lengths, non-finite or out-of-range voltages, no calibration)
+is logged once per cause, counted and skipped; the node never dies on input.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import rclpy
+from galvoscan_msgs.msg import StripeCenters
+from galvoscan_msgs.srv import LoadCalibration, SaveScan
+from geometry_msgs.msg import Point
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2, PointField
+from visualization_msgs.msg import Marker, MarkerArray
+
+from reconstructor import calibration_file
+from reconstructor.cloud import CLOUD_DTYPE, save_cloud
+from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
+
+VOLTAGE_LIMIT = 10.0
+_FIELDS = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+           for i, n in enumerate(CLOUD_DTYPE.names)]
+
+
+def cloud_msg(points: np.ndarray, header) -> PointCloud2:
+    """Pack a structured array of CLOUD_DTYPE into an unorganised PointCloud2."""
+    msg = PointCloud2()
+    msg.header = header
+    msg.height, msg.width = 1, int(points.shape[0])
+    msg.fields = _FIELDS
+    msg.is_bigendian = False
+    msg.point_step = CLOUD_DTYPE.itemsize
+    msg.row_step = msg.point_step * msg.width
+    msg.is_dense = True  # invalid points are dropped, never sent as NaN
+    msg.data = points.tobytes()
+    return msg
+
+
+class ReconstructorNode(Node):
+    """Triangulates stripe centres against the calibrated model."""
+
+    def __init__(self, **kwargs):
+        super().__init__('reconstructor', **kwargs)
+        self.declare_parameter('calibration_file', '', ParameterDescriptor(
+            description='calibration YAML (galvoscan format_version 1)'))
+        self.declare_parameter('frame_id', 'v0', ParameterDescriptor(
+            description='frame_id of the published clouds (the fixed frame V0)'))
+        self.declare_parameter('min_ray_plane_angle', 1e-3, ParameterDescriptor(
+            description='rays closer than this to parallel with the laser plane are dropped [rad]',
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=0.5, step=0.0)]))
+        self.declare_parameter('scan_end_timeout', 0.5, ParameterDescriptor(
+            description='a pause in frames this long ends a scan [s]',
+            floating_point_range=[FloatingPointRange(from_value=0.05, to_value=60.0, step=0.0)]))
+        self.declare_parameter('marker_period', 0.1, ParameterDescriptor(
+            description='minimum time between marker updates [s] (0 disables markers)',
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=10.0, step=0.0)]))
+        self.declare_parameter('marker_range', 0.65, ParameterDescriptor(
+            description='distance at which the field of view is drawn [m]',
+            floating_point_range=[FloatingPointRange(from_value=0.05, to_value=10.0, step=0.0)]))
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+
+        self.counters = {'frames': 0, 'points': 0, 'invalid_points': 0, 'skipped': {}}
+        self._warned = set()
+        self.model = None
+        self.calibration = None
+        path = self.get_parameter('calibration_file').value
+        if path:
+            ok, message = self._load(path)
+            (self.get_logger().info if ok else self.get_logger().error)(message)
+        else:
+            self.get_logger().error('no calibration_file given: frames are skipped until '
+                                    'reconstructor/reload_calibration loads one')
+
+        self._scan_parts = []
+        self._last_scan = None
+        self._last_frame_time = None
+        self._last_marker = 0.0
+        self.create_subscription(StripeCenters, 'stripe/centers', self._on_centers,
+                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        self._pub_points = self.create_publisher(PointCloud2, 'points', 10)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._pub_scan = self.create_publisher(PointCloud2, 'points/scan', latched)
+        self._pub_markers = self.create_publisher(MarkerArray, 'markers', 10)
+        self.create_service(LoadCalibration, 'reconstructor/reload_calibration', self._on_reload)
+        self.create_service(SaveScan, 'reconstructor/save_scan', self._on_save)
+        self.create_timer(0.05, self._check_scan_end)
+
+    # -- configuration ----------------------------------------------------------------
+    def _on_set_parameters(self, params):
+        for p in params:
+            if p.type_ == p.Type.DOUBLE and not math.isfinite(p.value):
+                return SetParametersResult(successful=False, reason=f'{p.name} must be finite')
+        return SetParametersResult(successful=True)
+
+    def _load(self, path):
+        try:
+            cal = calibration_file.load(path)
+        except ValueError as exc:
+            return False, f'calibration not loaded: {exc}'
+        self.calibration, self.model = cal, cal.model
+        note = ' (SIMULATOR TRUTH, not a calibration)' if cal.source == 'simulator_truth' else ''
+        return True, f'calibration loaded from {cal.path}{note}'
+
+    def _skip(self, cause, detail=''):
+        skipped = self.counters['skipped']
+        skipped[cause] = skipped.get(cause, 0) + 1
+        if cause not in self._warned:
+            self._warned.add(cause)
+            self.get_logger().warning(f'skipping frame: {cause} {detail} (logged once; counted)')
+
+    # -- frames -----------------------------------------------------------------------
+    def _on_centers(self, msg: StripeCenters):
+        try:
+            self._process(msg)
+        except Exception as exc:  # noqa: BLE001 - a node never dies on input
+            self._skip('exception', repr(exc))
+
+    def _process(self, msg):
+        if self.model is None:
+            return self._skip('no_calibration')
+        g = msg.galvo
+        volts = (g.g1_pan_voltage, g.g1_tilt_voltage, g.g2_pan_voltage, g.g2_tilt_voltage)
+        if not all(math.isfinite(v) for v in volts):
+            return self._skip('nonfinite_voltage')
+        if max(abs(v) for v in volts) > VOLTAGE_LIMIT:
+            return self._skip('voltage_out_of_range', f'{volts}')
+        u = np.frombuffer(msg.u, np.float32) if len(msg.u) else np.zeros(0, np.float32)
+        v = np.frombuffer(msg.v, np.float32) if len(msg.v) else np.zeros(0, np.float32)
+        n = u.shape[0]
+        if not (v.shape[0] == n == len(msg.width) == len(msg.strength)):
+            return self._skip('array_length_mismatch')
+        self._last_frame_time = time.monotonic()
+        self.counters['frames'] += 1
+        if not g.laser_on:
+            return self._skip('laser_off')
+        res = triangulate(self.model, np.column_stack([u, v]), g.g1_pan_voltage,
+                          g.g1_tilt_voltage, g.g2_tilt_voltage,
+                          min_angle=self.get_parameter('min_ray_plane_angle').value)
+        valid = res.valid
+        cloud = np.empty(int(valid.sum()), CLOUD_DTYPE)
+        p = res.p_v0[valid]
+        cloud['x'], cloud['y'], cloud['z'] = p[:, 0], p[:, 1], p[:, 2]
+        cloud['intensity'] = np.frombuffer(msg.strength, np.float32)[valid] if n else []
+        cloud['width'] = np.frombuffer(msg.width, np.float32)[valid] if n else []
+        self.counters['points'] += cloud.shape[0]
+        self.counters['invalid_points'] += n - cloud.shape[0]
+        header = msg.header
+        header.frame_id = self.get_parameter('frame_id').value
+        self._pub_points.publish(cloud_msg(cloud, header))
+        if cloud.shape[0]:
+            self._scan_parts.append(cloud)
+        self._maybe_markers(header, volts)
+
+    def _check_scan_end(self):
+        timeout = self.get_parameter('scan_end_timeout').value
+        if self._last_frame_time is None or time.monotonic() - self._last_frame_time < timeout:
+            return
+        self._last_frame_time = None
+        scan = (np.concatenate(self._scan_parts) if self._scan_parts
+                else np.zeros(0, CLOUD_DTYPE))
+        self._scan_parts = []
+        self._last_scan = scan
+        header = PointCloud2().header
+        header.stamp = self.get_clock().now().to_msg()
+        header.frame_id = self.get_parameter('frame_id').value
+        self._pub_scan.publish(cloud_msg(scan, header))
+        self.get_logger().info(f'scan ended: {scan.shape[0]} points on points/scan')
+
+    # -- markers ----------------------------------------------------------------------
+    def _maybe_markers(self, header, volts):
+        period = self.get_parameter('marker_period').value
+        now = time.monotonic()
+        if period <= 0 or now - self._last_marker < period:
+            return
+        self._last_marker = now
+        self._pub_markers.publish(self.markers(header, volts))
+
+    def markers(self, header, volts):
+        """The laser plane patch and the camera field-of-view frustum, in V0."""
+        model, rng = self.model, self.get_parameter('marker_range').value
+        intr = model.intrinsics
+        T = v0_T_v(model, volts[0], volts[1])
+        corners = np.array([[0, 0], [intr.width, 0], [intr.width, intr.height],
+                            [0, intr.height]], float)
+        rays = np.column_stack([(corners[:, 0] - intr.cx) / intr.fx,
+                                (corners[:, 1] - intr.cy) / intr.fy, np.ones(4)])
+        far = (T @ np.column_stack([rays * rng, np.ones(4)]).T).T[:, :3]
+        origin = T[:3, 3]
+        fov = Marker(header=header, ns='camera_fov', id=0, type=Marker.LINE_LIST)
+        fov.scale.x = 0.002
+        fov.color.r, fov.color.g, fov.color.b, fov.color.a = 0.2, 0.6, 1.0, 1.0
+        pts = [p for c in far for p in (origin, c)]
+        pts += [p for i in range(4) for p in (far[i], far[(i + 1) % 4])]
+        fov.points = [Point(x=float(q[0]), y=float(q[1]), z=float(q[2])) for q in pts]
+        # laser plane: a square patch centred on the point nearest the view centre
+        plane = laser_plane_v0(model, volts[3])
+        nrm, e = plane[:3], plane[3]
+        centre = origin + (T[:3, 2] * rng)
+        centre = centre - (nrm @ centre + e) * nrm
+        a = np.cross(nrm, [0.0, 1.0, 0.0] if abs(nrm[1]) < 0.9 else [1.0, 0.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(nrm, a)
+        half = 0.5 * rng
+        quad = [centre + half * (sa * a + sb * b) for sa, sb in
+                ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        laser = Marker(header=header, ns='laser_plane', id=1, type=Marker.TRIANGLE_LIST)
+        laser.scale.x = laser.scale.y = laser.scale.z = 1.0
+        laser.color.r, laser.color.g, laser.color.b, laser.color.a = 1.0, 0.1, 0.1, 0.35
+        laser.points = [Point(x=float(q[0]), y=float(q[1]), z=float(q[2]))
+                        for q in (quad[0], quad[1], quad[2], quad[0], quad[2], quad[3])]
+        return MarkerArray(markers=[fov, laser])
+
+    # -- services ---------------------------------------------------------------------
+    def _on_reload(self, req, resp):
+        path = req.path or self.get_parameter('calibration_file').value
+        if not path:
+            resp.success, resp.message = False, 'no path given and no calibration_file set'
+            return resp
+        ok, message = self._load(path)  # on failure the previous calibration stays active
+        (self.get_logger().info if ok else self.get_logger().error)(message)
+        resp.success, resp.message = ok, message
+        if ok:
+            resp.path, resp.content_hash = self.calibration.path, self.calibration.content_hash
+            resp.stages = list(self.calibration.stages)
+        return resp
+
+    def _on_save(self, req, resp):
+        scan = self._last_scan
+        if scan is None and self._scan_parts:
+            scan = np.concatenate(self._scan_parts)
+        if scan is None or scan.shape[0] == 0:
+            resp.success, resp.message = False, 'no scan cloud to save yet'
+            return resp
+        try:
+            path = save_cloud(scan, req.path)
+        except (ValueError, OSError) as exc:
+            resp.success, resp.message = False, str(exc)
+            return resp
+        resp.success, resp.path, resp.points = True, str(Path(path).resolve()), scan.shape[0]
+        resp.message = f'saved {scan.shape[0]} points to {resp.path}'
+        return resp
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = ReconstructorNode()
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

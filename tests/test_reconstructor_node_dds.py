@@ -1,0 +1,163 @@
+"""The reconstructor node as a real process: clouds in V0, bad input skipped, scan saving."""
+
+import math
+import sys
+import time
+
+import numpy as np
+import open3d as o3d
+import pytest
+import rclpy
+from galvoscan_msgs.msg import StripeCenters
+from galvoscan_msgs.srv import LoadCalibration, SaveScan
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+
+from reconstructor import calibration_file
+from reconstructor.cloud import CLOUD_DTYPE
+from reconstructor.model import (
+    laser_plane_v0,
+    nominal_example_rig,
+    predict_pixels,
+    transform_plane,
+    v0_T_v,
+)
+
+pytestmark = pytest.mark.dds
+
+
+def stripe_points(model, volts, n=40, depth=0.65):
+    """V0 points on the laser plane, seen by the camera at ``volts``."""
+    T = v0_T_v(model, volts[0], volts[1])
+    a, b, c, e = transform_plane(T, laser_plane_v0(model, volts[3]))
+    x = np.linspace(-0.02, 0.02, n)
+    y = -(a * x + c * depth + e) / b
+    p_v = np.column_stack([x, y, np.full(n, depth), np.ones(n)])
+    return (T @ p_v.T).T[:, :3]
+
+
+def centers_msg(model, volts, seq, points):
+    uv, ok = predict_pixels(model, points, volts[0], volts[1])
+    assert ok.all()
+    msg = StripeCenters()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = 100 + seq, 0
+    msg.header.frame_id = 'camera_optical'
+    g = msg.galvo
+    g.header = msg.header
+    g.seq = seq
+    g.g1_pan_voltage, g.g1_tilt_voltage, g.g2_pan_voltage, g.g2_tilt_voltage = volts
+    g.laser_on = True
+    msg.image_width, msg.image_height = 720, 540
+    msg.u = uv[:, 0].astype(np.float32).tolist()
+    msg.v = uv[:, 1].astype(np.float32).tolist()
+    msg.width = [4.7] * len(points)
+    msg.strength = [float(i) for i in range(len(points))]
+    msg.method = 'steger'
+    return msg
+
+
+def cloud_points(msg):
+    return np.frombuffer(bytes(msg.data), CLOUD_DTYPE)
+
+
+def test_reconstructor_node(spawn, ros_env, tmp_path):
+    model = nominal_example_rig()
+    cal_path = tmp_path / 'truth_for_tests.yaml'
+    calibration_file.save(calibration_file.Calibration(model=model, source='simulator_truth'),
+                          cal_path)
+    proc = spawn([
+        sys.executable, '-m', 'reconstructor.reconstructor_node', '--ros-args',
+        '-p', f'calibration_file:={cal_path}', '-p', 'scan_end_timeout:=0.4'],
+        name='reconstructor')
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    node = Node('reconstructor_test', context=ctx)
+    ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    clouds = []
+    try:
+        pub = node.create_publisher(StripeCenters, 'stripe/centers',
+                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(PointCloud2, 'points', clouds.append, 50)
+        deadline = time.monotonic() + 20
+        while pub.get_subscription_count() == 0 or node.count_publishers('points') == 0:
+            assert time.monotonic() < deadline and proc.poll() is None, \
+                proc.log_path.read_text()
+            ex.spin_once(timeout_sec=0.1)
+
+        frames = [(0.0, 0.0, 0.0, 0.0), (3.0, -2.0, 0.0, -1.5), (-6.0, 7.5, 0.0, 5.0)]
+        truth = []
+        bad = []
+        for seq, volts in enumerate(frames):
+            pts = stripe_points(model, volts)
+            truth.append(pts)
+            pub.publish(centers_msg(model, volts, seq, pts))
+            # bad input between good frames: each must be skipped without harm
+            m = centers_msg(model, volts, 100 + seq, pts)
+            if seq == 0:
+                m.v = m.v[:-1]  # length mismatch
+            elif seq == 1:
+                m.galvo.g1_tilt_voltage = math.nan
+            else:
+                m.galvo.g2_tilt_voltage = 12.0  # out of range
+            bad.append(m)
+            pub.publish(m)
+        deadline = time.monotonic() + 15
+        while len(clouds) < len(frames) and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        assert len(clouds) == len(frames), proc.log_path.read_text()
+        for msg, pts, seq in zip(clouds, truth, range(len(frames)), strict=True):
+            assert msg.header.frame_id == 'v0'
+            assert msg.header.stamp.sec == 100 + seq
+            assert msg.point_step == 20 and msg.row_step == 20 * msg.width and msg.is_dense
+            got = cloud_points(msg)
+            assert got.shape[0] == pts.shape[0]
+            xyz = np.column_stack([got['x'], got['y'], got['z']])
+            # float32 pixels and coordinates: ~1e-5 m is the representation limit here
+            np.testing.assert_allclose(xyz, pts, atol=2e-5)
+            np.testing.assert_array_equal(got['intensity'], np.arange(pts.shape[0]))
+        assert proc.poll() is None
+
+        # the accumulated scan arrives on the latched topic, also for a late subscriber
+        time.sleep(0.8)
+        scans = []
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        node.create_subscription(PointCloud2, 'points/scan', scans.append, latched)
+        deadline = time.monotonic() + 10
+        while not scans and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        assert scans and scans[0].width == sum(len(p) for p in truth)
+
+        save = node.create_client(SaveScan, 'reconstructor/save_scan')
+        assert save.wait_for_service(timeout_sec=10)
+        for name, ok in (('scan.ply', True), ('scan.pcd', True), ('scan.xyz', False)):
+            fut = save.call_async(SaveScan.Request(path=str(tmp_path / name)))
+            ex.spin_until_future_complete(fut, timeout_sec=10)
+            assert fut.result().success is ok, fut.result().message
+            if ok:
+                pcd = o3d.io.read_point_cloud(str(tmp_path / name))
+                assert len(pcd.points) == scans[0].width
+
+        reload = node.create_client(LoadCalibration, 'reconstructor/reload_calibration')
+        assert reload.wait_for_service(timeout_sec=10)
+        broken = tmp_path / 'broken.yaml'
+        broken.write_text(cal_path.read_text().replace('l: 0.08345', 'l: 83.45'))
+        fut = reload.call_async(LoadCalibration.Request(path=str(broken)))
+        ex.spin_until_future_complete(fut, timeout_sec=10)
+        assert not fut.result().success and 'model.l' in fut.result().message
+        # the previous calibration is still active
+        clouds.clear()
+        pub.publish(centers_msg(model, frames[1], 50, truth[1]))
+        deadline = time.monotonic() + 10
+        while not clouds and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        assert clouds and cloud_points(clouds[0]).shape[0] == truth[1].shape[0]
+        log = proc.log_path.read_text()
+        for cause in ('array_length_mismatch', 'nonfinite_voltage', 'voltage_out_of_range'):
+            assert cause in log
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
