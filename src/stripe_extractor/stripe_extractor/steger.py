@@ -133,7 +133,7 @@ def _line_point(h0, h1, h2, j0, K, g0, d1, d2):
     root = math.sqrt(half * half + ruv * ruv)
     lam = 0.5 * (ruu + rvv) - root
     if lam >= 0.0:
-        return 0.0, 0.0, lam, rr
+        return np.float32(0.0), np.float32(0.0), lam, rr
     # Eigenvector of lam: (ruv, lam - ruu) or (lam - rvv, ruv); take the better conditioned.
     ax = ruv
     ay = lam - ruu
@@ -170,9 +170,9 @@ def _line_point_1d(img, r, c, K, g0, d1, d2):
         rv += d1[k] * (p - m)
         rvv += d2[k] * (p + m)
     if rvv >= 0.0:
-        return 0.0, 0.0, rvv, rr
+        return np.float32(0.0), np.float32(0.0), rvv, rr
     t = -rv / rvv
-    return 0.0, t, rvv, rr + 0.5 * t * rv
+    return np.float32(0.0), t, rvv, rr + np.float32(0.5) * t * rv
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True, inline='always')

@@ -1,0 +1,124 @@
+"""Data contract shared by every calibration stage (no rclpy).
+
+A stage is a pure function ``run(views, calibration, **options) -> StageResult``:
+
+- ``views`` are the captured frames (from bags recorded by the calibration node, from
+  ``galvoscan calibrate`` on a bag directory, or straight from the simulator in tests);
+- ``calibration`` is the current :class:`reconstructor.calibration_file.Calibration`
+  (approximate values that earlier stages or nominal rig data provide);
+- the result names the parameters it estimated and carries the residuals. The caller
+  merges ``result.updates`` into the model and ``result.metadata`` into
+  ``calibration.stages[stage]``, then saves the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+STAGES = ('intrinsics', 'dynamic_camera', 'laser_plane', 'laser_axis', 'joint_correction')
+
+
+@dataclass
+class CaptureView:
+    """One captured camera frame.
+
+    Attributes
+    ----------
+    image : ndarray, shape (H, W), uint8 or uint16
+    voltages : ndarray, shape (4,), volts
+        (U1_pan, U1_tilt, U2_pan, U2_tilt) of the frame.
+    laser_on : bool
+    pose_index : int
+        Which scene/board pose the frame belongs to (one bag per pose when captured live).
+    stamp : float
+        Middle of the exposure [s].
+    """
+
+    image: np.ndarray
+    voltages: np.ndarray
+    laser_on: bool = False
+    pose_index: int = 0
+    stamp: float = 0.0
+
+
+@dataclass
+class StageResult:
+    """What a stage estimated, how well, and from how much data.
+
+    Attributes
+    ----------
+    stage : str
+        One of :data:`STAGES`.
+    updates : dict
+        Model parameters to replace, keyed as in ``RigModel.to_dict()`` (nested dicts merge,
+        e.g. ``{'l': 0.0834, 'g1_pan': {'k': 0.0349}}``), SI units.
+    residuals : dict
+        Named residual figures in SI units with the unit in the name
+        (``reprojection_rms_px``, ``plane_rms_m``, ...).
+    samples_used, samples_rejected : int
+    rejected : list of str
+        One line per rejected sample with the reason.
+    extra : dict
+        Stage-specific results to store in the calibration file beside the model
+        (e.g. ``{'joint_correction': {...}}``).
+    """
+
+    stage: str
+    updates: dict = field(default_factory=dict)
+    residuals: dict = field(default_factory=dict)
+    samples_used: int = 0
+    samples_rejected: int = 0
+    rejected: list = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+
+
+def _merge(base: dict, updates: dict, prefix: str = '') -> dict:
+    out = dict(base)
+    for key, value in updates.items():
+        if key not in base:
+            raise ValueError(f'stage update names unknown model key {prefix}{key}')
+        if isinstance(value, dict):
+            out[key] = _merge(base[key], value, f'{prefix}{key}.')
+        else:
+            out[key] = value
+    return out
+
+
+def apply_result(calibration, result: StageResult, sources=()):
+    """A new Calibration with ``result`` merged in (the input is left unchanged).
+
+    Parameters
+    ----------
+    calibration : reconstructor.calibration_file.Calibration
+    result : StageResult
+    sources : sequence of dict
+        ``{'path': ..., 'sha256': ...}`` of the data the stage used.
+    """
+    from reconstructor import calibration_file
+    from reconstructor.model import RigModel
+
+    if result.stage not in STAGES:
+        raise ValueError(f"stage: unknown '{result.stage}'")
+    model = RigModel.from_dict(_merge(calibration.model.to_dict(), result.updates))
+    stages = dict(calibration.stages)
+    stages[result.stage] = {
+        'created': calibration_file.now_iso(),
+        'bags': [dict(s) for s in sources],
+        'samples_used': int(result.samples_used),
+        'samples_rejected': int(result.samples_rejected),
+        'residuals': {k: float(v) for k, v in result.residuals.items()},
+        'updated': sorted(_flat_keys(result.updates)),
+    }
+    jc = result.extra.get('joint_correction', calibration.joint_correction)
+    return calibration_file.Calibration(model=model, source='calibrated', stages=stages,
+                                        joint_correction=jc)
+
+
+def _flat_keys(d, prefix=''):
+    for key, value in d.items():
+        if isinstance(value, dict):
+            yield from _flat_keys(value, f'{prefix}{key}.')
+        else:
+            yield f'{prefix}{key}'

@@ -1,0 +1,151 @@
+"""Validated reading of the simulator's YAML files (rigs and scenes).
+
+Every problem raises :class:`ConfigError`, whose message names the file, the key (as a
+dotted path such as ``g1.l`` or ``objects[2].type``) and what was expected. Numbers carry
+a plausible range in SI units so that a value given in the wrong unit (for example
+``l: 83.45`` where metres are expected) is caught instead of silently simulated.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+
+class ConfigError(ValueError):
+    """A rig or scene file is missing a key, has a wrong value or an unknown entry."""
+
+    def __init__(self, source: str, key: str, expected: str, got=None, has_got=False):
+        self.source = source
+        self.key = key
+        self.expected = expected
+        msg = f'{source}: key {key!r}: expected {expected}'
+        if has_got:
+            msg += f', got {got!r}'
+        super().__init__(msg)
+
+
+_MISSING = object()
+
+
+def read_yaml_text(text: str, source: str) -> dict:
+    """Parse YAML text whose top level must be a mapping."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ConfigError(source, '<file>', f'valid YAML ({exc})') from exc
+    if not isinstance(data, dict):
+        raise ConfigError(source, '<top level>', 'a mapping of keys', type(data).__name__,
+                          True)
+    return data
+
+
+def read_yaml_file(path: Path) -> dict:
+    try:
+        text = Path(path).read_text()
+    except OSError as exc:
+        raise ConfigError(str(path), '<file>', f'a readable file ({exc.strerror})') from exc
+    return read_yaml_text(text, str(path))
+
+
+class Section:
+    """A mapping from a YAML file, read with typed, range-checked accessors.
+
+    Keys are consumed as they are read; :meth:`finish` rejects any key left over (a typo
+    or an option this format does not have).
+    """
+
+    def __init__(self, data, source: str, path: str = ''):
+        if not isinstance(data, dict):
+            raise ConfigError(source, path or '<top level>', 'a mapping of keys',
+                              type(data).__name__, True)
+        self.data = data
+        self.source = source
+        self.path = path
+        self._used: set[str] = set()
+
+    def key(self, name: str) -> str:
+        return f'{self.path}.{name}' if self.path else name
+
+    def error(self, name: str, expected: str, got=_MISSING) -> ConfigError:
+        if got is _MISSING:
+            return ConfigError(self.source, self.key(name), expected)
+        return ConfigError(self.source, self.key(name), expected, got, True)
+
+    def has(self, name: str) -> bool:
+        return name in self.data
+
+    def raw(self, name: str, expected: str, default=_MISSING):
+        self._used.add(name)
+        if name not in self.data:
+            if default is not _MISSING:
+                return default
+            raise self.error(name, f'{expected} (the key is missing)')
+        return self.data[name]
+
+    def section(self, name: str, default_empty: bool = False) -> Section:
+        value = self.raw(name, 'a mapping of keys', {} if default_empty else _MISSING)
+        return Section(value, self.source, self.key(name))
+
+    def number(self, name: str, lo: float, hi: float, unit: str, default=_MISSING,
+               hint: str = '') -> float:
+        """A real number in [lo, hi] (SI ``unit``)."""
+        expected = f'a number in [{lo:g}, {hi:g}] {unit}'
+        value = self.raw(name, expected, default)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(name, expected, value)
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.error(name, expected, value)
+        if not lo <= value <= hi:
+            extra = f' ({hint})' if hint else ''
+            raise self.error(
+                name, f'{expected}: the value is implausible in SI units{extra}', value)
+        return value
+
+    def integer(self, name: str, lo: int, hi: int, unit: str = '', default=_MISSING) -> int:
+        expected = f'an integer in [{lo}, {hi}] {unit}'.rstrip()
+        value = self.raw(name, expected, default)
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+            raise self.error(name, expected, value)
+        return int(value)
+
+    def boolean(self, name: str, default=_MISSING) -> bool:
+        value = self.raw(name, 'true or false', default)
+        if not isinstance(value, bool):
+            raise self.error(name, 'true or false', value)
+        return value
+
+    def string(self, name: str, choices=None, default=_MISSING) -> str:
+        expected = 'one of: ' + ', '.join(sorted(choices)) if choices else 'a string'
+        value = self.raw(name, expected, default)
+        if not isinstance(value, str) or (choices and value not in choices):
+            raise self.error(name, expected, value)
+        return value
+
+    def vector(self, name: str, n: int, lo: float, hi: float, unit: str, default=_MISSING,
+               hint: str = '') -> np.ndarray:
+        """A list of ``n`` numbers, each in [lo, hi] (SI ``unit``)."""
+        expected = f'a list of {n} numbers, each in [{lo:g}, {hi:g}] {unit}'
+        value = self.raw(name, expected, default)
+        if not isinstance(value, (list, tuple)) or len(value) != n or any(
+                isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
+            raise self.error(name, expected, value)
+        arr = np.asarray(value, dtype=np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise self.error(name, expected, value)
+        if np.any(arr < lo) or np.any(arr > hi):
+            extra = f' ({hint})' if hint else ''
+            raise self.error(
+                name, f'{expected}: a value is implausible in SI units{extra}', value)
+        return arr
+
+    def finish(self) -> None:
+        """Reject keys that were never read."""
+        extra = sorted(set(self.data) - self._used)
+        if extra:
+            known = ', '.join(sorted(self._used)) or '(none)'
+            raise self.error(extra[0], f'no such key here; known keys: {known}')

@@ -1,0 +1,326 @@
+"""SerialBackend against the firmware emulator over a real pty / TCP socket, with faults."""
+
+import logging
+import time
+
+import numpy as np
+import pytest
+
+from galvo_driver.backend import STATUS_FAULT, STATUS_SETTLED, BackendError
+from galvo_driver.serial_link import protocol as p
+from galvo_driver.serial_link.backend import SerialBackend
+from galvo_driver.serial_link.emulator import FirmwareEmulator
+
+LOGGER = 'galvo_driver.serial_link.backend'
+LSB = 10.0 / 32767  # independent statement of the DAC step: +-10 V over codes 1..65535
+
+
+def quantised(volts: np.ndarray) -> np.ndarray:
+    """Voltages after the board's DAC: nearest code, halves up (computed here, not by
+    the library)."""
+    return np.floor(np.asarray(volts) / LSB + 0.5) * LSB
+
+
+def scan_volts(n: int, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform(-10.0, 10.0, (n, 4))
+
+
+def collect(backend: SerialBackend, deadline: float = 10.0) -> list:
+    frames = []
+    end = time.monotonic() + deadline
+    while backend.running and time.monotonic() < end:
+        frames += backend.poll(0.05)
+    frames += backend.poll()
+    assert not backend.running, 'scan did not end'
+    return frames
+
+
+def assert_frames_truthful(frames, volts, seq_base=0):
+    """Every frame's voltages are exactly the DAC output of the row its seq names."""
+    expected = quantised(volts)
+    seqs = [f.seq for f in frames]
+    assert seqs == sorted(set(seqs)), 'seq must increase strictly'
+    for f in frames:
+        row = f.seq - seq_base
+        assert 0 <= row < len(volts)
+        np.testing.assert_allclose(f.voltages, expected[row], rtol=0, atol=1e-12)
+        assert f.voltages.shape == (4,)
+        assert f.image is None
+
+
+@pytest.fixture(params=['pty', 'tcp'])
+def emu(request):
+    with FirmwareEmulator(request.param, seed=7) as emulator:
+        yield emulator
+
+
+@pytest.fixture
+def emu_pty():
+    with FirmwareEmulator('pty', seed=11) as emulator:
+        yield emulator
+
+
+@pytest.fixture
+def backend_on():
+    backends = []
+
+    def make(emulator, **kw):
+        b = SerialBackend(emulator.port, **kw)
+        b.open()
+        backends.append(b)
+        return b
+
+    yield make
+    for b in backends:
+        b.close()
+
+
+def test_scan_completes_with_correct_voltages(emu, backend_on):
+    be = backend_on(emu)
+    assert be.name == 'serial'
+    assert be.board_info.version == p.PROTOCOL_VERSION and be.board_info.dac_bits == 16
+    be.arm()
+    volts = scan_volts(60)
+    assert be.start(volts, 500.0, laser_on=True) == 60
+    frames = collect(be)
+    assert [f.seq for f in frames] == list(range(60))
+    assert_frames_truthful(frames, volts)
+    assert all(f.laser_on and f.status == STATUS_SETTLED for f in frames)
+    assert be.stats['lost_events'] == 0 and be.status == STATUS_SETTLED
+    # the board's own log says the same, and the frame stamps follow its trigger times
+    triggers = [a for a in emu.applied() if a.reason == 'trigger']
+    assert len(triggers) == 60
+    np.testing.assert_allclose([a.voltages for a in triggers], quantised(volts), atol=1e-12)
+    np.testing.assert_allclose(np.diff([f.stamp for f in frames]),
+                               np.diff([a.t for a in triggers]), atol=5e-6)
+    assert emu.last_applied().reason == 'scan_done' and not emu.last_applied().laser_on
+    # a second scan continues the sequence numbers
+    volts2 = scan_volts(30, seed=1)
+    be.start(volts2, 1000.0, laser_on=False)
+    frames2 = collect(be)
+    assert [f.seq for f in frames2] == list(range(60, 90))
+    assert_frames_truthful(frames2, volts2, seq_base=60)
+    assert not any(f.laser_on for f in frames2)
+
+
+def test_scan_longer_than_many_chunks(emu_pty, backend_on):
+    be = backend_on(emu_pty)
+    volts = scan_volts(3 * p.ROWS_PER_CHUNK + 5, seed=3)
+    volts[0] = [10.0, -10.0, 0.0, 5.0]
+    be.start(volts, 2000.0)
+    frames = collect(be)
+    assert len(frames) == len(volts)
+    assert_frames_truthful(frames, volts)
+    np.testing.assert_allclose(frames[0].voltages, [10.0, -10.0, 0.0, quantised(5.0)],
+                               rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize('fault', ['drop_bytes', 'corrupt_frames'])
+def test_lost_and_corrupted_events_are_counted_not_tagged(emu, backend_on, fault, caplog):
+    be = backend_on(emu)
+    getattr(emu, fault)(4, kind='event')
+    volts = scan_volts(40, seed=5)
+    be.start(volts, 500.0)
+    frames = collect(be)
+    assert len(frames) == 36
+    assert_frames_truthful(frames, volts)
+    assert be.stats['lost_events'] == 4
+    missing = sorted(set(range(40)) - {f.seq for f in frames})
+    assert len(missing) == 4
+    assert be.status == STATUS_SETTLED  # recovered: the scan ran to its end
+    assert be.stats['rx_crc_errors'] + be.stats['rx_cobs_errors'] >= 4
+
+
+def test_lost_tail_events_counted_from_status(emu_pty, backend_on):
+    be = backend_on(emu_pty)
+    emu_pty.corrupt_frames(1, kind='event')  # hits index 0
+    volts = scan_volts(3, seed=2)
+    be.start(volts, 500.0)
+    frames = collect(be)
+    assert [f.seq for f in frames] == [1, 2]
+    assert be.stats['lost_events'] == 1
+
+
+def test_lost_acks_are_retried_without_double_execution(emu, backend_on):
+    be = backend_on(emu)
+    emu.drop_acks(3)
+    emu.corrupt_frames(2, kind='ack')
+    volts = scan_volts(35, seed=8)
+    be.start(volts, 500.0)  # ScanBegin, 2 x ScanData, ScanStart: all answers lost once
+    frames = collect(be)
+    assert [f.seq for f in frames] == list(range(35))
+    assert_frames_truthful(frames, volts)
+    assert be.stats['retries'] >= 5
+    assert emu.stats['duplicates'] >= 3  # retransmissions answered, not re-executed
+    assert len([a for a in emu.applied() if a.reason == 'trigger']) == 35
+
+
+def test_corrupted_and_shortened_commands_are_retried(emu_pty, backend_on):
+    be = backend_on(emu_pty)
+    volts = scan_volts(20, seed=9)
+    emu_pty.corrupt_rx(3)
+    emu_pty.drop_rx_bytes(3)
+    be.start(volts, 500.0)
+    frames = collect(be)
+    assert [f.seq for f in frames] == list(range(20))
+    assert_frames_truthful(frames, volts)
+    assert emu_pty.stats['rx_errors'] >= 1
+
+
+@pytest.mark.parametrize('lose_boot', [False, True])
+def test_reset_mid_scan_stops_in_safe_state(emu, backend_on, caplog, lose_boot):
+    caplog.set_level(logging.INFO, logger=LOGGER)
+    be = backend_on(emu)
+    if lose_boot:  # the reset must then be noticed from the boot id in STATUS
+        emu.corrupt_frames(1, kind='boot')
+    emu.reset(at_trigger=9)
+    volts = scan_volts(50, seed=4)
+    be.start(volts, 250.0)
+    frames = collect(be)
+    assert [f.seq for f in frames] == list(range(10))
+    assert_frames_truthful(frames, volts)
+    assert be.status == STATUS_FAULT and 'reset' in be.fault
+    errors = [r for r in caplog.records if r.levelno == logging.ERROR]
+    assert any('reset' in r.getMessage() for r in errors)
+    # nothing is tagged afterwards, and the board ends safe (its boot state, then SAFE)
+    time.sleep(0.1)
+    assert be.poll() == []
+    assert emu.wait_until(lambda e: e.last_applied().reason == 'safe')
+    assert emu.last_applied().is_safe
+    with pytest.raises(BackendError, match='FAULT'):
+        be.start(volts, 250.0)
+    # arm() re-establishes the session; numbering continues after the aborted scan
+    be.arm()
+    assert be.status == STATUS_SETTLED
+    be.start(volts[:15], 500.0)
+    frames2 = collect(be)
+    assert [f.seq for f in frames2] == list(range(10, 25))
+    assert_frames_truthful(frames2, volts[:15], seq_base=10)
+
+
+def test_reset_while_idle_reconnects(emu_pty, backend_on, caplog):
+    be = backend_on(emu_pty)
+    emu_pty.reset()
+    time.sleep(0.15)
+    assert be.status == STATUS_SETTLED
+    volts = scan_volts(10)
+    be.start(volts, 500.0)
+    frames = collect(be)
+    assert_frames_truthful(frames, volts)
+    assert len(frames) == 10
+
+
+def test_unplug_mid_scan(emu, backend_on, caplog):
+    caplog.set_level(logging.INFO, logger=LOGGER)
+    be = backend_on(emu)
+    volts = scan_volts(200, seed=6)
+    be.start(volts, 200.0, laser_on=True)
+    frames = []
+    end = time.monotonic() + 5
+    while len(frames) < 8 and time.monotonic() < end:
+        frames += be.poll(0.05)
+    emu.unplug()
+    frames += collect(be)
+    assert 8 <= len(frames) < 200
+    assert_frames_truthful(frames, volts)
+    assert be.status == STATUS_FAULT and 'link lost' in be.fault
+    assert any(r.levelno == logging.ERROR and 'link' in r.getMessage()
+               for r in caplog.records)
+    # the board, cut off from its host, makes itself safe
+    assert emu.wait_until(lambda e: e.watchdog_trips, timeout=3.0)
+    assert emu.last_applied().is_safe and emu.last_applied().reason == 'watchdog'
+    with pytest.raises(BackendError):
+        be.start(volts, 200.0)
+    with pytest.raises(BackendError):
+        be.arm()
+    be.safe()  # never raises
+    be.close()
+
+
+def test_version_mismatch_refused():
+    with FirmwareEmulator('pty', protocol_version=2) as emu:
+        be = SerialBackend(emu.port)
+        with pytest.raises(BackendError, match='version'):
+            be.open()
+        assert not be.running
+        be.close()
+        assert emu.snapshot()['session'] is False
+
+
+def test_open_missing_port():
+    with pytest.raises(BackendError, match='cannot open'):
+        SerialBackend('/dev/galvoscan-no-such-port').open()
+
+
+def test_safe_and_close_leave_board_safe(emu, backend_on):
+    be = backend_on(emu)
+    volts = np.full((400, 4), 3.0)
+    be.start(volts, 500.0, laser_on=True)
+    assert emu.wait_until(lambda e: e.last_applied().laser_on)
+    be.safe()
+    assert not be.running
+    last = emu.last_applied()
+    assert last.reason == 'safe' and last.is_safe
+    np.testing.assert_array_equal(last.voltages, np.zeros(4))
+    n = emu.snapshot()['triggers']
+    time.sleep(0.05)
+    assert emu.snapshot()['triggers'] == n  # the board stopped triggering
+    be.start(volts, 500.0, laser_on=True)
+    assert emu.wait_until(lambda e: e.last_applied().laser_on)
+    be.close()
+    safe_entries = [a for a in emu.applied() if a.reason == 'safe']
+    assert safe_entries[-1].is_safe
+    assert all(a.is_safe for a in emu.applied() if a.t >= safe_entries[-1].t)
+    be.close()  # idempotent
+
+
+def test_stop_mid_scan(emu_pty, backend_on):
+    be = backend_on(emu_pty)
+    volts = scan_volts(300, seed=12)
+    be.start(volts, 500.0)
+    frames = []
+    while len(frames) < 5:
+        frames += be.poll(0.1)
+    be.stop()
+    assert not be.running
+    frames += be.poll()
+    assert emu_pty.last_applied().is_safe
+    assert_frames_truthful(frames, volts)
+    time.sleep(0.05)
+    assert be.poll() == []  # events in flight when stop() ran are not tagged
+    be.start(volts[:5], 500.0)
+    frames2 = collect(be)
+    assert frames2[0].seq > frames[-1].seq
+    assert_frames_truthful(frames2, volts[:5], seq_base=frames2[0].seq)
+
+
+@pytest.mark.parametrize('volts, rate, match', [
+    (np.full((5, 4), np.nan), 100.0, 'voltages'),
+    (np.full((5, 4), 10.5), 100.0, 'voltages'),
+    (np.zeros((5, 3)), 100.0, 'voltages'),
+    (np.zeros((0, 4)), 100.0, 'voltages'),
+    (np.zeros((5, 4)), 0.0, 'frame_rate'),
+    (np.zeros((5, 4)), float('nan'), 'frame_rate'),
+    (np.zeros((5, 4)), 1e6, 'frame_rate'),
+])
+def test_bad_scan_input_sends_nothing(emu_pty, backend_on, volts, rate, match):
+    be = backend_on(emu_pty)
+    before = emu_pty.snapshot()
+    n_applied = len(emu_pty.applied())
+    with pytest.raises(ValueError, match=match):
+        be.start(volts, rate)
+    assert emu_pty.snapshot()['scan_id'] == before['scan_id']
+    assert len(emu_pty.applied()) == n_applied
+    assert not be.running
+
+
+def test_not_open_errors():
+    be = SerialBackend('/dev/null')
+    with pytest.raises(BackendError, match='not open'):
+        be.start(np.zeros((2, 4)), 100.0)
+    be.safe()
+    be.close()
+    assert be.poll() == []
+    with pytest.raises(ValueError, match='ack_timeout'):
+        SerialBackend('/dev/null', ack_timeout=0)
