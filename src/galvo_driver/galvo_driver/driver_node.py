@@ -216,6 +216,11 @@ class GalvoDriverNode(LifecycleNode):
             return
         for frame in frames:
             self._publish(frame)
+        fault = getattr(self.backend, 'fault', None)
+        if fault and self._scan['state'] == 'running':
+            self.get_logger().error(f'backend fault, scan aborted in safe state: {fault}')
+            self._scan['state'] = 'fault'
+            self.make_safe()
         if self._scan['state'] == 'running' and not self.backend.running:
             self._scan['state'] = 'done'
             self.get_logger().info(

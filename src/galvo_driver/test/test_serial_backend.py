@@ -134,12 +134,15 @@ def test_lost_and_corrupted_events_are_counted_not_tagged(emu, backend_on, fault
 
 def test_lost_tail_events_counted_from_status(emu_pty, backend_on):
     be = backend_on(emu_pty)
-    emu_pty.corrupt_frames(1, kind='event')  # hits index 0
-    volts = scan_volts(3, seed=2)
+    emu_pty.corrupt_frames(2, kind='event', skip=3)  # the last two of five events
+    volts = scan_volts(5, seed=2)
     be.start(volts, 500.0)
-    frames = collect(be)
-    assert [f.seq for f in frames] == [1, 2]
-    assert be.stats['lost_events'] == 1
+    frames = collect(be)  # ends on the board's STATUS 'done', not on the last event
+    assert [f.seq for f in frames] == [0, 1, 2]
+    assert_frames_truthful(frames, volts)
+    assert be.stats['lost_events'] == 2
+    be.start(volts, 500.0)
+    assert [f.seq for f in collect(be)] == [5, 6, 7, 8, 9]
 
 
 def test_lost_acks_are_retried_without_double_execution(emu, backend_on):
@@ -324,3 +327,47 @@ def test_not_open_errors():
     assert be.poll() == []
     with pytest.raises(ValueError, match='ack_timeout'):
         SerialBackend('/dev/null', ack_timeout=0)
+
+
+def test_set_output_and_reopen(emu, backend_on):
+    be = backend_on(emu)
+    out = be.set_output([1.0, -2.0, 0.0, 9.99], laser_on=True)
+    np.testing.assert_allclose(out, quantised([1.0, -2.0, 0.0, 9.99]), atol=1e-12)
+    last = emu.last_applied()
+    assert last.laser_on and last.reason == 'laser'
+    np.testing.assert_allclose(last.voltages, out, atol=1e-12)
+    with pytest.raises(ValueError, match='voltages'):
+        be.set_output([1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match='voltages'):
+        be.set_output([0.0, 0.0, 0.0, -11.0])
+    be.close()
+    assert emu.last_applied().is_safe
+    # the same board, a new host session
+    be2 = backend_on(emu)
+    volts = scan_volts(8, seed=21)
+    be2.start(volts, 500.0)
+    frames = collect(be2)
+    assert [f.seq for f in frames] == list(range(8))
+    assert_frames_truthful(frames, volts)
+    be2.start(volts, 500.0)
+    with pytest.raises(BackendError, match='running'):
+        be2.set_output([0.0, 0.0, 0.0, 0.0])
+
+
+def test_dac_glitch_is_tagged_with_the_real_output(emu_pty, backend_on, caplog):
+    caplog.set_level(logging.INFO, logger=LOGGER)
+    be = backend_on(emu_pty)
+    volts = scan_volts(6, seed=30)
+    emu_pty.glitch_output(1)  # row 0 comes out one LSB off on channel 0
+    be.start(volts, 500.0)
+    frames = collect(be)
+    assert len(frames) == 6
+    out0 = [a for a in emu_pty.applied() if a.reason == 'trigger'][0]
+    np.testing.assert_allclose(frames[0].voltages, out0.voltages, atol=1e-12)
+    assert abs(abs(frames[0].voltages[0] - quantised(volts[0, 0])) - LSB) < 1e-12
+    assert frames[0].status == STATUS_FAULT
+    assert all(f.status == STATUS_SETTLED for f in frames[1:])
+    assert_frames_truthful(frames[1:], volts)
+    assert be.stats['mismatched_events'] == 1
+    assert any(r.levelno == logging.ERROR and 'commanded' in r.getMessage()
+               for r in caplog.records)

@@ -318,3 +318,19 @@ def test_fuzz_only_protocol_errors(case):
     assert dec.buffered == 0
     # whatever came before, the decoder is in sync for the next frame
     assert dec.feed(p.encode_frame(1, p.Safe())) == [p.Packet(1, p.Safe())]
+
+
+@settings(max_examples=600, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(st.integers(0, 255), st.sampled_from(sorted(p.MESSAGE_TYPES))), u16,
+       st.binary(max_size=p.MAX_PAYLOAD))
+def test_fuzz_payload_behind_valid_crc(msg_type, seq, payload):
+    """A well-framed packet with any type and payload: a ProtocolError naming its seq, or
+    a message that encodes back to exactly the same bytes."""
+    frame = _frame_with_body(bytes([msg_type]) + struct.pack('<H', seq) + payload)
+    try:
+        pkt = p.decode_frame(frame)
+    except p.ProtocolError as err:
+        assert err.seq == seq and err.msg_type == msg_type
+    else:
+        assert pkt.seq == seq and pkt.msg.TYPE == msg_type
+        assert p.encode_frame(pkt.seq, pkt.msg)[:-1] == frame

@@ -189,7 +189,7 @@ def check_image(image) -> np.ndarray:
         raise ValueError(f'image must be a numpy array, got {type(image).__name__}')
     if image.ndim != 2:
         raise ValueError(f'image must be 2-D (height, width), got shape {image.shape}')
-    if image.dtype not in SUPPORTED_DTYPES:
+    if image.dtype.kind != 'u' or image.dtype.itemsize not in (1, 2):
         raise ValueError(f'image dtype must be uint8 or uint16, got {image.dtype}')
     if image.shape[0] < 3 or image.shape[1] < 3:
         raise ValueError(f'image must be at least 3x3 px, got shape {image.shape}')

@@ -206,6 +206,23 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
     cand = np.empty(W, np.int32)
     sec = np.empty(W, np.int32)
     column_peaks(img, R, cand, sec)
+    # Pass 1: peak row, peak value and background of every column's smoothed profile.
+    r0s = np.zeros(W, np.int32)
+    bgs = np.zeros(W, np.float32)
+    present = np.zeros(W, np.bool_)
+    for c in range(W):
+        p = cand[c]
+        a = max(p - R, K + 1)
+        b = min(p + R, H - 2 - K)
+        if b < a:
+            continue
+        r0, peak, bg = roi_profile_peak(img, c, p, a, b, K, g0)
+        r0s[c] = r0
+        bgs[c] = bg
+        present[c] = peak - bg >= min_strength
+    # Pass 2: Steger at each column with a stripe. The 2-D kernels are used where the stripe
+    # is present and continuous over the whole footprint c-K..c+K; elsewhere (line ends,
+    # occlusion edges, jumps, left/right borders) the column-only case.
     n = 0
     nsec = 0
     L = 2 * K + 3
@@ -213,58 +230,57 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
     h1 = np.empty(L, np.float32)
     h2 = np.empty(L, np.float32)
     for c in range(W):
-        p = cand[c]
-        a = max(p - R, K + 1)
-        b = min(p + R, H - 2 - K)
-        if b < a:
+        if not present[c]:
             continue
-        r0, _, bg = roi_profile_peak(img, c, p, a, b, K, g0)
+        r0 = r0s[c]
+        bg = bgs[c]
         full = K <= c < W - K
-        r = r0
-        ok = False
-        du = np.float32(0.0)
-        dv = np.float32(0.0)
-        lam = np.float32(0.0)
-        val = np.float32(0.0)
+        if full:
+            for k in range(-K, K + 1):
+                if not present[c + k] or abs(r0s[c + k] - r0) > abs(k) + 2:
+                    full = False
+                    break
         if full:
             # Horizontal Gaussian-derivative filtering of rows r0-K .. r0+K at column c
             # (slot j holds row r0 - K - 1 + j; slots 0 and L-1 are filled on a step).
             for j in range(1, L - 1):
                 h0[j], h1[j], h2[j] = _filter_row(img, r0 - K - 1 + j, c, K, g0, d1, d2)
-            for attempt in range(2):
-                du, dv, lam, val = _line_point(h0, h1, h2, r - r0 + K + 1, K, g0, d1, d2)
-                if lam >= 0.0:
-                    break
-                if abs(du) <= 0.5 and abs(dv) <= 0.5:
-                    ok = True
-                    break
-                if attempt == 0 and abs(dv) > 0.5:
-                    if dv > 0:
-                        r = r0 + 1
-                        h0[L - 1], h1[L - 1], h2[L - 1] = _filter_row(
-                            img, r0 + K + 1, c, K, g0, d1, d2)
-                    else:
-                        r = r0 - 1
-                        h0[0], h1[0], h2[0] = _filter_row(img, r0 - K - 1, c, K, g0, d1, d2)
-                else:
-                    break
+            du, dv, lam, val = _line_point(h0, h1, h2, K + 1, K, g0, d1, d2)
         else:
-            for attempt in range(2):
-                du, dv, lam, val = _line_point_1d(img, r, c, K, g0, d1, d2)
-                if lam >= 0.0:
-                    break
-                if abs(dv) <= 0.5:
-                    ok = True
-                    break
-                if attempt == 0:
-                    r2 = r0 + 1 if dv > 0 else r0 - 1
-                    if r2 < K + 1 or r2 > H - 2 - K:
-                        break
-                    r = r2
-                else:
-                    break
-        if not ok:
+            du, dv, lam, val = _line_point_1d(img, r0, c, K, g0, d1, d2)
+        if lam >= 0.0:
             continue
+        r = r0
+        if not (abs(du) <= 0.5 and abs(dv) <= 0.5):
+            if abs(dv) <= 0.5:
+                continue
+            # Try the neighbouring pixel the offset points to.
+            r1 = r0 + 1 if dv > 0 else r0 - 1
+            if r1 < K + 1 or r1 > H - 2 - K:
+                continue
+            if full:
+                if r1 > r0:
+                    h0[L - 1], h1[L - 1], h2[L - 1] = _filter_row(
+                        img, r0 + K + 1, c, K, g0, d1, d2)
+                else:
+                    h0[0], h1[0], h2[0] = _filter_row(img, r0 - K - 1, c, K, g0, d1, d2)
+                du1, dv1, lam1, val1 = _line_point(h0, h1, h2, r1 - r0 + K + 1, K, g0, d1, d2)
+            else:
+                du1, dv1, lam1, val1 = _line_point_1d(img, r1, c, K, g0, d1, d2)
+            if lam1 >= 0.0:
+                continue
+            if abs(du1) <= 0.5 and abs(dv1) <= 0.5:
+                pass
+            elif dv1 * dv > 0.0 or abs(dv1) > 1.0 or abs(du1) > 1.0:
+                continue
+            elif abs(dv1) > abs(dv):
+                # The point lies between the two pixels, whose sampled estimates straddle
+                # the boundary: keep the nearer one.
+                if abs(du) > 1.0:
+                    continue
+                du1, dv1, lam1, val1 = du, dv, lam, val
+                r1 = r0
+            du, dv, lam, val, r = du1, dv1, lam1, val1, r1
         strength = val - bg
         if strength < min_strength:
             continue

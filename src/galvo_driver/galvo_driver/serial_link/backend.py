@@ -337,6 +337,42 @@ class SerialBackend(GalvoBackend):
         log.info('scan %d started: %d rows at %.6g Hz', scan_id, n, 1e6 / period_us)
         return n
 
+    def set_output(self, voltages, laser_on: bool = False) -> np.ndarray:
+        """Hold the galvos at one set of voltages (no triggers), laser on or off.
+
+        Parameters
+        ----------
+        voltages : array_like, shape (4,), volts
+            (U1_pan, U1_tilt, U2_pan, U2_tilt), each in +-10 V.
+        laser_on : bool
+
+        Returns
+        -------
+        ndarray, shape (4,), volts
+            The voltages the DAC outputs (after quantisation).
+
+        Raises
+        ------
+        ValueError
+            Bad shape or values (nothing is sent).
+        BackendError
+            Not open, in FAULT, a scan is running, or the board refused.
+        """
+        arr = np.asarray(voltages, dtype=np.float64)
+        if arr.shape != (p.N_CHANNELS,):
+            raise ValueError(f'voltages: expected shape (4,) in volts, got {arr.shape}')
+        codes = p.volts_to_codes(check_voltages(arr[None, :])[0])
+        self._require_link()
+        if self._fault is not None:
+            raise BackendError(f'backend in FAULT ({self._fault}); call arm() to clear it')
+        if self.running:
+            raise BackendError('a scan is running; stop() it first')
+        if self._session_lost:
+            self._handshake()
+        self._command(p.SetVolts(tuple(int(c) for c in codes)))
+        self._command(p.Laser(bool(laser_on)))
+        return p.codes_to_volts(codes)
+
     def poll(self, timeout: float = 0.0) -> list[Frame]:
         """Frames decoded since the last call; waits up to ``timeout`` [s] for the first
         one while a scan runs."""

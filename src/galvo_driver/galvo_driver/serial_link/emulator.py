@@ -11,9 +11,9 @@ The emulator runs in a thread and serves one byte transport:
 It keeps a log of every DAC output and laser state it applied (:meth:`applied`), with the
 emulator's ``time.monotonic()`` time and the reason, so tests can check what the "hardware"
 did, and it injects faults on demand: lost bytes and corrupted bits in outgoing frames
-(by message kind), corrupted or shortened incoming frames, lost ACKs, a reset (at once or
-right after a given trigger) and an unplug (the transport is closed; the board keeps running
-and its watchdog makes it safe).
+(by message kind), corrupted or shortened incoming frames, lost ACKs, a DAC glitch (a row
+output one LSB off), a reset (at once or right after a given trigger) and an unplug (the
+transport is closed; the board keeps running and its watchdog makes it safe).
 
 Run it as a separate process for driver tests::
 
@@ -230,9 +230,10 @@ class FirmwareEmulator:
         self._stop = threading.Event()
         self._unplugged = False
         # fault injection requests
-        self._tx_faults: list[list] = []  # [action, kind_type, remaining]
+        self._tx_faults: list[list] = []  # [action, kind_type, remaining, skip]
         self._drop_acks = 0
         self._rx_faults: list[list] = []  # [action, remaining]
+        self._glitches = 0
         self._reset_request = False
         self._reset_at_trigger: int | None = None
         self._unplug_request = False
@@ -304,14 +305,16 @@ class FirmwareEmulator:
         return bool(predicate(self))
 
     # fault injection ------------------------------------------------------------------
-    def drop_bytes(self, n_frames: int = 1, kind: str = 'any') -> None:
+    def drop_bytes(self, n_frames: int = 1, kind: str = 'any', skip: int = 0) -> None:
         """Lose one byte from the middle of each of the next ``n_frames`` outgoing frames
-        of ``kind`` ('any', 'ack', 'nak', 'event', 'boot', 'status', 'fault')."""
-        self._add_tx_fault('drop', n_frames, kind)
+        of ``kind`` ('any', 'ack', 'nak', 'event', 'boot', 'status', 'fault'), after
+        letting ``skip`` frames of that kind pass."""
+        self._add_tx_fault('drop', n_frames, kind, skip)
 
-    def corrupt_frames(self, n_frames: int = 1, kind: str = 'any') -> None:
-        """Flip one bit in each of the next ``n_frames`` outgoing frames of ``kind``."""
-        self._add_tx_fault('flip', n_frames, kind)
+    def corrupt_frames(self, n_frames: int = 1, kind: str = 'any', skip: int = 0) -> None:
+        """Flip one bit in each of the next ``n_frames`` outgoing frames of ``kind``,
+        after letting ``skip`` frames of that kind pass."""
+        self._add_tx_fault('flip', n_frames, kind, skip)
 
     def drop_acks(self, n: int = 1) -> None:
         """Execute the next ``n`` commands but lose their ACK/NAK entirely."""
@@ -327,6 +330,12 @@ class FirmwareEmulator:
         """Lose one byte of each of the next ``n_chunks`` chunks of bytes received."""
         with self._lock:
             self._rx_faults.append(['drop', int(n_chunks)])
+
+    def glitch_output(self, n_triggers: int = 1) -> None:
+        """Output the next ``n_triggers`` scan rows one LSB off on channel 0 (a DAC fault);
+        the events report the codes really output, as the firmware reads them back."""
+        with self._lock:
+            self._glitches += int(n_triggers)
 
     def reset(self, at_trigger: int | None = None) -> None:
         """Reset the board now, or right after it emits trigger index ``at_trigger``."""
@@ -344,11 +353,11 @@ class FirmwareEmulator:
         self._wake()
 
     # -------------------------------------------------------------------- internals
-    def _add_tx_fault(self, action: str, n: int, kind: str) -> None:
+    def _add_tx_fault(self, action: str, n: int, kind: str, skip: int) -> None:
         if kind not in TX_KINDS:
             raise ValueError(f'kind: expected one of {sorted(TX_KINDS)}, got {kind!r}')
         with self._lock:
-            self._tx_faults.append([action, TX_KINDS[kind], int(n)])
+            self._tx_faults.append([action, TX_KINDS[kind], int(n), int(skip)])
 
     def _wake(self) -> None:
         try:
@@ -385,10 +394,11 @@ class FirmwareEmulator:
         self._codes = _ZERO_CODES
         self._laser = False
 
-    def _apply(self, codes, laser: bool, reason: str) -> None:
+    def _apply(self, codes, laser: bool, reason: str, t: float | None = None) -> None:
         self._codes = tuple(int(c) for c in codes)
         self._laser = bool(laser)
-        entry = AppliedOutput(time.monotonic(), self._codes, self._laser, reason)
+        entry = AppliedOutput(time.monotonic() if t is None else t, self._codes, self._laser,
+                              reason)
         self._log.append(entry)
         if self._log_file is not None:
             self._log_file.write(json.dumps(entry.as_dict()) + '\n')
@@ -412,8 +422,11 @@ class FirmwareEmulator:
             self._drop_acks -= 1
             return
         for fault in self._tx_faults:
-            action, kind, remaining = fault
+            action, kind, remaining, skip = fault
             if remaining > 0 and (kind is None or kind == msg.TYPE):
+                if skip > 0:
+                    fault[3] -= 1
+                    continue
                 fault[2] -= 1
                 pos = self._rng.randrange(1, len(frame) - 1)
                 if action == 'drop':
@@ -559,9 +572,15 @@ class FirmwareEmulator:
 
     def _trigger(self) -> None:
         row = self._table[self._index]
-        self._apply(row, self._scan_laser, 'trigger')
-        self._send(p.Event(self._boot_id, self._scan_id, self._index, self._uptime_us(),
-                           self._codes, self._laser, p.EVENT_SETTLED))
+        if self._glitches > 0:
+            self._glitches -= 1
+            row = row.copy()
+            row[0] = row[0] + 1 if row[0] < p.CODE_MAX else row[0] - 1
+        t = time.monotonic()  # the trigger instant: output applied and timestamped together
+        self._apply(row, self._scan_laser, 'trigger', t)
+        self._send(p.Event(self._boot_id, self._scan_id, self._index,
+                           int((t - self._boot_t0) * 1e6), self._codes, self._laser,
+                           p.EVENT_SETTLED))
         index = self._index
         self._index += 1
         self._triggers += 1

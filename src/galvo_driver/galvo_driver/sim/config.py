@@ -31,6 +31,16 @@ class ConfigError(ValueError):
 _MISSING = object()
 
 
+def _as_number(value):
+    """PyYAML (YAML 1.1) reads ``3.5e7`` (no exponent sign) as a string; accept it."""
+    if isinstance(value, str):
+        try:
+            return float(value)
+        except ValueError:
+            return value
+    return value
+
+
 def read_yaml_text(text: str, source: str) -> dict:
     """Parse YAML text whose top level must be a mapping."""
     try:
@@ -94,7 +104,7 @@ class Section:
                hint: str = '') -> float:
         """A real number in [lo, hi] (SI ``unit``)."""
         expected = f'a number in [{lo:g}, {hi:g}] {unit}'
-        value = self.raw(name, expected, default)
+        value = _as_number(self.raw(name, expected, default))
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.error(name, expected, value)
         value = float(value)
@@ -131,6 +141,8 @@ class Section:
         """A list of ``n`` numbers, each in [lo, hi] (SI ``unit``)."""
         expected = f'a list of {n} numbers, each in [{lo:g}, {hi:g}] {unit}'
         value = self.raw(name, expected, default)
+        if isinstance(value, (list, tuple)):
+            value = [_as_number(v) for v in value]
         if not isinstance(value, (list, tuple)) or len(value) != n or any(
                 isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
             raise self.error(name, expected, value)

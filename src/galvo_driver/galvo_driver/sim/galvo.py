@@ -146,9 +146,10 @@ class MirrorDrive:
         """
         U = np.linspace(-self.full_scale, self.full_scale, samples)
         theta = np.array([self.angle(float(x)) for x in U])
-        b, a = np.polyfit(U, theta, 1)
-        if self.nonlinearity == (0.0, 0.0) or not any(self.nonlinearity):
+        c2, c3 = self.nonlinearity
+        if c2 == 0.0 and c3 == 0.0:
             return self.theta0 + self.zero_offset, self.gain * (1.0 + self.gain_error)
+        b, a = np.polyfit(U, theta, 1)
         return float(a), float(b)
 
 

@@ -10,15 +10,20 @@ x right, y down). The plumb_bob model (OpenCV, ROS CameraInfo ``d``) maps undist
     u = fx xd + cx,  v = fy yd + cy
 
 The inverse has no closed form. :func:`undistort_points` runs the fixed-point iteration
-``x <- (xd - tangential(x)) / radial(x)`` (the same iteration as OpenCV). The iteration is a
-contraction with a small constant rho for this rig's telephoto lens, so after a step of size s
-the remaining error is at most ``rho / (1 - rho) * s``. Once per :class:`CameraIntrinsics`, a
-grid over the image plus a 5 % margin fixes rho (twice the largest observed step ratio), the
-step size that guarantees ``UNDISTORT_TARGET_ERROR``, and the number of steps every grid point
-needs to get there. Each call runs that fixed number of steps and checks the last step; points
-that fail the check (far outside the image) keep iterating until their step is below
-``UNDISTORT_STEP_TOL``, up to ``UNDISTORT_MAX_ITER`` steps; points that still have not
-converged (beyond the fold of the distortion polynomial) are reported as not converged.
+``x <- (xd - tangential(x)) / radial(x)`` (the same iteration as OpenCV), started either at
+``xd`` or at a cheap approximate inverse (series inverse of the radial part minus the
+tangential term). The iteration is a contraction with a small constant rho for this rig's
+telephoto lens, so after a step of size s the remaining error is at most
+``rho / (1 - rho) * s``. Once per :class:`CameraIntrinsics`, a 41 x 31 grid over the image
+plus a 5 % margin (the "box") fixes rho (twice the largest observed step ratio), the step size
+that guarantees ``UNDISTORT_TARGET_ERROR``, the start, and the number of steps every grid point
+needs to get there.
+
+At run time, a batch whose points all lie in the box runs exactly that fixed number of steps
+(the hot path). Otherwise the last step of each point is checked, and points that fail keep
+iterating from ``xd`` until their step is below ``UNDISTORT_STEP_TOL``, up to
+``UNDISTORT_MAX_ITER`` steps; points that still have not converged (beyond the fold of the
+distortion polynomial) are reported as not converged.
 """
 
 from __future__ import annotations
@@ -100,19 +105,40 @@ class CameraIntrinsics:
             p_row2=np.array([2.0 * p2, 2.0 * p1]),
             p_col=np.array([[p2], [p1]]),
             distorted=any(v != 0.0 for v in self.dist),
-            g1=-k1,
-            g2=3.0 * k1 * k1 - k2,
+            b1=-k1,
+            b2=3.0 * k1 * k1 - k2,
+            b3=-12.0 * k1**3 + 8.0 * k1 * k2 - k3,
             use_guess=False,
             n_fast=0,
             fast_tol=UNDISTORT_STEP_TOL,
         )
+        # The box: image plus margin, in distorted normalised coordinates.
+        mw, mh = _GRID_MARGIN * self.width, _GRID_MARGIN * self.height
+        us = np.linspace(-mw, self.width + mw, 41)
+        vs = np.linspace(-mh, self.height + mh, 31)
+        plan.box = (
+            (us[0] - self.cx) / self.fx,
+            (us[-1] - self.cx) / self.fx,
+            (vs[0] - self.cy) / self.fy,
+            (vs[-1] - self.cy) / self.fy,
+        )
+        uu, vv = np.meshgrid(us, vs)
+        xd = (np.stack([uu.ravel(), vv.ravel()]) - plan.c) * plan.finv
         if plan.distorted:
-            plan.use_guess, plan.n_fast, plan.fast_tol = _fixed_iteration_plan(self, plan)
+            plan.use_guess, plan.n_fast, plan.fast_tol, x = _fixed_iteration_plan(plan, xd)
+            if x is None:  # nothing in the box converges: no fast path
+                plan.box = (0.0, -1.0, 0.0, -1.0)
+                x = xd
+        else:
+            x = xd
+        # Largest ray length sqrt(1 + r2) in the box (with 1 % slack), for the angle test.
+        r2 = x[0] * x[0] + x[1] * x[1]
+        plan.ray_norm_max = 1.01 * float(np.sqrt(1.0 + np.nanmax(r2)))
         return plan
 
 
-def _iterate(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray):
-    """One fixed-point undistortion step; ``xd`` and ``x`` shape (2, n). Return (x_new, r2(x))."""
+def _iterate(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """One fixed-point undistortion step; ``xd`` and ``x`` shape (2, n)."""
     x2 = x * x
     r2 = x2[0] + x2[1]
     if plan.has_k3:
@@ -123,8 +149,8 @@ def _iterate(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray):
         # tangential(x) = r2 p + 2 (p . x) x with p = (p2, p1)
         delta = (plan.p_row2 @ x) * x
         delta += r2 * plan.p_col
-        return (xd - delta) / radial, r2
-    return xd / radial, r2
+        return (xd - delta) / radial
+    return xd / radial
 
 
 def _distort(plan: SimpleNamespace, x: np.ndarray) -> np.ndarray:
@@ -136,65 +162,67 @@ def _distort(plan: SimpleNamespace, x: np.ndarray) -> np.ndarray:
 
 
 def _initial_guess(plan: SimpleNamespace, xd: np.ndarray) -> np.ndarray:
-    """Series inverse of the radial part, ``xd (1 - k1 s + (3 k1^2 - k2) s^2)``, s = |xd|^2."""
+    """Approximate inverse: series inverse of the radial part minus the tangential term at xd.
+
+    ``xd (1 + b1 s + b2 s^2 + b3 s^3) - tangential(xd)``, ``s = |xd|^2``, with
+    ``b1 = -k1, b2 = 3 k1^2 - k2, b3 = -12 k1^3 + 8 k1 k2 - k3``.
+    """
     x2 = xd * xd
     s = x2[0] + x2[1]
-    return xd * (1.0 + s * (plan.g1 + s * plan.g2))
+    x = xd * (1.0 + s * (plan.b1 + s * (plan.b2 + s * plan.b3)))
+    if plan.has_tangential:
+        delta = (plan.p_row2 @ xd) * xd
+        delta += s * plan.p_col
+        x -= delta
+    return x
 
 
 def _iterate_until_converged(plan, xd, max_iter):
-    """Iterate from ``xd`` until each step is below tolerance; return (x, r2, converged)."""
+    """Iterate from ``xd`` until each step is below tolerance; return (x, converged)."""
     n = xd.shape[1]
     converged = np.zeros(n, dtype=bool)
-    r2 = np.zeros(n)
     active = np.arange(n)
     x = xd.copy()
     with np.errstate(all="ignore"):
         for _ in range(max_iter):
             if not active.size:
                 break
-            x_new, r2_a = _iterate(plan, xd[:, active], x[:, active])
+            x_new = _iterate(plan, xd[:, active], x[:, active])
             step = np.abs(x_new - x[:, active]).max(axis=0)
             x[:, active] = x_new
-            r2[active] = r2_a
             done = step <= UNDISTORT_STEP_TOL
             converged[active[done]] = True
             # Drop converged columns and columns that blew up (no preimage).
             active = active[~done & np.isfinite(step)]
-    return x, r2, converged
+    return x, converged
 
 
-def _grid_steps(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray) -> np.ndarray:
+def _grid_steps(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray):
     """Step sizes, shape (iterations, points), iterating until every point has converged."""
     steps = []
     with np.errstate(all="ignore"):
         for _ in range(UNDISTORT_MAX_ITER):
-            x_new, _ = _iterate(plan, xd, x)
+            x_new = _iterate(plan, xd, x)
             steps.append(np.abs(x_new - x).max(axis=0))
             x = x_new
             if not np.any(steps[-1] > UNDISTORT_STEP_TOL):
                 break
-    return np.array(steps)
+    return np.array(steps), x
 
 
-def _fixed_iteration_plan(intr: CameraIntrinsics, plan: SimpleNamespace):
-    """Choose start (xd or series guess), fixed step count and last-step tolerance on a grid.
+def _fixed_iteration_plan(plan: SimpleNamespace, xd: np.ndarray):
+    """Choose the start, fixed step count and last-step tolerance on the box grid ``xd``.
 
-    Returns (use_guess, n_fast, fast_tol).
+    Returns (use_guess, n_fast, fast_tol, x) with x the converged grid, or x None when no grid
+    point converges.
     """
-    mw, mh = _GRID_MARGIN * intr.width, _GRID_MARGIN * intr.height
-    us = np.linspace(-mw, intr.width + mw, 41)
-    vs = np.linspace(-mh, intr.height + mh, 31)
-    uu, vv = np.meshgrid(us, vs)
-    xd = (np.stack([uu.ravel(), vv.ravel()]) - plan.c) * plan.finv
-    with np.errstate(all="ignore"):
-        variants = {
-            False: _grid_steps(plan, xd, xd),
-            True: _grid_steps(plan, xd, _initial_guess(plan, xd)),
-        }
+    variants = {
+        False: _grid_steps(plan, xd, xd),
+        True: _grid_steps(plan, xd, _initial_guess(plan, xd)),
+    }
     # Contraction estimate from consecutive steps well above round-off (same map for both).
     rho_obs = 0.0
-    for steps in variants.values():
+    for steps, _ in variants.values():
         good = steps[-1] <= UNDISTORT_STEP_TOL  # grid points beyond the fold never converge
         prev, cur = steps[:-1, good], steps[1:, good]
         usable = prev > 1e-12
@@ -202,60 +230,85 @@ def _fixed_iteration_plan(intr: CameraIntrinsics, plan: SimpleNamespace):
             rho_obs = max(rho_obs, float((cur[usable] / prev[usable]).max()))
     rho = min(max(2.0 * rho_obs, 1e-6), 0.99)
     tol = min(max(UNDISTORT_TARGET_ERROR * (1.0 - rho) / rho, UNDISTORT_STEP_TOL), 1e-8)
-    counts = {}
-    for use_guess, steps in variants.items():
+    needed = {}
+    for use_guess, (steps, _) in variants.items():
         good = steps[-1] <= UNDISTORT_STEP_TOL
-        if not good.any():
-            counts[use_guess] = UNDISTORT_MAX_ITER
-            continue
-        # Grid points the variant cannot bring to convergence do not set its count.
-        reached = np.argmax(steps[:, good] <= tol, axis=0) + 1
-        counts[use_guess] = int(reached.max()) + (0.5 if use_guess else 0.0)  # guess ~ half a step
-    use_guess = counts[True] < counts[False]
-    return use_guess, int(counts[use_guess]), tol
+        # Every grid point must converge for the fixed count to cover the box.
+        needed[use_guess] = (
+            int((np.argmax(steps <= tol, axis=0) + 1).max()) if good.all() else None
+        )
+    if needed[False] is None and needed[True] is None:
+        return False, 0, tol, None
+    # The guess costs about one step: use it only when it saves more than that.
+    if needed[False] is None:
+        use_guess = True
+    elif needed[True] is None:
+        use_guess = False
+    else:
+        use_guess = needed[True] + 1 < needed[False]
+    return use_guess, needed[use_guess], tol, variants[use_guess][1]
 
 
 def undistort_normalised(intr: CameraIntrinsics, xd: np.ndarray):
-    """Undistort finite distorted normalised points.
+    """Undistort distorted normalised points (the core of :func:`undistort_points`).
 
     Parameters
     ----------
     intr : CameraIntrinsics
     xd : ndarray, shape (2, n), normalised image units
-        Distorted normalised coordinates ``((u - cx)/fx, (v - cy)/fy)``; must be finite.
+        Distorted normalised coordinates ``((u - cx)/fx, (v - cy)/fy)``. Modified in place
+        where non-finite (set to 0).
 
     Returns
     -------
     x : ndarray, shape (2, n)
-        Undistorted normalised coordinates (meaningless where not converged).
-    r2 : ndarray, shape (n,)
-        ``x^2 + y^2`` of the second-to-last iterate (accurate to ~1e-13, for thresholds).
+        Undistorted normalised coordinates; 0 where the input is non-finite, meaningless where
+        not converged.
+    finite : ndarray of bool, shape (n,), or None
+        None when every input is finite.
     converged : ndarray of bool, shape (n,), or None
-        None when every point converged (the common case).
+        None when every point converged.
+    in_box : bool
+        True when every point lies in the image-plus-margin box (then both masks are None).
     """
     plan = intr._plan
-    if not plan.distorted or xd.shape[1] == 0:
-        return xd, xd[0] * xd[0] + xd[1] * xd[1], None
-    x = _initial_guess(plan, xd) if plan.use_guess else xd
-    x_prev = x
-    r2 = None
-    for _ in range(plan.n_fast):
+    if xd.shape[1] == 0:
+        return xd, None, None, False
+    lo0, lo1 = xd.min(axis=1).tolist()
+    hi0, hi1 = xd.max(axis=1).tolist()
+    x_lo, x_hi, y_lo, y_hi = plan.box
+    if lo0 >= x_lo and hi0 <= x_hi and lo1 >= y_lo and hi1 <= y_hi:  # False with NaN
+        if not plan.distorted:
+            return xd, None, None, True
+        x = _initial_guess(plan, xd) if plan.use_guess else xd
+        for _ in range(plan.n_fast):
+            x = _iterate(plan, xd, x)
+        return x, None, None, True
+    finite = None
+    if not (np.isfinite(lo0 + lo1 + hi0 + hi1)):
+        finite = np.isfinite(xd).all(axis=0)
+        xd[:, ~finite] = 0.0
+        if finite.all():  # only overflow in the sum
+            finite = None
+    if not plan.distorted:
+        return xd, finite, None, False
+    with np.errstate(all="ignore"):
+        x = _initial_guess(plan, xd) if plan.use_guess else xd
         x_prev = x
-        x, r2 = _iterate(plan, xd, x)
-    step = np.abs(x - x_prev)
-    if step.max() <= plan.fast_tol:
-        return x, r2, None
-    # Slow path: points that need more steps (outside the image) restart from xd, the most
-    # robust start, and iterate to the strict tolerance; some never converge (no preimage).
-    bad = np.flatnonzero(~(step <= plan.fast_tol).all(axis=0))
-    x = x.copy()
-    xb, r2b, conv_b = _iterate_until_converged(plan, xd[:, bad], UNDISTORT_MAX_ITER)
-    x[:, bad] = xb
-    r2 = r2.copy()
-    r2[bad] = r2b
+        for _ in range(plan.n_fast):
+            x_prev = x
+            x = _iterate(plan, xd, x)
+        step_ok = (np.abs(x - x_prev) <= plan.fast_tol).all(axis=0)
+        if plan.n_fast and step_ok.all():
+            return x, finite, None, False
+        # Points that need more steps (outside the image) restart from xd, the most robust
+        # start, and iterate to the strict tolerance; some never converge (no preimage).
+        bad = np.flatnonzero(~step_ok)
+        x = x.copy()
+        x[:, bad], conv_b = _iterate_until_converged(plan, xd[:, bad], UNDISTORT_MAX_ITER)
     converged = np.ones(xd.shape[1], dtype=bool)
     converged[bad] = conv_b
-    return x, r2, converged
+    return x, finite, converged, False
 
 
 def undistort_points(intr: CameraIntrinsics, uv) -> np.ndarray:
@@ -275,15 +328,14 @@ def undistort_points(intr: CameraIntrinsics, uv) -> np.ndarray:
     """
     uv = as_points(uv, "uv", 2)
     plan = intr._plan
-    finite = np.isfinite(uv).all(axis=1)
-    all_finite = bool(finite.all())
-    if not all_finite:
-        uv = np.where(finite[:, None], uv, plan.c[:, 0])
-    xd = np.ascontiguousarray((uv.T - plan.c) * plan.finv)
-    x, _, converged = undistort_normalised(intr, xd)
+    xd = np.subtract(uv.T, plan.c, order="C")
+    xd *= plan.finv
+    x, finite, converged, _ = undistort_normalised(intr, xd)
     out = x.T.copy()
-    bad = ~finite if converged is None else ~(finite & converged)
-    out[bad] = np.nan
+    if finite is not None:
+        out[~finite] = np.nan
+    if converged is not None:
+        out[~converged] = np.nan
     return out
 
 

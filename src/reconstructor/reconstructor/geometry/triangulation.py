@@ -74,18 +74,17 @@ def _check_min_angle(min_angle) -> float:
 
 
 def _rays(intr: CameraIntrinsics, uv: np.ndarray):
-    """Undistorted rays of pixels: (x shape (2, n), r2 (n,), finite mask or None, conv or None)."""
+    """Undistorted rays of pixels ``uv`` (n, 2): see :func:`undistort_normalised`."""
     plan = intr._plan
-    finite = None
-    if not math.isfinite(uv.sum()):
-        finite = np.isfinite(uv).all(axis=1)
-        uv = np.where(finite[:, None], uv, plan.c[:, 0])
-        if finite.all():  # the sum overflowed, every entry is finite
-            finite = None
     xd = np.subtract(uv.T, plan.c, order="C")
     xd *= plan.finv
-    x, r2, converged = undistort_normalised(intr, xd)
-    return x, r2, finite, converged
+    return undistort_normalised(intr, xd)
+
+
+def _angle_ok(x: np.ndarray, denom: np.ndarray, sin_min: float) -> np.ndarray:
+    """Per-ray test ``|cos(normal, ray)| >= sin(min_angle)`` for a unit normal."""
+    r2 = x[0] * x[0] + x[1] * x[1]
+    return denom * denom >= (sin_min * sin_min) * (1.0 + r2)
 
 
 def _bookkeeping(p_v, p_v0, ok, front, finite, converged):
@@ -154,27 +153,29 @@ def triangulate(
     plane_v = T.T @ np.array(laser_plane_v0_scalar(model, u2t))
     if model.correction is not None:
         T = np.asarray(model.correction.V0c_T_V0(u1p, u1t), dtype=np.float64) @ T
-    s2 = sin_min * sin_min
-    with np.errstate(all="ignore"):
-        x, r2, finite, converged = _rays(model.intrinsics, uv)
+    x, finite, converged, in_box = _rays(model.intrinsics, uv)
+    neg_e = -float(plane_v[3])
+    if in_box and neg_e != 0.0:
+        # Hot path: one reduction proves, for every ray at once, |denom| > sin(min_angle)
+        # * max |ray| (not nearly parallel) and sign(denom) = sign(-e), i.e. Z > 0.
         denom = plane_v[:2] @ x
         denom += plane_v[2]
-        # A ray is valid when |cos(normal, ray)| >= sin(min_angle); |ray| = sqrt(1 + r2) and
-        # the normal is unit. Fast path: one sufficient test for all rays, then Z > 0.
-        fast = finite is None and converged is None and n > 0
+        threshold = sin_min * model.intrinsics._plan.ray_norm_max
+        if neg_e > 0.0:
+            fast = denom.min() > threshold
+        else:
+            fast = denom.max() < -threshold
         if fast:
-            dmin = np.abs(denom).min()
-            fast = dmin * dmin >= s2 * (1.0 + r2.max())
-        if fast:
-            Z = (-plane_v[3]) / denom
-            fast = Z.min() > 0.0
-        if fast:
+            Z = neg_e / denom
             p_v, p_v0 = _points(x, Z, T)
             return TriangulationResult(p_v=p_v.T, p_v0=p_v0.T, valid=np.ones(n, dtype=bool))
-        ok = denom * denom >= s2 * (1.0 + r2)
-        Z = np.divide(-plane_v[3], denom, out=np.zeros_like(denom), where=ok)
+    with np.errstate(all="ignore"):
+        denom = plane_v[:2] @ x
+        denom += plane_v[2]
+        ok = _angle_ok(x, denom, sin_min)
+        Z = np.divide(neg_e, denom, out=np.zeros_like(denom), where=ok)
         p_v, p_v0 = _points(x, Z, T)
-        return _bookkeeping(p_v, p_v0, ok, Z > 0.0, finite, converged)
+    return _bookkeeping(p_v, p_v0, ok, Z > 0.0, finite, converged)
 
 
 def _points(x: np.ndarray, Z: np.ndarray, T: np.ndarray):
@@ -233,14 +234,14 @@ def triangulate_batch(
     if model.correction is not None:
         C = np.asarray(model.correction.V0c_T_V0(v[:, 0], v[:, 1]), dtype=np.float64)
         T = C @ T
+    x, finite, converged, _ = _rays(model.intrinsics, uv)
+    if not frame_ok.all():
+        point_ok = frame_ok[fi]
+        finite = point_ok if finite is None else finite & point_ok
     with np.errstate(all="ignore"):
-        x, r2, finite, converged = _rays(model.intrinsics, uv)
-        if not frame_ok.all():
-            point_ok = frame_ok[fi]
-            finite = point_ok if finite is None else finite & point_ok
         pl = plane_v[fi].T  # (4, n)
         denom = pl[0] * x[0] + pl[1] * x[1] + pl[2]
-        ok = denom * denom >= (sin_min * sin_min) * (1.0 + r2)
+        ok = _angle_ok(x, denom, sin_min)
         Z = np.divide(-pl[3], denom, out=np.zeros_like(denom), where=ok)
         front = Z > 0.0
         p_v = np.empty((3, n))

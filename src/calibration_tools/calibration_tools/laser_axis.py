@@ -1,0 +1,319 @@
+"""Laser rotation axis (DESIGN.md §3 step 4, paper Eq. 17) and the G2 angle per volt.
+
+The laser planes ``pi_i`` measured at G2 tilt voltages ``U_i`` all contain the G2 tilt axis
+(when the fan contains the mirror axis), so:
+
+- direction: ``n`` minimises ``sum_i (n . n_i)^2``, i.e. it is the eigenvector of
+  ``sum_i n_i n_i^T`` with the smallest eigenvalue;
+- point: ``P`` minimises ``sum_i (n_i . P + e_i)^2``, pinned along the axis by
+  ``n . (P - anchor) = 0`` (by default the point of the axis closest to the V0 origin);
+  optionally with a common signed offset ``rho`` (``n_i . P + e_i = rho``) for a fan plane
+  that misses the mirror axis: every plane is then tangent to a cylinder of radius |rho|;
+- angle per volt: the plane's rotation about ``n`` is ``alpha_i = 2 (theta4(U_i) -
+  theta4(0))``; a polynomial in U fitted to the measured ``alpha_i`` (relative to the plane
+  nearest U = 0, with a free constant) gives ``k2`` and, with enough data, higher terms.
+
+Every plane's residual to the common axis is reported: the angle between the axis and the
+plane and the distance of ``P`` from the plane. No rclpy.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration_tools.laser_plane import (
+    VOLTAGE_TOL,
+    board_stripe_points,
+    plane_from_stripes,
+)
+from calibration_tools.stages import StageResult
+
+log = logging.getLogger('galvoscan.calibration.laser_axis')
+
+
+@dataclass(frozen=True)
+class AxisFit:
+    """Result of :func:`fit_axis`.
+
+    Attributes
+    ----------
+    direction : ndarray, shape (3,)
+        Unit axis direction n (sign: see ``fit_axis(reference_dir=...)``).
+    point : ndarray, shape (3,), metres
+        Axis point P (pinned along the axis by the anchor).
+    offset : float, metres
+        Common signed plane-to-axis offset rho (0 unless ``fit_offset``).
+    eigenvalues : ndarray, shape (3,)
+        Of ``sum n_i n_i^T``, ascending; the smallest is ``sum (n . n_i)^2``.
+    plane_angle_rad : ndarray, shape (m,)
+        Angle between the axis and each plane, ``asin |n . n_i|``.
+    plane_distance_m : ndarray, shape (m,)
+        ``n_i . P + e_i - rho`` for each plane (signed).
+    rotation_rad : ndarray, shape (m,)
+        Rotation of each plane about n relative to the plane nearest U = 0 (or the first).
+    k : float or None
+        G2 tilt gain, rad/V (mechanical; the plane turns by twice the mirror angle);
+        None without voltages.
+    poly : tuple of float
+        Higher-order coefficients of the mirror angle, rad/V^2, rad/V^3, ...
+    angle_fit_rms_rad : float or None
+        RMS residual of the plane rotation fit (plane angle, not mirror angle).
+    """
+
+    direction: np.ndarray
+    point: np.ndarray
+    offset: float
+    eigenvalues: np.ndarray
+    plane_angle_rad: np.ndarray
+    plane_distance_m: np.ndarray
+    rotation_rad: np.ndarray
+    k: float | None
+    poly: tuple
+    angle_fit_rms_rad: float | None
+
+
+def _unit_planes(planes) -> np.ndarray:
+    pl = np.asarray(planes, dtype=np.float64)
+    if pl.ndim != 2 or pl.shape[1] != 4:
+        raise ValueError(f'planes must have shape (m, 4), got {pl.shape}')
+    if pl.shape[0] < 2:
+        raise ValueError(f'planes must hold at least 2 planes, got {pl.shape[0]}')
+    if not np.all(np.isfinite(pl)):
+        raise ValueError('planes must be finite')
+    norms = np.linalg.norm(pl[:, :3], axis=1)
+    if np.any(norms < 1e-12):
+        raise ValueError('planes must have non-zero normals')
+    pl = pl / norms[:, None]
+    # One orientation for all: the normals turn by less than 90 degrees from the first.
+    flip = pl[:, :3] @ pl[0, :3] < 0.0
+    pl[flip] *= -1.0
+    return pl
+
+
+def plane_rotation_angles(planes, direction, reference: int = 0) -> np.ndarray:
+    """Signed rotation of each plane's normal about ``direction`` from a reference plane.
+
+    Parameters
+    ----------
+    planes : array_like, shape (m, 4)
+    direction : array_like, shape (3,)
+        Rotation axis direction (right-hand rule).
+    reference : int
+        Index of the plane at angle 0.
+
+    Returns
+    -------
+    ndarray, shape (m,), radians in (-pi, pi]
+    """
+    pl = _unit_planes(planes)
+    n = np.asarray(direction, dtype=np.float64)
+    if n.shape != (3,) or not np.linalg.norm(n) > 0:
+        raise ValueError(f'direction must be a non-zero vector of shape (3,), got {n}')
+    n = n / np.linalg.norm(n)
+    normals = pl[:, :3] - np.outer(pl[:, :3] @ n, n)
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    ref = normals[reference]
+    return np.arctan2(np.cross(ref, normals) @ n, normals @ ref)
+
+
+def fit_axis(planes, voltages=None, *, anchor=(0.0, 0.0, 0.0), reference_dir=None,
+             fit_offset: bool = False, poly_degree: int = 1) -> AxisFit:
+    """Fit the common rotation axis of laser planes, and the angle per volt.
+
+    Parameters
+    ----------
+    planes : array_like, shape (m, 4)
+        Laser planes (a, b, c, e) in one frame (V0), e in metres; m >= 2 (>= 3 with
+        ``fit_offset``).
+    voltages : array_like, shape (m,), volts, optional
+        G2 tilt voltage of each plane; enables the angle-per-volt fit.
+    anchor : array_like, shape (3,), metres
+        P is the axis point closest to it (default: the V0 origin).
+    reference_dir : array_like, shape (3,), optional
+        The direction's sign is chosen to have a positive dot product with it (e.g. the
+        nominal axis). Default: the largest-magnitude component is positive. The sign of
+        ``k`` follows (right-hand rotation about n for increasing angle).
+    fit_offset : bool
+        Also fit a common plane-to-axis offset rho (fan plane not containing the axis).
+    poly_degree : int
+        Degree of the mirror angle polynomial in U (1 = linear gain only). Fitted only when
+        there are at least ``poly_degree + 2`` distinct voltages; otherwise the degree is
+        lowered (and a warning logged).
+
+    Returns
+    -------
+    AxisFit
+
+    Raises
+    ------
+    ValueError
+        Bad shapes, or planes that are all parallel (no axis).
+    """
+    pl = _unit_planes(planes)
+    m = pl.shape[0]
+    a = np.asarray(anchor, dtype=np.float64)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f'anchor must be a finite vector of shape (3,), got {anchor!r}')
+    if not isinstance(poly_degree, int) or poly_degree < 1:
+        raise ValueError(f'poly_degree must be an integer >= 1, got {poly_degree!r}')
+    N = pl[:, :3]
+    e = pl[:, 3]
+    evals, evecs = np.linalg.eigh(N.T @ N)
+    if evals[1] < 1e-14 * max(evals[2], 1e-300):
+        raise ValueError('the planes are all parallel: their normals do not span a plane, so '
+                         'they define no axis (sweep the laser over a wider range)')
+    n = evecs[:, 0]
+    if reference_dir is not None:
+        r = np.asarray(reference_dir, dtype=np.float64)
+        if r.shape != (3,):
+            raise ValueError(f'reference_dir must have shape (3,), got {r.shape}')
+        if n @ r < 0.0:
+            n = -n
+    elif n[np.argmax(np.abs(n))] < 0.0:
+        n = -n
+    # P = anchor + B y with B spanning the plane perpendicular to n.
+    B = evecs[:, 1:]
+    A = N @ B
+    rhs = -(e + N @ a)
+    if fit_offset:
+        if m < 3:
+            raise ValueError('fit_offset needs at least 3 planes')
+        A = np.column_stack([A, -np.ones(m)])
+    sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    P = a + B @ sol[:2]
+    rho = float(sol[2]) if fit_offset else 0.0
+    dist = N @ P + e - rho
+    angle = np.arcsin(np.clip(np.abs(N @ n), 0.0, 1.0))
+
+    ref = 0
+    u = None
+    if voltages is not None:
+        u = np.asarray(voltages, dtype=np.float64)
+        if u.shape != (m,) or not np.all(np.isfinite(u)):
+            raise ValueError(f'voltages must be finite with shape ({m},), got {u.shape}')
+        ref = int(np.argmin(np.abs(u)))
+    rot = plane_rotation_angles(pl, n, ref)
+    k, poly, fit_rms = None, (), None
+    if u is not None:
+        distinct = np.unique(np.round(u / VOLTAGE_TOL)).shape[0]
+        degree = min(poly_degree, distinct - 2)
+        if degree < poly_degree:
+            log.warning('angle per volt: %d distinct voltages support degree %d, not %d',
+                        distinct, max(degree, 0), poly_degree)
+        if degree >= 1:
+            # alpha = c + 2 (k U + p0 U^2 + ...)
+            V = np.column_stack([np.ones(m)] + [u ** (p + 1) for p in range(degree)])
+            coef, *_ = np.linalg.lstsq(V, rot, rcond=None)
+            fit_rms = float(np.sqrt(np.mean((V @ coef - rot) ** 2)))
+            k = float(coef[1] / 2.0)
+            poly = tuple(float(c / 2.0) for c in coef[2:])
+    return AxisFit(direction=n, point=P, offset=rho, eigenvalues=evals, plane_angle_rad=angle,
+                   plane_distance_m=dist, rotation_rad=rot, k=k, poly=poly,
+                   angle_fit_rms_rad=fit_rms)
+
+
+def line_distance(p1, d1, p2, d2) -> float:
+    """Shortest distance between two lines (points p, directions d), metres."""
+    p1, d1, p2, d2 = (np.asarray(x, dtype=np.float64) for x in (p1, d1, p2, d2))
+    c = np.cross(d1, d2)
+    nc = np.linalg.norm(c)
+    w = p2 - p1
+    if nc < 1e-12 * np.linalg.norm(d1) * np.linalg.norm(d2):
+        d = d1 / np.linalg.norm(d1)
+        return float(np.linalg.norm(w - (w @ d) * d))
+    return float(abs(w @ c) / nc)
+
+
+# ----------------------------------------------------------------------------- stage
+def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma: float = 4.0,
+                   max_pnp_rms_px: float = 0.5, min_stripe_points: int = 20,
+                   min_poses: int = 2, min_spread: float = 1e-3, fit_offset: bool = False,
+                   poly_degree: int = 1, anchor=(0.0, 0.0, 0.0)) -> StageResult:
+    """Calibrate the G2 tilt axis (n, P) and the G2 tilt angle per volt.
+
+    Parameters
+    ----------
+    views : list of CaptureView
+        Per board pose (``pose_index``): laser-off views of the board and laser-on views at
+        several G2 tilt voltages, at the same G1 voltages as a laser-off view of that pose.
+        G1 may be anywhere (planes are mapped to V0 with the current model), but G1 = 0
+        avoids the dynamic-camera model's error. Each G2 voltage needs the stripe on at
+        least ``min_poses`` board poses to give a plane.
+    calibration : reconstructor.calibration_file.Calibration
+        Current calibration: intrinsics, dynamic camera; the current axis direction fixes
+        the sign of n (and so of k).
+    board : board_layout.Checkerboard or board_layout.CircleGrid
+    extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
+    fit_offset, poly_degree, anchor
+        See :func:`fit_axis`.
+    k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread
+        See :func:`laser_plane.board_stripe_points` and :func:`laser_plane.plane_from_stripes`.
+
+    Returns
+    -------
+    StageResult
+        ``updates``: ``laser_axis_dir``, ``laser_axis_point`` and, when the voltages span
+        enough, ``g2_tilt: {'k': ..., 'poly': [...]}``. Residuals: ``axis_angle_rms_rad``,
+        ``axis_angle_max_rad``, ``axis_distance_rms_m``, ``axis_distance_max_m``,
+        ``axis_offset_m``, ``plane_rms_max_m``, ``angle_fit_rms_rad``, ``planes_used``.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 2 (3 with ``fit_offset``) usable planes; the reasons are in the message.
+    """
+    model = calibration.model
+    coll = board_stripe_points(views, model, board, extractor_config=extractor_config,
+                               max_pnp_rms_px=max_pnp_rms_px,
+                               min_stripe_points=min_stripe_points)
+    rejected = list(coll.rejected)
+    groups: dict[int, list] = {}
+    for s in coll.stripes:
+        groups.setdefault(int(round(s.u2_tilt / VOLTAGE_TOL)), []).append(s)
+    planes, volts, rms = [], [], []
+    orient = model.laser_plane_v0[:3]
+    for key in sorted(groups):
+        stripes = groups[key]
+        u2 = float(np.mean([s.u2_tilt for s in stripes]))
+        try:
+            fit = plane_from_stripes(stripes, k_sigma=k_sigma, orient=orient,
+                                     min_poses=min_poses, min_spread=min_spread)
+        except ValueError as exc:
+            msg = f'U2_tilt = {u2:.4f} V: {exc}'
+            log.warning('rejected: %s', msg)
+            rejected.append(msg)
+            continue
+        planes.append(fit.plane)
+        volts.append(u2)
+        rms.append(fit.rms)
+    need = 3 if fit_offset else 2
+    if len(planes) < need:
+        raise ValueError(f'laser_axis: {len(planes)} usable laser plane(s), at least {need} '
+                         f'needed; rejected: {rejected}')
+    fit = fit_axis(np.array(planes), np.array(volts), anchor=anchor,
+                   reference_dir=model.laser_axis_dir, fit_offset=fit_offset,
+                   poly_degree=poly_degree)
+    updates = {'laser_axis_dir': [float(v) for v in fit.direction],
+               'laser_axis_point': [float(v) for v in fit.point]}
+    if fit.k is not None:
+        updates['g2_tilt'] = {'k': fit.k, 'poly': list(fit.poly)}
+    residuals = {
+        'axis_angle_rms_rad': float(np.sqrt(np.mean(fit.plane_angle_rad ** 2))),
+        'axis_angle_max_rad': float(fit.plane_angle_rad.max()),
+        'axis_distance_rms_m': float(np.sqrt(np.mean(fit.plane_distance_m ** 2))),
+        'axis_distance_max_m': float(np.abs(fit.plane_distance_m).max()),
+        'axis_offset_m': fit.offset,
+        'plane_rms_max_m': float(max(rms)),
+        'planes_used': float(len(planes)),
+    }
+    if fit.angle_fit_rms_rad is not None:
+        residuals['angle_fit_rms_rad'] = fit.angle_fit_rms_rad
+    if not math.isfinite(sum(residuals.values())):
+        raise ValueError(f'laser_axis: non-finite residuals {residuals}')
+    return StageResult(stage='laser_axis', updates=updates, residuals=residuals,
+                       samples_used=len(coll.stripes), samples_rejected=len(rejected),
+                       rejected=rejected)

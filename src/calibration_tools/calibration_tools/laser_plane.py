@@ -1,0 +1,517 @@
+"""Laser plane at U2 = 0 (DESIGN.md §3 step 3): board plane by PnP, stripe back-projection,
+SVD plane fit with outlier rejection. No rclpy.
+
+Building blocks
+---------------
+- :func:`fit_plane_svd`: least-squares plane (SVD of the centred points) with a robust start
+  (least median of squares over random triples) and iterative rejection of points farther
+  than ``k_sigma`` robust standard deviations (1.4826 MAD) from the plane.
+- :func:`board_plane_from_pnp`: board pose and plane in the camera frame from detected
+  features (OpenCV IPPE, then Levenberg-Marquardt refinement).
+- :func:`backproject_to_plane`: intersect the (undistorted) pixel rays with a plane.
+- :func:`board_stripe_points`: the data pipeline shared with the laser-axis stage. For each
+  laser-on view it finds the board plane from a laser-off view of the same board pose and
+  G1 voltages (or, failing that, from the laser-on view itself), extracts the stripe with
+  :mod:`stripe_extractor`, keeps the stripe pixels inside the detected board, back-projects
+  them onto the board plane in V and maps them to V0 with the current model.
+
+Stage
+-----
+:func:`run_laser_plane` fits ``laser_plane_v0`` from views with U2_tilt = 0.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from calibration_tools.small_board import check_small_board, detect_board, inside_convex_hull
+from calibration_tools.stages import CaptureView, StageResult
+
+log = logging.getLogger('galvoscan.calibration.laser_plane')
+
+#: Voltages closer than this are the same setting, V (16-bit DAC over +-10 V is 0.3 mV).
+VOLTAGE_TOL = 1e-3
+
+
+# ----------------------------------------------------------------------------- plane fit
+@dataclass(frozen=True)
+class PlaneFit:
+    """A fitted plane.
+
+    Attributes
+    ----------
+    plane : ndarray, shape (4,)
+        (a, b, c, e) with unit normal, e in metres.
+    rms : float, metres
+        RMS point-to-plane distance of the inliers.
+    max_abs : float, metres
+        Largest inlier distance.
+    inliers : ndarray of bool, shape (n,)
+    singular_values : ndarray, shape (3,), metres
+        Of the centred inliers divided by sqrt(n): the spread along the plane's two in-plane
+        directions and its normal (a tiny middle value means the points are nearly collinear).
+    """
+
+    plane: np.ndarray
+    rms: float
+    max_abs: float
+    inliers: np.ndarray
+    singular_values: np.ndarray
+
+    @property
+    def n_inliers(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+
+def _svd_plane(p: np.ndarray):
+    c = p.mean(axis=0)
+    _, s, vt = np.linalg.svd(p - c, full_matrices=False)
+    n = vt[2]
+    return np.append(n, -n @ c), s / np.sqrt(p.shape[0])
+
+
+def fit_plane_svd(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
+                  max_iter: int = 20, robust_start: bool = True, orient=None,
+                  seed: int = 0) -> PlaneFit:
+    """Fit a plane to 3-D points with outlier rejection.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3), metres
+        n >= 3, not all collinear.
+    k_sigma : float
+        Points farther than ``max(k_sigma * 1.4826 * MAD, min_threshold)`` from the plane are
+        rejected; the fit is repeated until the inlier set stops changing.
+    min_threshold : float, metres
+        Floor of the rejection distance (keeps noise-free data from being trimmed).
+    max_iter : int
+    robust_start : bool
+        Start from the least-median-of-squares plane through random point triples instead of
+        the plain least-squares plane (resists up to about 50 % gross outliers).
+    orient : array_like, shape (3,), optional
+        Sign convention: the normal is flipped to have a non-negative dot product with this.
+        By default the plane's offset e is made <= 0 (normal pointing away from the origin).
+    seed : int
+        Seed of the random triples (the result is deterministic).
+
+    Returns
+    -------
+    PlaneFit
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f'points must have shape (n, 3), got {p.shape}')
+    if p.shape[0] < 3:
+        raise ValueError(f'points must hold at least 3 points, got {p.shape[0]}')
+    if not np.all(np.isfinite(p)):
+        raise ValueError('points must be finite')
+    if not k_sigma > 0:
+        raise ValueError(f'k_sigma must be > 0, got {k_sigma}')
+    n = p.shape[0]
+    plane, s = _svd_plane(p)
+    if s[1] <= 1e-9 * max(s[0], 1e-300):
+        raise ValueError('points are collinear (or coincident): the plane is undetermined')
+    if robust_start and n > 6:
+        rng = np.random.default_rng(seed)
+        best, best_med = plane, np.median(np.abs(p @ plane[:3] + plane[3]))
+        trials = rng.integers(0, n, size=(min(300, 10 * n), 3))
+        a, b, c = p[trials[:, 0]], p[trials[:, 1]], p[trials[:, 2]]
+        normals = np.cross(b - a, c - a)
+        norms = np.linalg.norm(normals, axis=1)
+        good = norms > 1e-12 * max(s[0], 1e-300) ** 2
+        for nv, pa in zip(normals[good] / norms[good, None], a[good], strict=True):
+            med = np.median(np.abs(p @ nv - nv @ pa))
+            if med < best_med:
+                best, best_med = np.append(nv, -nv @ pa), med
+        plane = best
+    inliers = np.ones(n, dtype=bool)
+    for _ in range(max_iter):
+        r = p @ plane[:3] + plane[3]
+        sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
+        new = np.abs(r) <= max(k_sigma * sigma, min_threshold)
+        if new.sum() < 3:
+            break
+        plane, s = _svd_plane(p[new])
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    r = p[inliers] @ plane[:3] + plane[3]
+    if orient is not None:
+        o = np.asarray(orient, dtype=np.float64)
+        if o.shape != (3,):
+            raise ValueError(f'orient must have shape (3,), got {o.shape}')
+        flip = plane[:3] @ o < 0.0
+    else:
+        flip = plane[3] > 0.0
+    if flip:
+        plane = -plane
+    return PlaneFit(plane=plane, rms=float(np.sqrt(np.mean(r * r))),
+                    max_abs=float(np.abs(r).max()), inliers=inliers, singular_values=s)
+
+
+# ----------------------------------------------------------------------------- board pose
+@dataclass(frozen=True)
+class BoardPose:
+    """Board pose from PnP.
+
+    Attributes
+    ----------
+    V_T_B : ndarray, shape (4, 4)
+        Board frame to camera (virtual camera) frame, metres.
+    plane : ndarray, shape (4,)
+        The board plane in the camera frame (unit normal towards the camera side... see
+        ``V_T_B``: it is ``B_T_V.T @ (0, 0, 1, 0)``), e in metres.
+    reprojection_rms_px : float
+    n_points : int
+    """
+
+    V_T_B: np.ndarray
+    plane: np.ndarray
+    reprojection_rms_px: float
+    n_points: int
+
+
+def board_plane_from_pnp(image_points, object_points, intrinsics) -> BoardPose:
+    """Pose and plane of a planar board from its detected features.
+
+    Parameters
+    ----------
+    image_points : array_like, shape (n, 2), pixels
+        Detected (distorted) feature positions, n >= 4.
+    object_points : array_like, shape (n, 3), metres
+        The same features in the board frame, all with z = 0.
+    intrinsics : reconstructor.model.CameraIntrinsics
+
+    Returns
+    -------
+    BoardPose
+    """
+    uv = np.asarray(image_points, dtype=np.float64)
+    obj = np.asarray(object_points, dtype=np.float64)
+    if uv.ndim != 2 or uv.shape[1] != 2 or uv.shape[0] < 4:
+        raise ValueError(f'image_points must have shape (n >= 4, 2), got {uv.shape}')
+    if obj.shape != (uv.shape[0], 3):
+        raise ValueError(f'object_points must have shape ({uv.shape[0]}, 3), got {obj.shape}')
+    if not (np.all(np.isfinite(uv)) and np.all(np.isfinite(obj))):
+        raise ValueError('image_points and object_points must be finite')
+    if np.abs(obj[:, 2]).max() > 1e-12:
+        raise ValueError('object_points must lie on the board plane z = 0')
+    K = intrinsics.matrix()
+    dist = np.asarray(intrinsics.dist, dtype=np.float64)
+    ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, uv, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok or len(rvecs) == 0:
+        raise ValueError('PnP failed for these points')
+    best = None
+    for rvec, tvec in zip(rvecs, tvecs, strict=True):
+        rvec, tvec = cv2.solvePnPRefineLM(obj, uv, K, dist, rvec.copy(), tvec.copy(),
+                                          (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT,
+                                           100, 1e-12))
+        proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
+        rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - uv) ** 2, axis=1))))
+        if tvec.ravel()[2] > 0 and (best is None or rms < best[2]):
+            best = (rvec, tvec, rms)
+    if best is None:
+        raise ValueError('PnP put the board behind the camera')
+    rvec, tvec, rms = best
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    normal = T[:3, 2]
+    plane = np.append(normal, -normal @ T[:3, 3])
+    return BoardPose(V_T_B=T, plane=plane, reprojection_rms_px=rms, n_points=uv.shape[0])
+
+
+def backproject_to_plane(uv, plane, intrinsics, *, min_angle: float = 1e-3):
+    """Intersect pixel rays with a plane in the camera frame.
+
+    Parameters
+    ----------
+    uv : array_like, shape (n, 2), pixels
+        Distorted pixel coordinates (undistorted here with the intrinsics' distortion).
+    plane : array_like, shape (4,)
+        (a, b, c, e) in the camera frame, e in metres.
+    intrinsics : reconstructor.model.CameraIntrinsics
+    min_angle : float, radians
+        Rays closer than this to parallel with the plane are invalid.
+
+    Returns
+    -------
+    points : ndarray, shape (n, 3), metres
+        Intersections in the camera frame (0 where invalid).
+    valid : ndarray of bool, shape (n,)
+        False for non-finite pixels, nearly parallel rays and points behind the camera.
+    """
+    from reconstructor.model import undistort_points
+
+    pl = np.asarray(plane, dtype=np.float64)
+    if pl.shape != (4,) or not np.all(np.isfinite(pl)):
+        raise ValueError(f'plane must be a finite vector of shape (4,), got {pl.shape}')
+    norm = np.linalg.norm(pl[:3])
+    if norm < 1e-12:
+        raise ValueError('plane must have a non-zero normal')
+    pl = pl / norm
+    xy = undistort_points(intrinsics, uv)
+    rays = np.column_stack([xy, np.ones(xy.shape[0])])
+    with np.errstate(all='ignore'):
+        denom = rays @ pl[:3]
+        ok = np.isfinite(denom) & (np.abs(denom) >= np.sin(min_angle) * np.linalg.norm(rays,
+                                                                                   axis=1))
+        Z = np.where(ok, -pl[3] / np.where(ok, denom, 1.0), 0.0)
+    ok &= Z > 0.0
+    pts = np.where(ok[:, None], rays * Z[:, None], 0.0)
+    return pts, ok
+
+
+# ----------------------------------------------------------------------------- data pipeline
+@dataclass
+class StripeOnBoard:
+    """Stripe points of one laser-on view, back-projected onto the board.
+
+    Attributes
+    ----------
+    view_index : int
+        Index of the laser-on view in the input list.
+    pose_index : int
+    u2_tilt : float, volts
+    points_v0 : ndarray, shape (n, 3), metres
+        Stripe points in V0 (through the current model's ``V0_T_V``).
+    pnp_rms_px : float
+        Reprojection RMS of the board pose used.
+    """
+
+    view_index: int
+    pose_index: int
+    u2_tilt: float
+    points_v0: np.ndarray
+    pnp_rms_px: float
+
+
+@dataclass
+class StripeCollection:
+    """Output of :func:`board_stripe_points`: accepted views and rejection reasons."""
+
+    stripes: list = field(default_factory=list)
+    rejected: list = field(default_factory=list)
+
+
+def _same_g1(a: CaptureView, b: CaptureView) -> bool:
+    va, vb = np.asarray(a.voltages, float), np.asarray(b.voltages, float)
+    return bool(np.all(np.abs(va[:2] - vb[:2]) <= VOLTAGE_TOL))
+
+
+def _reject(collection: StripeCollection, message: str):
+    log.warning('rejected: %s', message)
+    collection.rejected.append(message)
+
+
+def _check_views(views):
+    if not isinstance(views, (list, tuple)):
+        raise ValueError(f'views must be a list of CaptureView, got {type(views).__name__}')
+    for i, v in enumerate(views):
+        if not isinstance(v, CaptureView):
+            raise ValueError(f'views[{i}] must be a CaptureView, got {type(v).__name__}')
+        volts = np.asarray(v.voltages, dtype=np.float64)
+        if volts.shape != (4,) or not np.all(np.isfinite(volts)):
+            raise ValueError(f'views[{i}].voltages must be 4 finite volts, got {v.voltages!r}')
+        img = np.asarray(v.image)
+        if img.ndim != 2:
+            raise ValueError(f'views[{i}].image must have shape (H, W), got {img.shape}')
+
+
+def board_stripe_points(views, model, board, *, extractor_config=None,
+                        max_pnp_rms_px: float = 0.5, min_stripe_points: int = 20,
+                        hull_margin_px: float = 3.0, u2_tilt=None) -> StripeCollection:
+    """Back-project the stripe of every laser-on view onto its board and into V0.
+
+    Parameters
+    ----------
+    views : list of CaptureView
+        Laser-off views (board pattern) and laser-on views (stripe on the board). A laser-on
+        view uses the laser-off view with the same ``pose_index`` and G1 voltages; without
+        one, the board is detected in the laser-on image itself.
+    model : reconstructor.model.RigModel
+        Current calibration (intrinsics and ``V0_T_V``).
+    board : board_layout.Checkerboard or board_layout.CircleGrid
+    extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
+    max_pnp_rms_px : float
+        Board poses with a larger reprojection RMS are rejected.
+    min_stripe_points : int
+        Views with fewer stripe points on the board are rejected.
+    hull_margin_px : float
+        Stripe pixels closer than this to the edge of the detected feature grid are dropped.
+    u2_tilt : float, volts, optional
+        When given, laser-on views at another G2 tilt voltage are rejected with a reason.
+
+    Returns
+    -------
+    StripeCollection
+    """
+    from reconstructor.model import v0_T_v
+    from stripe_extractor.extractor import extract
+
+    _check_views(views)
+    check_small_board(board)
+    out = StripeCollection()
+    obj = board.object_points()
+    pose_cache: dict[int, tuple] = {}
+
+    def board_pose(view_idx: int):
+        if view_idx in pose_cache:
+            return pose_cache[view_idx]
+        corners = detect_board(board, views[view_idx].image)
+        result = (None, None, 'board not found')
+        if corners is not None:
+            try:
+                pose = board_plane_from_pnp(corners, obj, model.intrinsics)
+            except ValueError as exc:
+                result = (None, None, f'PnP failed: {exc}')
+            else:
+                if pose.reprojection_rms_px > max_pnp_rms_px:
+                    result = (None, None, f'board PnP reprojection RMS '
+                              f'{pose.reprojection_rms_px:.3f} px > {max_pnp_rms_px} px')
+                else:
+                    result = (pose, corners, '')
+        pose_cache[view_idx] = result
+        return result
+
+    for i, view in enumerate(views):
+        if not view.laser_on:
+            continue
+        volts = np.asarray(view.voltages, dtype=np.float64)
+        if u2_tilt is not None and abs(volts[3] - u2_tilt) > VOLTAGE_TOL:
+            _reject(out, f'view {i} (pose {view.pose_index}): U2_tilt = {volts[3]:.4f} V, '
+                         f'not {u2_tilt:g} V')
+            continue
+        candidates = [j for j, w in enumerate(views) if not w.laser_on
+                      and w.pose_index == view.pose_index and _same_g1(w, view)]
+        pose, corners, why = None, None, 'no laser-off view of this pose and G1 voltage'
+        for j in candidates:
+            pose, corners, why = board_pose(j)
+            if pose is not None:
+                break
+        if pose is None:
+            pose, corners, why2 = board_pose(i)
+            why = f'{why}; in the laser-on image: {why2}' if pose is None else ''
+        if pose is None:
+            _reject(out, f'view {i} (pose {view.pose_index}): {why}')
+            continue
+        stripe = extract(np.ascontiguousarray(view.image), extractor_config)
+        uv = np.column_stack([stripe.u, stripe.v]).astype(np.float64)
+        if uv.shape[0]:
+            uv = uv[inside_convex_hull(uv, corners, hull_margin_px)]
+        if uv.shape[0] < min_stripe_points:
+            _reject(out, f'view {i} (pose {view.pose_index}): {uv.shape[0]} stripe points on '
+                         f'the board < {min_stripe_points}')
+            continue
+        p_v, ok = backproject_to_plane(uv, pose.plane, model.intrinsics)
+        p_v = p_v[ok]
+        T = v0_T_v(model, volts[0], volts[1])
+        p_v0 = p_v @ T[:3, :3].T + T[:3, 3]
+        out.stripes.append(StripeOnBoard(view_index=i, pose_index=int(view.pose_index),
+                                         u2_tilt=float(volts[3]), points_v0=p_v0,
+                                         pnp_rms_px=pose.reprojection_rms_px))
+    return out
+
+
+def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,
+                       min_poses: int = 2, min_spread: float = 1e-3):
+    """Fit one laser plane to the stripes of several board poses.
+
+    Parameters
+    ----------
+    stripes : list of StripeOnBoard
+        All taken at the same G2 voltage.
+    k_sigma : float
+        Outlier rejection of :func:`fit_plane_svd`.
+    orient : array_like, shape (3,), optional
+        Normal sign convention (see :func:`fit_plane_svd`).
+    min_poses : int
+        Distinct board poses required (one pose gives a line, not a plane).
+    min_spread : float, metres
+        Smallest accepted RMS spread of the points across the stripe direction (the second
+        singular value); below it the points are nearly collinear.
+
+    Returns
+    -------
+    PlaneFit
+
+    Raises
+    ------
+    ValueError
+        Too few poses, or points too close to collinear.
+    """
+    poses = {s.pose_index for s in stripes}
+    if len(poses) < min_poses:
+        raise ValueError(f'{len(poses)} board pose(s); at least {min_poses} needed for a plane')
+    pts = np.concatenate([s.points_v0 for s in stripes])
+    fit = fit_plane_svd(pts, k_sigma=k_sigma, orient=orient)
+    if fit.singular_values[1] < min_spread:
+        raise ValueError(f'stripe points span only {fit.singular_values[1] * 1e3:.3f} mm RMS '
+                         f'across the stripe (< {min_spread * 1e3:.3f} mm): move the board '
+                         f'between poses')
+    return fit
+
+
+# ----------------------------------------------------------------------------- stage
+def run_laser_plane(views, calibration, *, board, extractor_config=None,
+                    k_sigma: float = 4.0, max_pnp_rms_px: float = 0.5,
+                    min_stripe_points: int = 20, min_poses: int = 2,
+                    min_spread: float = 1e-3) -> StageResult:
+    """Calibrate the laser plane at U2_tilt = 0 in V0.
+
+    Parameters
+    ----------
+    views : list of CaptureView
+        For each board pose (``pose_index``): a laser-off view of the board and a laser-on view
+        with the stripe on it, at the same G1 voltages (normally 0 V, where V = V0) and
+        U2_tilt = 0. Laser-on views at another G2 voltage are rejected with a reason.
+    calibration : reconstructor.calibration_file.Calibration
+        Current calibration: intrinsics and the dynamic camera are used; the sign of the
+        current ``laser_plane_v0`` normal is kept.
+    board : board_layout.Checkerboard or board_layout.CircleGrid
+    extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
+    k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread
+        See :func:`board_stripe_points` and :func:`plane_from_stripes`.
+
+    Returns
+    -------
+    StageResult
+        ``updates = {'laser_plane_v0': [a, b, c, e]}``; residuals ``plane_rms_m``,
+        ``plane_max_abs_m``, ``pnp_rms_px_max``, ``points_used``, ``points_rejected``.
+
+    Raises
+    ------
+    ValueError
+        When no plane can be fitted (the reasons are in the message).
+    """
+    model = calibration.model
+    coll = board_stripe_points(views, model, board, extractor_config=extractor_config,
+                               max_pnp_rms_px=max_pnp_rms_px,
+                               min_stripe_points=min_stripe_points, u2_tilt=0.0)
+    rejected = list(coll.rejected)
+    try:
+        fit = plane_from_stripes(coll.stripes, k_sigma=k_sigma,
+                                 orient=model.laser_plane_v0[:3], min_poses=min_poses,
+                                 min_spread=min_spread)
+    except ValueError as exc:
+        raise ValueError(f'laser_plane: {exc}; rejected: {rejected}') from None
+    n_pts = fit.inliers.shape[0]
+    return StageResult(
+        stage='laser_plane',
+        updates={'laser_plane_v0': [float(v) for v in fit.plane]},
+        residuals={
+            'plane_rms_m': fit.rms,
+            'plane_max_abs_m': fit.max_abs,
+            'pnp_rms_px_max': max(s.pnp_rms_px for s in coll.stripes),
+            'points_used': float(fit.n_inliers),
+            'points_rejected': float(n_pts - fit.n_inliers),
+        },
+        samples_used=len(coll.stripes),
+        samples_rejected=len(rejected),
+        rejected=rejected,
+    )
+

@@ -1,0 +1,662 @@
+"""The physical rig: camera, Galvanometer-1, Galvanometer-2 with the line laser, DAC.
+
+Frames (DESIGN.md section 2): C real camera (optical), G Galvanometer-1 head, G2
+Galvanometer-2 head, V virtual camera (C seen through both G1 mirrors), V0 = V at
+U1 = 0, W world (the scene's frame; the rig file fixes ``W_T_G``).
+
+Everything here is physical: the virtual camera is the real camera reflected through the
+two actual G1 mirror planes, pixel rays are traced off those planes, and the laser sheet is
+the laser's fan traced off the two actual G2 mirror planes. Nothing is computed from the
+reconstruction model; :meth:`Rig.true_model_parameters` only *reports* which model
+parameters the physical description corresponds to.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from .camera import CameraModel
+from .config import ConfigError, Section, read_yaml_file, read_yaml_text
+from .galvo import Dac, GalvoHead, MirrorDrive
+from .spatial import (
+    invert_transform,
+    make_transform,
+    normalize_plane,
+    plane_from_point_normal,
+    reflection_transform,
+    rotation_about,
+    rotation_from_vector,
+    transform_plane,
+    unit,
+)
+
+RIG_FORMAT_VERSION = 1
+RIG_DIR = Path(__file__).resolve().parent / 'rigs'
+
+#: Fixed factor of DESIGN.md: maps C to G before the mirrors, with l = 0 (added below).
+_M0_ROT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class ImageFormation:
+    """Sensor and image-formation settings.
+
+    Attributes
+    ----------
+    exposure : float
+        Exposure of laser frames [s].
+    calibration_exposure : float
+        Exposure of board (calibration) frames [s].
+    full_well : float
+        Saturation capacity [e-]; it maps to the top of the ADC range.
+    bit_depth : int
+        Output bit depth (8: mono8).
+    black_level : float
+        Output offset [DN].
+    shot_noise : bool
+        Photon shot noise on/off.
+    read_noise : float
+        Read noise standard deviation [e-].
+    speckle_contrast : float
+        Std of the multiplicative per-pixel laser speckle factor, before optical blur [1].
+    psf_sigma : float
+        Gaussian optical blur [px].
+    ambient_in_laser_frames : bool
+        Whether room light also reaches laser frames (it always lights board frames).
+    ambient_rate : float
+        Ambient signal at albedo 1 [e-/s].
+    light_direction : ndarray, shape (3,)
+        Unit vector towards the room's main light, world frame.
+    directional_fraction : float
+        Share of the ambient light that is directional (Lambert) rather than uniform [1].
+    """
+
+    exposure: float
+    calibration_exposure: float
+    full_well: float
+    bit_depth: int
+    black_level: float
+    shot_noise: bool
+    read_noise: float
+    speckle_contrast: float
+    psf_sigma: float
+    ambient_in_laser_frames: bool
+    ambient_rate: float
+    light_direction: np.ndarray
+    directional_fraction: float
+
+    @property
+    def electrons_per_dn(self) -> float:
+        return self.full_well / ((1 << self.bit_depth) - 1 - self.black_level)
+
+    @property
+    def noisy(self) -> bool:
+        return self.shot_noise or self.read_noise > 0.0
+
+
+@dataclass(frozen=True)
+class LaserSource:
+    """The line laser in the G2 head frame (after its mounting error).
+
+    Attributes
+    ----------
+    position : ndarray, shape (3,), metres
+        Apex of the fan (the Powell lens' virtual source), G2 frame.
+    direction : ndarray, shape (3,)
+        Unit central beam direction, G2 frame.
+    fan_normal : ndarray, shape (3,)
+        Unit normal of the fan plane, G2 frame, perpendicular to ``direction``.
+    fan_angle : float
+        Full fan angle [rad].
+    sigma : float
+        Gaussian sigma of the sheet thickness [m] (line width / 4).
+    peak_rate : float
+        Peak signal at albedo 1, normal incidence and ``reference_distance`` [e-/s].
+    reference_distance : float
+        [m]
+    """
+
+    position: np.ndarray
+    direction: np.ndarray
+    fan_normal: np.ndarray
+    fan_angle: float
+    sigma: float
+    peak_rate: float
+    reference_distance: float
+
+    @property
+    def spread_direction(self) -> np.ndarray:
+        """Unit in-plane direction perpendicular to the central beam."""
+        return np.cross(self.fan_normal, self.direction)
+
+
+@dataclass(frozen=True)
+class LaserSheet:
+    """The laser light leaving G2, in one frame.
+
+    All of the sheet's rays leave the last mirror as if they came from ``source`` (the
+    laser's apex reflected through both mirror planes) inside the wedge of half angle
+    ``half_angle`` about ``central``.
+
+    Attributes
+    ----------
+    plane : ndarray, shape (4,)
+        Centre plane of the sheet, unit normal.
+    source : ndarray, shape (3,), metres
+        Virtual apex.
+    central : ndarray, shape (3,)
+        Unit central ray direction.
+    edge_normals : ndarray, shape (2, 3)
+        In-plane unit normals of the wedge's two edges, pointing inwards.
+    mirror_plane : ndarray, shape (4,)
+        The last (tilt) mirror surface, unit normal; light leaves from it.
+    half_angle : float
+        [rad]
+    """
+
+    plane: np.ndarray
+    source: np.ndarray
+    central: np.ndarray
+    edge_normals: np.ndarray
+    mirror_plane: np.ndarray
+    half_angle: float
+
+    def transformed(self, A_T_F) -> LaserSheet:
+        """The same sheet expressed in frame A (``A_T_F`` maps this frame to A)."""
+        R, t = A_T_F[:3, :3], A_T_F[:3, 3]
+        return LaserSheet(
+            normalize_plane(transform_plane(A_T_F, self.plane)), R @ self.source + t,
+            R @ self.central, self.edge_normals @ R.T,
+            normalize_plane(transform_plane(A_T_F, self.mirror_plane)), self.half_angle)
+
+
+@dataclass(frozen=True)
+class ModelParameters:
+    """The reconstruction model's parameters that a rig corresponds to (DESIGN.md sec. 2).
+
+    For a rig without geometric imperfections they are exact: the model with these values
+    reproduces the simulator's virtual camera poses and laser planes. With imperfections
+    no value of the model's parameters is exact; these are the nominal values (l, d,
+    intrinsics), the actual angle at 0 V, the least-squares linear gains over +-full scale,
+    and the actual laser plane and G2 tilt axis at U2 = 0, which a calibration should
+    approach but a model cannot fit everywhere.
+
+    Attributes
+    ----------
+    fx, fy, cx, cy : float
+        [px]
+    distortion : ndarray, shape (5,)
+        plumb_bob (k1, k2, p1, p2, k3).
+    l, d : float
+        [m]
+    theta0_pan, theta0_tilt : float
+        G1 mirror angles at 0 V [rad].
+    k_pan, k_tilt : float
+        G1 gains [rad/V].
+    pi0 : ndarray, shape (4,)
+        Laser plane at U2_tilt = 0 in V0 (unit normal).
+    n : ndarray, shape (3,)
+        Unit G2 tilt axis direction in V0 (the plane turns by +2 theta4 about it).
+    P : ndarray, shape (3,), metres
+        Point of the G2 tilt axis closest to the V0 origin, in V0.
+    k2 : float
+        G2 tilt gain [rad/V]; theta4 = k2 U2_tilt.
+    u2_pan : float
+        The G2 pan voltage these laser values hold for [V].
+    W_T_V0 : ndarray, shape (4, 4)
+        Pose of V0 in the world frame.
+    exact : bool
+        True when the rig has no geometric imperfection.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: np.ndarray
+    l: float
+    d: float
+    theta0_pan: float
+    k_pan: float
+    theta0_tilt: float
+    k_tilt: float
+    pi0: np.ndarray
+    n: np.ndarray
+    P: np.ndarray
+    k2: float
+    u2_pan: float
+    W_T_V0: np.ndarray
+    exact: bool
+
+    def as_dict(self) -> dict:
+        out = {}
+        for key, value in self.__dict__.items():
+            out[key] = value.tolist() if isinstance(value, np.ndarray) else value
+        return out
+
+
+def _reflect_point(n, c, p):
+    return p - 2.0 * (float(n @ p) - c) * n
+
+
+def _reflect_dir(n, v):
+    return v - 2.0 * float(n @ v) * n
+
+
+def trace_off_planes(origins, directions, planes):
+    """Trace rays off a sequence of mirror planes.
+
+    Parameters
+    ----------
+    origins : ndarray, shape (n, 3), metres
+    directions : ndarray, shape (n, 3)
+        Unit ray directions.
+    planes : list of (ndarray shape (3,), float)
+        Mirror surfaces ``n . x = c`` in the order the light meets them.
+
+    Returns
+    -------
+    tuple (ndarray shape (n, 3), ndarray shape (n, 3), ndarray shape (n,) bool)
+        Hit points on the last mirror, reflected directions, and whether every mirror was
+        met in front of the ray (t > 0).
+    """
+    o = np.asarray(origins, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    if o.ndim != 2 or o.shape[1] != 3:
+        raise ValueError(f'origins: expected shape (n, 3), got {o.shape}')
+    if d.shape != o.shape:
+        raise ValueError(f'directions: expected shape {o.shape}, got {d.shape}')
+    ok = np.ones(len(o), dtype=bool)
+    for n, c in planes:
+        dn = d @ n
+        with np.errstate(divide='ignore', invalid='ignore'):
+            t = (c - o @ n) / dn
+        ok &= t > 0.0
+        o = o + t[:, None] * d
+        d = d - 2.0 * dn[:, None] * n
+    return o, d, ok
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A complete physical rig description (load one with :func:`load_rig`).
+
+    Attributes
+    ----------
+    name, source : str
+    camera : CameraModel
+    image : ImageFormation
+    l, d : float
+        G1 geometry [m]: camera centre at (-l, 0, 0) in G, tilt axis through (0, d, 0).
+    g1, g2 : GalvoHead
+    G_T_C : ndarray, shape (4, 4)
+        Real camera pose in G (DESIGN.md's M0, times the camera mounting error).
+    G_T_G2 : ndarray, shape (4, 4)
+    laser : LaserSource
+    dac : Dac
+    W_T_G : ndarray, shape (4, 4)
+    imperfections : dict
+        The imperfection values as read (for reports).
+    geometric_imperfection : bool
+        True when any geometric imperfection is non-zero.
+    """
+
+    name: str
+    source: str
+    camera: CameraModel
+    image: ImageFormation
+    l: float
+    d: float
+    g1: GalvoHead
+    g2: GalvoHead
+    G_T_C: np.ndarray
+    G_T_G2: np.ndarray
+    laser: LaserSource
+    dac: Dac
+    W_T_G: np.ndarray
+    imperfections: dict = field(default_factory=dict)
+    geometric_imperfection: bool = False
+
+    # ----------------------------------------------------------------- angles
+    def applied_voltages(self, voltages) -> np.ndarray:
+        """DAC output for commanded (U1_pan, U1_tilt, U2_pan, U2_tilt).
+
+        Parameters
+        ----------
+        voltages : array_like, shape (4,), volts
+        """
+        U = np.asarray(voltages, dtype=np.float64)
+        if U.shape != (4,):
+            raise ValueError(f'voltages: expected shape (4,), got {U.shape}')
+        return self.dac.quantize(U)
+
+    def mirror_angles(self, applied, jitter_draws=None) -> np.ndarray:
+        """True mechanical angles (theta1..theta4) [rad] for applied voltages.
+
+        Parameters
+        ----------
+        applied : array_like, shape (4,), volts
+            (U1_pan, U1_tilt, U2_pan, U2_tilt) as output by the DAC.
+        jitter_draws : array_like, shape (4,), optional
+            Standard normal draws scaled by each channel's jitter; None for no jitter.
+        """
+        U = np.asarray(applied, dtype=np.float64)
+        if U.shape != (4,):
+            raise ValueError(f'applied: expected shape (4,), got {U.shape}')
+        z = np.zeros(4) if jitter_draws is None else np.asarray(jitter_draws, np.float64)
+        if z.shape != (4,):
+            raise ValueError(f'jitter_draws: expected shape (4,), got {z.shape}')
+        drives = (self.g1.pan_drive, self.g1.tilt_drive, self.g2.pan_drive,
+                  self.g2.tilt_drive)
+        return np.array([dr.angle(float(u), float(j)) for dr, u, j in zip(drives, U, z,
+                                                                           strict=True)])
+
+    # ------------------------------------------------------- dynamic camera
+    def g1_planes(self, theta_pan: float, theta_tilt: float):
+        """The two G1 mirror surfaces in G, in the order light from the camera meets them."""
+        return [self.g1.pan.plane(theta_pan), self.g1.tilt.plane(theta_tilt)]
+
+    def G_T_V(self, theta_pan: float, theta_tilt: float) -> np.ndarray:
+        """Pose of the virtual camera in G: the camera reflected through both mirrors.
+
+        Returns
+        -------
+        ndarray, shape (4, 4)
+        """
+        (n1, c1), (n2, c2) = self.g1_planes(theta_pan, theta_tilt)
+        return reflection_transform(n2, c2) @ reflection_transform(n1, c1) @ self.G_T_C
+
+    @cached_property
+    def G_T_V0(self) -> np.ndarray:
+        """Pose of V0 (both G1 channels at 0 V, no jitter) in G."""
+        th = self.mirror_angles(np.zeros(4))
+        return self.G_T_V(th[0], th[1])
+
+    @cached_property
+    def W_T_V0(self) -> np.ndarray:
+        return self.W_T_G @ self.G_T_V0
+
+    def V0_T_V(self, theta_pan: float, theta_tilt: float) -> np.ndarray:
+        """Virtual camera pose at the given angles in V0 (4, 4)."""
+        return invert_transform(self.G_T_V0) @ self.G_T_V(theta_pan, theta_tilt)
+
+    def trace_camera_rays(self, xy, theta_pan: float, theta_tilt: float):
+        """Trace pixel rays from the real camera off the two G1 mirrors.
+
+        Parameters
+        ----------
+        xy : ndarray, shape (n, 2)
+            Undistorted normalised pixel coordinates (ray (x, y, 1) in C).
+        theta_pan, theta_tilt : float
+            Mirror angles [rad].
+
+        Returns
+        -------
+        tuple (ndarray shape (n, 3), ndarray shape (n, 3))
+            Ray origins on the tilt mirror and unit directions into the scene, in G.
+        """
+        xy = np.asarray(xy, dtype=np.float64)
+        if xy.ndim != 2 or xy.shape[1] != 2:
+            raise ValueError(f'xy: expected shape (n, 2), got {xy.shape}')
+        R = self.G_T_C[:3, :3]
+        inv_norm = 1.0 / np.sqrt(xy[:, 0] ** 2 + xy[:, 1] ** 2 + 1.0)
+        d = (xy[:, 0:1] * R[:, 0] + xy[:, 1:2] * R[:, 1] + R[:, 2]) * inv_norm[:, None]
+        o = np.broadcast_to(self.G_T_C[:3, 3], d.shape)
+        o, d, _ = trace_off_planes(o, d, self.g1_planes(theta_pan, theta_tilt))
+        return o, d
+
+    # -------------------------------------------------------- dynamic laser
+    def laser_sheet_G(self, theta_pan2: float, theta_tilt2: float) -> LaserSheet:
+        """The laser sheet leaving G2 at the given G2 mirror angles, in G.
+
+        The fan's apex, central ray and edge rays are traced off the actual G2 pan and
+        tilt mirror planes; the sheet is what leaves the tilt mirror.
+        """
+        L = self.laser
+        planes = [self.g2.pan.plane(theta_pan2), self.g2.tilt.plane(theta_tilt2)]
+        half = 0.5 * L.fan_angle
+        e = L.spread_direction
+        dirs = np.array([L.direction, math.cos(half) * L.direction + math.sin(half) * e,
+                         math.cos(half) * L.direction - math.sin(half) * e])
+        hits, out, ok = trace_off_planes(np.tile(L.position, (3, 1)), dirs, planes)
+        if not ok[0]:
+            raise ValueError(f'rig {self.name}: the laser beam misses a G2 mirror')
+        src = L.position
+        normal = L.fan_normal
+        for n, c in planes:
+            src = _reflect_point(n, c, src)
+            normal = _reflect_dir(n, normal)
+        central = out[0]
+        edges = []
+        for k in (1, 2):
+            en = np.cross(normal, out[k])
+            edges.append(en if en @ central > 0.0 else -en)
+        n_t, c_t = planes[1]
+        sheet = LaserSheet(plane_from_point_normal(src, normal), src, central,
+                           np.array([unit(v) for v in edges]), np.append(n_t, -c_t), half)
+        return sheet.transformed(self.G_T_G2)
+
+    # ----------------------------------------------------------- reporting
+    def true_model_parameters(self, u2_pan: float = 0.0) -> ModelParameters:
+        """The model parameters this physical rig corresponds to (see ModelParameters).
+
+        Parameters
+        ----------
+        u2_pan : float
+            G2 pan voltage the laser values refer to [V] (quantised by the DAC).
+        """
+        applied = self.applied_voltages(np.array([0.0, 0.0, u2_pan, 0.0]))
+        th = self.mirror_angles(applied)
+        V0_T_G = invert_transform(self.G_T_V0)
+        sheet = self.laser_sheet_G(th[2], th[3]).transformed(V0_T_G)
+        R = V0_T_G[:3, :3] @ self.G_T_G2[:3, :3]
+        n = unit(R @ self.g2.tilt.axis_direction)
+        p = V0_T_G[:3, :3] @ (self.G_T_G2[:3, :3] @ self.g2.tilt.axis_point
+                              + self.G_T_G2[:3, 3]) + V0_T_G[:3, 3]
+        P = p - float(p @ n) * n
+        t0p, kp = self.g1.pan_drive.best_linear_fit()
+        t0t, kt = self.g1.tilt_drive.best_linear_fit()
+        _, k2 = self.g2.tilt_drive.best_linear_fit()
+        cam = self.camera
+        return ModelParameters(
+            cam.fx, cam.fy, cam.cx, cam.cy, cam.distortion.copy(), self.l, self.d, t0p, kp,
+            t0t, kt, sheet.plane, n, P, k2, float(applied[2]), self.W_T_V0.copy(),
+            not self.geometric_imperfection)
+
+
+# ====================================================================== loading
+
+def _pose(sec: Section, name: str) -> np.ndarray:
+    p = sec.section(name)
+    t = p.vector('translation', 3, -20.0, 20.0, 'm',
+                 hint='metres expected, not millimetres')
+    r = p.vector('rotation_vector', 3, -4.0 * math.pi, 4.0 * math.pi, 'rad')
+    p.finish()
+    return make_transform(rotation_from_vector(r), t)
+
+
+def _drive(sec: Section, name: str, imp: Section | None, full_scale: float) -> MirrorDrive:
+    s = sec.section(name)
+    theta0 = s.number('theta0', -math.pi, math.pi, 'rad', hint='radians expected')
+    gain = s.number('gain', -0.2, 0.2, 'rad/V', hint='radians per volt expected')
+    s.finish()
+    if gain == 0.0:
+        raise s.error('gain', 'a non-zero gain in rad/V', gain)
+    if imp is None:
+        return MirrorDrive(theta0, gain, full_scale=full_scale)
+    zero = imp.number('zero_offset', -0.02, 0.02, 'rad')
+    gain_err = imp.number('gain_error', -0.05, 0.05, '(relative)')
+    nl = imp.vector('nonlinearity', 2, -0.01, 0.01, 'rad')
+    jitter = imp.number('jitter', 0.0, 1e-3, 'rad')
+    return MirrorDrive(theta0, gain, zero, gain_err, (float(nl[0]), float(nl[1])), jitter,
+                       full_scale)
+
+
+def _mirror_imperfection(imp: Section, name: str):
+    s = imp.section(name)
+    offset = s.number('surface_offset', -0.005, 0.005, 'm',
+                      hint='metres expected, not millimetres')
+    tilt = s.vector('axis_tilt', 2, -0.05, 0.05, 'rad')
+    return s, offset, tilt
+
+
+def rig_from_dict(data: dict, source: str) -> Rig:
+    """Build a :class:`Rig` from a parsed rig file (see ``rigs/reference.yaml``).
+
+    Raises
+    ------
+    ConfigError
+        Naming ``source``, the key and what was expected.
+    """
+    top = Section(data, source)
+    version = top.integer('format_version', 1, 1000)
+    if version != RIG_FORMAT_VERSION:
+        raise top.error('format_version', f'{RIG_FORMAT_VERSION}', version)
+    name = top.string('name')
+    top.raw('description', 'a string', '')
+
+    cam = top.section('camera')
+    width = cam.integer('width', 16, 20000, 'px')
+    height = cam.integer('height', 16, 20000, 'px')
+    pixel_size = cam.number('pixel_size', 5e-7, 5e-5, 'm', hint='metres expected, not µm')
+    fx = cam.number('fx', 10.0, 1e6, 'px')
+    fy = cam.number('fy', 10.0, 1e6, 'px')
+    cx = cam.number('cx', -width, 2.0 * width, 'px')
+    cy = cam.number('cy', -height, 2.0 * height, 'px')
+    exposure = cam.number('exposure', 1e-6, 1.0, 's', hint='seconds expected, not µs/ms')
+    cal_exposure = cam.number('calibration_exposure', 1e-6, 1.0, 's',
+                              hint='seconds expected, not ms')
+    full_well = cam.number('full_well', 100.0, 1e7, 'e-')
+    bit_depth = cam.integer('bit_depth', 8, 8, 'bit')
+    black_level = cam.number('black_level', 0.0, 64.0, 'DN')
+    cam.finish()
+
+    dac_s = top.section('dac')
+    dac = Dac(dac_s.integer('bits', 8, 24, 'bit'),
+              dac_s.number('full_scale', 0.1, 100.0, 'V'))
+    dac_s.finish()
+
+    imp = top.section('imperfections')
+    distortion = imp.vector('lens_distortion', 5, -50.0, 50.0, '(plumb_bob k1 k2 p1 p2 k3)')
+    mount = imp.vector('camera_mount_rotation', 3, -0.05, 0.05, 'rad')
+    fan_roll = imp.number('laser_fan_roll', -0.1, 0.1, 'rad')
+    fan_offset = imp.number('laser_fan_offset', -0.01, 0.01, 'm',
+                            hint='metres expected, not millimetres')
+    mirrors = {}
+    for key in ('g1_pan', 'g1_tilt', 'g2_pan', 'g2_tilt'):
+        mirrors[key] = _mirror_imperfection(imp, key)
+    img = imp.section('image')
+    shot = img.boolean('shot_noise')
+    read_noise = img.number('read_noise', 0.0, 1000.0, 'e-')
+    speckle = img.number('speckle_contrast', 0.0, 1.0, '(relative)')
+    psf = img.number('psf_sigma', 0.0, 10.0, 'px')
+    ambient_laser = img.boolean('ambient_in_laser_frames')
+    img.finish()
+
+    g1s = top.section('g1')
+    l = g1s.number('l', 0.005, 1.0, 'm', hint='metres expected; 83.45 mm is 0.08345')
+    d = g1s.number('d', 0.002, 0.5, 'm', hint='metres expected; 22.14 mm is 0.02214')
+    pan_s, pan_off, pan_tilt = mirrors['g1_pan']
+    tilt_s, tilt_off, tilt_tilt = mirrors['g1_tilt']
+    g1 = GalvoHead.build(d, _drive(g1s, 'pan', pan_s, dac.full_scale),
+                         _drive(g1s, 'tilt', tilt_s, dac.full_scale), pan_off, pan_tilt,
+                         tilt_off, tilt_tilt)
+    g1s.finish()
+
+    g2s = top.section('g2')
+    d2 = g2s.number('d', 0.002, 0.5, 'm', hint='metres expected, not millimetres')
+    G_T_G2 = _pose(g2s, 'pose_in_g1')
+    p2_s, p2_off, p2_tilt = mirrors['g2_pan']
+    t2_s, t2_off, t2_tilt = mirrors['g2_tilt']
+    g2 = GalvoHead.build(d2, _drive(g2s, 'pan', p2_s, dac.full_scale),
+                         _drive(g2s, 'tilt', t2_s, dac.full_scale), p2_off, p2_tilt, t2_off,
+                         t2_tilt)
+    g2s.finish()
+    for s, _, _ in mirrors.values():
+        s.finish()
+
+    las = top.section('laser')
+    position = las.vector('source_position', 3, -1.0, 1.0, 'm',
+                          hint='metres expected, not millimetres')
+    direction = unit(las.vector('direction', 3, -1.0, 1.0, '(unit vector)'))
+    fan_normal = unit(las.vector('fan_normal', 3, -1.0, 1.0, '(unit vector)'))
+    if abs(float(direction @ fan_normal)) > 1e-6:
+        raise las.error('fan_normal', 'a vector perpendicular to laser.direction',
+                        fan_normal.tolist())
+    fan_angle = las.number('fan_angle', 0.01, 2.6, 'rad', hint='radians expected')
+    line_width = las.number('line_width', 1e-6, 0.01, 'm', hint='metres expected')
+    peak_rate = las.number('peak_rate', 0.0, 1e12, 'e-/s')
+    ref_dist = las.number('reference_distance', 0.05, 20.0, 'm')
+    las.finish()
+    rolled = rotation_about(direction, fan_roll) @ fan_normal
+    laser = LaserSource(position + fan_offset * fan_normal, direction, rolled, fan_angle,
+                        line_width / 4.0, peak_rate, ref_dist)
+
+    world = top.section('world')
+    W_T_G = _pose(world, 'pose_g1')
+    world.finish()
+
+    ill = top.section('illumination')
+    ambient_rate = ill.number('ambient_rate', 0.0, 1e12, 'e-/s')
+    light_dir = unit(ill.vector('light_direction', 3, -1.0, 1.0, '(unit vector, world)'))
+    directional = ill.number('directional_fraction', 0.0, 1.0, '(fraction)')
+    ill.finish()
+    imp.finish()
+    top.finish()
+
+    image = ImageFormation(exposure, cal_exposure, full_well, bit_depth, black_level, shot,
+                           read_noise, speckle, psf, ambient_laser, ambient_rate, light_dir,
+                           directional)
+    camera = CameraModel(width, height, pixel_size, fx, fy, cx, cy, distortion)
+    M0 = make_transform(_M0_ROT, (-l, 0.0, 0.0))
+    G_T_C = M0 @ make_transform(rotation_from_vector(mount), np.zeros(3))
+    geometric = bool(
+        np.any(mount != 0.0) or fan_roll != 0.0 or fan_offset != 0.0
+        or any(off != 0.0 or np.any(tl != 0.0) for _, off, tl in mirrors.values())
+        or any(dr.zero_offset != 0.0 or dr.gain_error != 0.0 or any(dr.nonlinearity)
+               for dr in (g1.pan_drive, g1.tilt_drive, g2.pan_drive, g2.tilt_drive)))
+    imperf = {k: v for k, v in data.get('imperfections', {}).items()}
+    rig = Rig(name, source, camera, image, l, d, g1, g2, G_T_C, G_T_G2, laser, dac, W_T_G,
+              imperf, geometric)
+    # The laser must actually reach both G2 mirrors at the rest position.
+    try:
+        th = rig.mirror_angles(np.zeros(4))
+        rig.laser_sheet_G(th[2], th[3])
+    except ValueError as exc:
+        raise ConfigError(source, 'laser', f'a laser that hits both G2 mirrors ({exc})') \
+            from exc
+    return rig
+
+
+def load_rig(name_or_path) -> Rig:
+    """Load a rig file.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+        A shipped rig name (``'reference'``, ``'ideal'``) or a path to a YAML file.
+
+    Raises
+    ------
+    ConfigError
+        The file is missing, malformed, or has a missing/implausible/unknown key.
+    """
+    path = Path(name_or_path)
+    if not path.suffix and not path.exists():
+        path = RIG_DIR / f'{name_or_path}.yaml'
+    return rig_from_dict(read_yaml_file(path), str(path))
+
+
+def load_rig_text(text: str, source: str = '<rig yaml>') -> Rig:
+    """Load a rig from YAML text."""
+    return rig_from_dict(read_yaml_text(text, source), source)
+
+
+def shipped_rigs() -> list[str]:
+    """Names of the rig files shipped with the package."""
+    return sorted(p.stem for p in RIG_DIR.glob('*.yaml'))

@@ -1,0 +1,655 @@
+"""Image formation and ground truth: the rig looking at a scene.
+
+One frame, for voltages (U1_pan, U1_tilt, U2_pan, U2_tilt):
+
+1. The DAC quantises the voltages; each mirror's true angle follows its (possibly
+   nonlinear) response plus a per-frame jitter draw.
+2. The laser sheet is the laser's fan traced off the two actual G2 mirrors.
+3. Ground-truth stripe: the sheet's centre plane is cut with every face and sphere of the
+   scene; for each image column the points of those curves that project exactly onto the
+   column (sub-pixel v, projection = reflection through the two actual G1 mirror planes,
+   which is exact for plane mirrors) are kept if the camera sees them (facing, not inside a
+   solid, nothing on the segment to the G1 tilt mirror) and the laser reaches them (facing,
+   inside the fan, nothing on the segment to the G2 tilt mirror).
+4. Only a window of rows around each such point is ray-traced at full resolution: pixel
+   rays are traced off the G1 mirror planes into the scene, and each hit is lit by the
+   sheet with a Gaussian profile in its distance from the sheet's centre plane, times
+   albedo, the cosine of the laser's incidence, 1/distance from the fan apex and a speckle
+   factor, if the segment to the G2 mirror is free.
+5. Room light (ambient plus a directional share) lights every surface: in board frames at
+   full resolution with anti-aliased textures; in laser frames, if enabled, from a coarse
+   grid of traced pixels, bilinearly upsampled (the background is dim and smooth there).
+6. Optical blur, full-well clipping, shot and read noise, 8-bit quantisation.
+
+Noise uses a pool of standard normal draws made once per simulator from its seed; each
+frame reads it at a random offset (independent within a frame; two frames may share
+raster-shifted noise values). ``exact_noise=True`` draws fresh values every frame.
+Everything is deterministic for a given seed and frame index.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from . import raykernels as rk
+from .rig import LaserSheet, Rig
+from .scene import Hits, Scene
+from .spatial import invert_transform, normalize_plane, transform_plane
+
+_NEAR = 0.01  # [m] nearest depth considered in front of the virtual camera
+
+
+@dataclass
+class StripeTruth:
+    """Ground-truth stripe of one frame: one entry per (column, stripe branch).
+
+    For image column ``column``, the entry is the point on the *actual* laser sheet's
+    centre plane and on an object's surface whose projection has u == column exactly; it
+    is seen by the camera and reached by the laser.
+
+    Attributes
+    ----------
+    column : ndarray, shape (n,), int
+    u, v : ndarray, shape (n,), px
+        Exact sub-pixel projection (u equals column to ~1e-9 px).
+    points_W, points_V0 : ndarray, shape (n, 3), metres
+    normals_W : ndarray, shape (n, 3)
+        Surface normal at the point, facing the camera.
+    object_index : ndarray, shape (n,), int
+        Index into the scene's objects.
+    """
+
+    column: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    points_W: np.ndarray
+    points_V0: np.ndarray
+    normals_W: np.ndarray
+    object_index: np.ndarray
+
+    @staticmethod
+    def empty() -> StripeTruth:
+        z3 = np.zeros((0, 3))
+        return StripeTruth(np.zeros(0, int), np.zeros(0), np.zeros(0), z3, z3.copy(),
+                           z3.copy(), np.zeros(0, int))
+
+    def __len__(self):
+        return len(self.column)
+
+
+@dataclass
+class FrameTruth:
+    """Everything true about one simulated frame.
+
+    Attributes
+    ----------
+    index : int
+        Frame index (seeds the frame's random draws).
+    voltages_commanded, voltages_applied : ndarray, shape (4,), volts
+        (U1_pan, U1_tilt, U2_pan, U2_tilt) asked for and output by the DAC.
+    angles : ndarray, shape (4,), radians
+        True mechanical mirror angles theta1..theta4, jitter included.
+    W_T_V, V0_T_V, W_T_V0 : ndarray, shape (4, 4)
+        Virtual camera poses.
+    laser_on : bool
+    laser_plane_W, laser_plane_V0 : ndarray, shape (4,)
+        Centre plane of the actual sheet (unit normal); NaN when the laser is off.
+    laser_source_W : ndarray, shape (3,), metres
+        Virtual apex of the fan after both G2 mirrors.
+    exposure : float
+        [s]
+    stripe : StripeTruth
+    rig_name, scene_name : str
+    """
+
+    index: int
+    voltages_commanded: np.ndarray
+    voltages_applied: np.ndarray
+    angles: np.ndarray
+    W_T_V: np.ndarray
+    V0_T_V: np.ndarray
+    W_T_V0: np.ndarray
+    laser_on: bool
+    laser_plane_W: np.ndarray
+    laser_plane_V0: np.ndarray
+    laser_source_W: np.ndarray
+    exposure: float
+    stripe: StripeTruth
+    rig_name: str = ''
+    scene_name: str = ''
+
+    def as_dict(self) -> dict:
+        """Plain dict (arrays kept as numpy arrays), e.g. for a driver Frame's truth."""
+        out = {k: v for k, v in self.__dict__.items() if k != 'stripe'}
+        out['stripe'] = dict(self.stripe.__dict__)
+        return out
+
+
+@dataclass
+class SimFrame:
+    """One simulated camera image with its ground truth.
+
+    Attributes
+    ----------
+    image : ndarray, shape (height, width), uint8
+    truth : FrameTruth
+    """
+
+    image: np.ndarray
+    truth: FrameTruth
+
+
+@dataclass
+class _Geometry:
+    angles: np.ndarray
+    W_T_V: np.ndarray
+    V_T_W: np.ndarray
+    W_T_G: np.ndarray
+    center: np.ndarray           # virtual camera centre, W
+    cam_mirror: np.ndarray       # G1 tilt mirror plane, W
+    sheet: LaserSheet | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class Simulator:
+    """The rig (:class:`~galvo_driver.sim.rig.Rig`) scanning a scene.
+
+    Parameters
+    ----------
+    rig : Rig
+    scene : Scene
+    seed : int
+        Seeds every random draw (jitter, noise, speckle); same seed, same frames.
+    exact_noise : bool
+        Draw fresh normal deviates for every frame instead of reading the seeded pool.
+    coarse_step : int
+        Pixel step of the traced grid for the room-light background of laser frames.
+    """
+
+    def __init__(self, rig: Rig, scene: Scene, seed: int = 0, *, exact_noise: bool = False,
+                 coarse_step: int = 10):
+        self.rig = rig
+        self.scene = scene
+        self.seed = int(seed)
+        self.exact_noise = exact_noise
+        cam = rig.camera
+        self.coarse_step = int(coarse_step)
+        self._grid = cam.normalized_grid(1)
+        self._coarse = cam.normalized_grid(self.coarse_step).reshape(-1, 2)
+        g = self._grid
+        self._bounds = (float(g[..., 0].min()) - 2.0 / cam.fx, float(g[..., 0].max()) + 2.0 / cam.fx,
+                        float(g[..., 1].min()) - 2.0 / cam.fy, float(g[..., 1].max()) + 2.0 / cam.fy)
+        self._pool = None
+        if rig.image.noisy and not exact_noise:
+            n = 1 << 22
+            self._pool = np.random.default_rng([self.seed, 0x5EED]).standard_normal(
+                n, dtype=np.float32)
+        self._next_index = 0
+        self.W_T_V0 = rig.W_T_V0
+        self.V0_T_W = invert_transform(self.W_T_V0)
+
+    # ------------------------------------------------------------- helpers
+    def set_scene(self, scene: Scene) -> None:
+        """Replace the scene (the rig and the seed stay)."""
+        self.scene = scene
+
+    def _rng(self, index: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, int(index)])
+
+    def geometry(self, angles, laser_on: bool = True) -> _Geometry:
+        """Camera and laser geometry for true mirror angles (4,) [rad]."""
+        rig = self.rig
+        th = np.asarray(angles, dtype=np.float64)
+        if th.shape != (4,):
+            raise ValueError(f'angles: expected shape (4,), got {th.shape}')
+        G_T_V = rig.G_T_V(th[0], th[1])
+        W_T_V = rig.W_T_G @ G_T_V
+        n_t, c_t = rig.g1.tilt.plane(th[1])
+        cam_mirror = normalize_plane(transform_plane(rig.W_T_G, np.append(n_t, -c_t)))
+        geo = _Geometry(th, W_T_V, invert_transform(W_T_V), rig.W_T_G, W_T_V[:3, 3].copy(),
+                        cam_mirror)
+        (n1, c1), (n2, c2) = rig.g1_planes(th[0], th[1])
+        geo.extra['cam'] = np.concatenate([
+            rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3], n1, [c1], n2, [c2],
+            rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]])
+        if laser_on:
+            geo.sheet = rig.laser_sheet_G(th[2], th[3]).transformed(rig.W_T_G)
+        return geo
+
+    def project_points(self, points_W, angles) -> np.ndarray:
+        """Pixel coordinates of world points seen through the G1 mirrors.
+
+        Parameters
+        ----------
+        points_W : array_like, shape (n, 3), metres
+        angles : array_like, shape (4,), radians
+            True mirror angles (only theta1, theta2 matter).
+
+        Returns
+        -------
+        ndarray, shape (n, 2), px (NaN behind the virtual camera)
+        """
+        P = np.asarray(points_W, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise ValueError(f'points_W: expected shape (n, 3), got {P.shape}')
+        geo = self.geometry(angles, laser_on=False)
+        return self.rig.camera.project(P @ geo.V_T_W[:3, :3].T + geo.V_T_W[:3, 3])
+
+    def trace_pixels(self, uv, angles) -> Hits:
+        """Trace pixel rays off the G1 mirrors into the scene.
+
+        Parameters
+        ----------
+        uv : array_like, shape (n, 2), px
+        angles : array_like, shape (4,), radians
+
+        Returns
+        -------
+        Hits
+            World-frame hits.
+        """
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f'uv: expected shape (n, 2), got {uv.shape}')
+        th = np.asarray(angles, dtype=np.float64)
+        if th.shape != (4,):
+            raise ValueError(f'angles: expected shape (4,), got {th.shape}')
+        xy = self.rig.camera.pixel_to_normalized(uv)
+        return self._trace_xy(xy, th)
+
+    def _trace_xy(self, xy, th) -> Hits:
+        rig = self.rig
+        o, d = rig.trace_camera_rays(xy, th[0], th[1])
+        R, t = rig.W_T_G[:3, :3], rig.W_T_G[:3, 3]
+        return self.scene.intersect(o @ R.T + t, d @ R.T)
+
+    # ------------------------------------------------------ stripe truth
+    def _half_spaces(self, geo: _Geometry) -> np.ndarray:
+        R = geo.W_T_V[:3, :3]
+        C = geo.center
+        x0, x1, y0, y1 = self._bounds
+        hs = [(C, R @ np.array([1.0, 0.0, -x0])), (C, R @ np.array([-1.0, 0.0, x1])),
+              (C, R @ np.array([0.0, 1.0, -y0])), (C, R @ np.array([0.0, -1.0, y1])),
+              (C + _NEAR * R[:, 2], R[:, 2])]
+        sh = geo.sheet
+        hs += [(sh.source, sh.edge_normals[0]), (sh.source, sh.edge_normals[1])]
+        return np.array([np.array(h) for h in hs])
+
+    def _project_V(self, P_V):
+        cam = self.rig.camera
+        z = P_V[..., 2]
+        x = P_V[..., 0] / z
+        y = P_V[..., 1] / z
+        if cam.has_distortion:
+            x, y = cam.distort(x, y)
+        return cam.fx * x + cam.cx, cam.fy * y + cam.cy
+
+    def _segment_crossings(self, geo, A, B):
+        """Points on segments A->B (world) whose projection has integer u."""
+        if len(A) == 0:
+            return np.zeros(0, int), np.zeros(0), np.zeros(0, int)
+        cam = self.rig.camera
+        R, t = geo.V_T_W[:3, :3], geo.V_T_W[:3, 3]
+        Av = A @ R.T + t
+        Bv = B @ R.T + t
+        ua, _ = self._project_V(Av)
+        ub, _ = self._project_V(Bv)
+        lo = np.maximum(np.ceil(np.minimum(ua, ub)), 0)
+        hi = np.minimum(np.floor(np.maximum(ua, ub)), cam.width - 1)
+        cnt = np.maximum(hi - lo + 1, 0).astype(int)
+        seg = np.repeat(np.arange(len(A)), cnt)
+        if len(seg) == 0:
+            return np.zeros(0, int), np.zeros(0), np.zeros(0, int)
+        start = np.repeat(np.cumsum(cnt) - cnt, cnt)
+        col = lo[seg] + (np.arange(len(seg)) - start)
+        a, b = Av[seg], Bv[seg]
+        xc = (col - cam.cx) / cam.fx
+        ga = a[:, 0] - xc * a[:, 2]
+        gb = b[:, 0] - xc * b[:, 2]
+        with np.errstate(divide='ignore', invalid='ignore'):
+            s = np.where(np.abs(ga - gb) > 0, ga / (ga - gb), 0.5)
+        s = np.clip(s, 0.0, 1.0)
+        D = b - a
+        if cam.has_distortion:
+            h = 1e-7
+            for _ in range(4):
+                f0, _ = self._project_V(a + s[:, None] * D)
+                fp, _ = self._project_V(a + (s + h)[:, None] * D)
+                fm, _ = self._project_V(a + (s - h)[:, None] * D)
+                der = (fp - fm) / (2 * h)
+                with np.errstate(divide='ignore', invalid='ignore'):
+                    s = s - np.where(der != 0, (f0 - col) / der, 0.0)
+        u, _ = self._project_V(a + s[:, None] * D)
+        ok = (np.abs(u - col) < 1e-6) & (s >= -1e-9) & (s <= 1 + 1e-9)
+        return seg[ok], s[ok], col[ok].astype(int)
+
+    def _circle_crossings(self, geo, circles):
+        cam = self.rig.camera
+        R, t = geo.V_T_W[:3, :3], geo.V_T_W[:3, 3]
+        out = []
+        for k, (obj, cc, rho, e1, e2, sc, _) in enumerate(circles):
+            dist = float(np.linalg.norm(cc - geo.center))
+            n = int(np.clip(2 * np.pi * rho * cam.fx / max(dist, 1e-3) / 4, 64, 4096))
+            phi = np.linspace(0.0, 2 * np.pi, n + 1)
+            cv, s1, s2 = R @ cc + t, R @ e1, R @ e2
+
+            def pts(ph, cv=cv, s1=s1, s2=s2, rho=rho):
+                return cv + rho * (np.cos(ph)[:, None] * s1 + np.sin(ph)[:, None] * s2)
+
+            Pv = pts(phi)
+            with np.errstate(divide='ignore', invalid='ignore'):
+                u, _ = self._project_V(Pv)
+            u = np.where(Pv[:, 2] > _NEAR, u, np.nan)
+            u0, u1 = u[:-1], u[1:]
+            valid = np.isfinite(u0) & np.isfinite(u1)
+            mn = np.where(valid, np.minimum(u0, u1), 0.0)
+            mx = np.where(valid, np.maximum(u0, u1), -1.0)
+            lo = np.maximum(np.floor(mn) + 1, 0)
+            hi = np.minimum(np.floor(mx), cam.width - 1)
+            cnt = np.where(valid, np.maximum(hi - lo + 1, 0), 0).astype(int)
+            iv = np.repeat(np.arange(n), cnt)
+            if len(iv) == 0:
+                continue
+            start = np.repeat(np.cumsum(cnt) - cnt, cnt)
+            col = lo[iv] + (np.arange(len(iv)) - start)
+            w = (col - u0[iv]) / (u1[iv] - u0[iv])
+            ph = phi[iv] + w * (phi[iv + 1] - phi[iv])
+            h = 1e-8
+            for _ in range(4):
+                f0, _ = self._project_V(pts(ph))
+                fp, _ = self._project_V(pts(ph + h))
+                fm, _ = self._project_V(pts(ph - h))
+                der = (fp - fm) / (2 * h)
+                with np.errstate(divide='ignore', invalid='ignore'):
+                    ph = ph - np.where(der != 0, (f0 - col) / der, 0.0)
+            uu, _ = self._project_V(pts(ph))
+            ok = np.abs(uu - col) < 1e-6
+            P = cc + rho * (np.cos(ph[ok])[:, None] * e1 + np.sin(ph[ok])[:, None] * e2)
+            out.append((P, (P - sc) / np.linalg.norm(P - sc, axis=1)[:, None],
+                        np.full(int(ok.sum()), obj), col[ok].astype(int)))
+        return out
+
+    def _free_towards(self, X, target, mirror_plane):
+        """True where nothing blocks the segment from X towards ``target`` up to the mirror."""
+        d = target - X
+        dist = np.linalg.norm(d, axis=1)
+        d = d / dist[:, None]
+        with np.errstate(divide='ignore', invalid='ignore'):
+            tm = -(X @ mirror_plane[:3] + mirror_plane[3]) / (d @ mirror_plane[:3])
+        tm = np.where((tm > 0) & (tm < dist), tm, dist) - rk.EPS
+        ptype, _, R, T, prm = self.scene.packed()
+        out = np.empty(len(X), dtype=np.bool_)
+        rk.trace_blocked(ptype, R, T, prm, np.ascontiguousarray(X), d, tm, out)
+        return ~out
+
+    def _stripe_crossings(self, geo: _Geometry):
+        sheet = geo.sheet
+        cam = self.rig.camera
+        hs = self._half_spaces(geo)
+        A, B, nrm, obj, two = self.scene.sheet_segments(sheet.plane, hs)
+        seg, s, col = self._segment_crossings(geo, A, B)
+        Xs = [A[seg] + s[:, None] * (B[seg] - A[seg])]
+        Ns = [nrm[seg]]
+        objs = [obj[seg]]
+        cols = [col]
+        twos = [two[seg]]
+        for P, Nn, ob, cl in self._circle_crossings(geo, self.scene.sheet_circles(sheet.plane)):
+            Xs.append(P)
+            Ns.append(Nn)
+            objs.append(ob)
+            cols.append(cl)
+            twos.append(np.zeros(len(P), bool))
+        X = np.concatenate(Xs)
+        N = np.concatenate(Ns)
+        ob = np.concatenate(objs)
+        cl = np.concatenate(cols)
+        two = np.concatenate(twos)
+        if len(X) == 0:
+            return None
+        to_cam = geo.center - X
+        facing = np.einsum('ij,ij->i', N, to_cam)
+        N = np.where((two & (facing < 0))[:, None], -N, N)
+        facing = np.abs(facing) * np.where(two, 1.0, np.sign(facing))
+        Pv = X @ geo.V_T_W[:3, :3].T + geo.V_T_W[:3, 3]
+        u, v = self._project_V(Pv)
+        to_src = sheet.source - X
+        keep = ((facing > 0) & (Pv[:, 2] > _NEAR) & (v >= -0.5) & (v <= cam.height - 0.5)
+                & (np.einsum('ij,ij->i', N, to_src) > 0)
+                & (to_src @ sheet.edge_normals[0] <= 0) & (to_src @ sheet.edge_normals[1] <= 0))
+        keep &= ~self.scene.inside_solid(X)
+        idx = np.flatnonzero(keep)
+        if len(idx):
+            vis = self._free_towards(X[idx], geo.center, geo.cam_mirror)
+            idx = idx[vis]
+        if len(idx):
+            lit = self._free_towards(X[idx], sheet.source, sheet.mirror_plane)
+            idx = idx[lit]
+        if len(idx) == 0:
+            return None
+        order = np.lexsort((v[idx], cl[idx]))
+        idx = idx[order]
+        dup = np.zeros(len(idx), bool)
+        dup[1:] = (cl[idx][1:] == cl[idx][:-1]) & (np.abs(np.diff(v[idx])) < 1e-6)
+        idx = idx[~dup]
+        return X[idx], N[idx], ob[idx], cl[idx], u[idx], v[idx]
+
+    def stripe_truth(self, geo: _Geometry) -> StripeTruth:
+        """Ground-truth stripe for a frame geometry (see :class:`StripeTruth`)."""
+        if geo.sheet is None:
+            return StripeTruth.empty()
+        res = self._stripe_crossings(geo)
+        if res is None:
+            return StripeTruth.empty()
+        X, N, ob, cl, u, v = res
+        R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
+        return StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
+
+    # ------------------------------------------------------------ images
+    def _background(self, geo, exposure, full: bool) -> np.ndarray:
+        rig, cam = self.rig, self.rig.camera
+        im = rig.image
+        step = 1 if full else self.coarse_step
+        xy = self._grid.reshape(-1, 2) if full else self._coarse
+        ptype, pobj, R, T, prm = self.scene.packed()
+        n = len(xy)
+        t = np.empty(n)
+        prim = np.empty(n, np.int64)
+        nrm = np.empty((n, 3))
+        P = np.empty((n, 3))
+        rk.trace_pixels_closest(ptype, R, T, prm, geo.extra['cam'], xy, t, prim, nrm, P)
+        hit = prim >= 0
+        img = np.zeros(n, np.float32)
+        if np.any(hit):
+            X = P[hit]
+            nv = nrm[hit]
+            rng_ = np.linalg.norm(X - geo.center, axis=1)
+            cos_v = np.abs(np.einsum('ij,ij->i', nv, X - geo.center)) / rng_
+            foot = rng_ / cam.fx / np.maximum(cos_v, 0.2) * step
+            alb = self.scene.albedo(X, pobj[prim[hit]], foot)
+            shade = (1.0 - im.directional_fraction) + im.directional_fraction * np.maximum(
+                nv @ im.light_direction, 0.0)
+            img[hit] = im.ambient_rate * exposure * alb * shade
+        h, w = cam.height // step, cam.width // step
+        img = img.reshape(h, w)
+        if not full:
+            img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
+        return img
+
+    def _laser_layer(self, geo, crossings, energy, rng, img):
+        """Add the laser stripe (electrons) to ``img`` around the true crossings."""
+        rig, cam, sheet = self.rig, self.rig.camera, geo.sheet
+        X, N, _, col, _, v = crossings
+        sigma = rig.laser.sigma
+        # sheet-distance change per pixel along the column, from the local tangent plane
+        R = geo.W_T_V[:3, :3]
+        x = (col - cam.cx) / cam.fx
+        dv = np.stack([x, (v + 1.0 - cam.cy) / cam.fy, np.ones_like(x)], 1) @ R.T
+        dm = np.stack([x, (v - 1.0 - cam.cy) / cam.fy, np.ones_like(x)], 1) @ R.T
+        num = np.einsum('ij,ij->i', N, X - geo.center)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            pp = geo.center + (num / np.einsum('ij,ij->i', N, dv))[:, None] * dv
+            pm = geo.center + (num / np.einsum('ij,ij->i', N, dm))[:, None] * dm
+            slope = 0.5 * np.abs((pp - pm) @ sheet.plane[:3])
+            sig_px = sigma / np.maximum(slope, 1e-12)
+        half = np.ceil(3.5 * sig_px + 2.5 * rig.image.psf_sigma + 1.0)
+        half = np.clip(np.where(np.isfinite(half), half, 40), 2, 40).astype(np.int64)
+        v0 = np.rint(v).astype(np.int64)
+        cnt = 2 * half + 1
+        rep = np.repeat(np.arange(len(v0)), cnt)
+        start = np.repeat(np.cumsum(cnt) - cnt, cnt)
+        rows = v0[rep] - half[rep] + (np.arange(len(rep)) - start)
+        cols = col[rep].astype(np.int64)
+        ok = (rows >= 0) & (rows < cam.height)
+        rows, cols = rows[ok], cols[ok]
+        ptype, pobj, Rp, Tp, prm = self.scene.packed()
+        n = len(rows)
+        val = np.empty(n)
+        prim = np.empty(n, np.int64)
+        P = np.empty((n, 3))
+        packed_sheet = np.concatenate([sheet.plane, sheet.source, sheet.edge_normals.ravel(),
+                                       sheet.mirror_plane])
+        rk.laser_pixels(ptype, Rp, Tp, prm, geo.extra['cam'], self._grid, rows, cols,
+                        packed_sheet, sigma, val, prim, P)
+        idx = np.flatnonzero(val > 0.0)
+        if len(idx) == 0:
+            return
+        Pi = P[idx]
+        foot = np.linalg.norm(Pi - geo.center, axis=1) / cam.fx
+        alb = self.scene.albedo(Pi, pobj[prim[idx]], foot)
+        vals = energy * rig.laser.reference_distance * alb * val[idx]
+        c = rig.image.speckle_contrast
+        if c > 0:
+            vals *= np.maximum(1.0 + c * rng.standard_normal(len(idx)), 0.0)
+        r_i, c_i = rows[idx], cols[idx]
+        r0, r1 = int(r_i.min()), int(r_i.max()) + 1
+        psf = rig.image.psf_sigma
+        pad = int(np.ceil(3 * psf)) + 1 if psf > 0 else 0
+        b0, b1 = max(r0 - pad, 0), min(r1 + pad, cam.height)
+        band = np.zeros((b1 - b0, cam.width), np.float32)
+        band[r_i - b0, c_i] = vals
+        if psf > 0:
+            band = cv2.GaussianBlur(band, (0, 0), psf, borderType=cv2.BORDER_CONSTANT)
+        img[b0:b1] += band
+
+    def _sensor(self, img, rng) -> np.ndarray:
+        im = self.rig.image
+        if im.noisy:
+            n = img.size
+            if self._pool is not None:
+                off = int(rng.integers(0, len(self._pool) - n))
+                z = self._pool[off:off + n]
+            else:
+                z = rng.standard_normal(n, dtype=np.float32)
+        else:
+            z = np.zeros(0, np.float32)
+        out = np.empty(img.shape, np.uint8)
+        rk.sensor(img, z, float(im.full_well), bool(im.shot_noise), float(im.read_noise ** 2),
+                  1.0 / im.electrons_per_dn, float(im.black_level),
+                  float((1 << im.bit_depth) - 1), out)
+        return out
+
+    def render(self, voltages, *, laser_on: bool = True, background: str = 'coarse',
+               exposure: float | None = None, laser_power: float = 1.0,
+               frame_index: int | None = None) -> SimFrame:
+        """Simulate one camera frame.
+
+        Parameters
+        ----------
+        voltages : array_like, shape (4,), volts
+            Commanded (U1_pan, U1_tilt, U2_pan, U2_tilt).
+        laser_on : bool
+        background : {'coarse', 'full'}
+            Room light from a coarse traced grid (laser frames) or every pixel with
+            anti-aliased textures (board frames).
+        exposure : float, optional
+            [s]; the rig's laser-frame exposure by default.
+        laser_power : float
+            Laser power relative to the rig's [1].
+        frame_index : int, optional
+            Seeds this frame's draws; by default the next index of this simulator.
+
+        Returns
+        -------
+        SimFrame
+        """
+        if background not in ('coarse', 'full'):
+            raise ValueError(f"background: expected 'coarse' or 'full', got {background!r}")
+        if not laser_power >= 0:
+            raise ValueError(f'laser_power: expected >= 0, got {laser_power}')
+        rig = self.rig
+        U = np.asarray(voltages, dtype=np.float64)
+        if U.shape != (4,):
+            raise ValueError(f'voltages: expected shape (4,), got {U.shape}')
+        applied = rig.applied_voltages(U)
+        if frame_index is None:
+            frame_index = self._next_index
+        self._next_index = int(frame_index) + 1
+        rng = self._rng(frame_index)
+        angles = rig.mirror_angles(applied, rng.standard_normal(4))
+        exposure = rig.image.exposure if exposure is None else float(exposure)
+        if not exposure > 0:
+            raise ValueError(f'exposure: expected > 0 s, got {exposure}')
+        geo = self.geometry(angles, laser_on)
+        full = background == 'full'
+        ambient = full or not laser_on or rig.image.ambient_in_laser_frames
+        cam = rig.camera
+        if ambient:
+            img = self._background(geo, exposure, full)
+            if full and rig.image.psf_sigma > 0:
+                img = cv2.GaussianBlur(img, (0, 0), rig.image.psf_sigma)
+        else:
+            img = np.zeros((cam.height, cam.width), np.float32)
+        stripe = StripeTruth.empty()
+        if laser_on:
+            res = self._stripe_crossings(geo)
+            if res is not None:
+                energy = rig.laser.peak_rate * exposure * laser_power
+                self._laser_layer(geo, res, energy, rng, img)
+                X, N, ob, cl, u, v = res
+                R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
+                stripe = StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
+        image = self._sensor(img, rng)
+        nan4 = np.full(4, np.nan)
+        plane_W = geo.sheet.plane if laser_on else nan4
+        truth = FrameTruth(
+            int(frame_index), U.copy(), applied, angles, geo.W_T_V,
+            self.V0_T_W @ geo.W_T_V, self.W_T_V0.copy(), laser_on, plane_W,
+            normalize_plane(transform_plane(self.V0_T_W, plane_W)) if laser_on else nan4,
+            geo.sheet.source if laser_on else np.full(3, np.nan), exposure, stripe,
+            rig.name, self.scene.name)
+        return SimFrame(image, truth)
+
+    def calibration_frame(self, voltages, *, laser_on: bool = False,
+                          exposure: float | None = None, laser_power: float | None = None,
+                          frame_index: int | None = None) -> SimFrame:
+        """A fully textured board frame under room light, optionally with the stripe.
+
+        The exposure defaults to the rig's ``calibration_exposure``; the laser power
+        defaults to the value that gives the stripe the same signal as in a laser frame.
+        """
+        rig = self.rig
+        exposure = rig.image.calibration_exposure if exposure is None else exposure
+        if laser_power is None:
+            laser_power = rig.image.exposure / exposure
+        return self.render(voltages, laser_on=laser_on, background='full', exposure=exposure,
+                           laser_power=laser_power, frame_index=frame_index)
+
+    def scan(self, voltages: Iterable, **render_kwargs) -> Iterator[SimFrame]:
+        """Frames for a list of voltages, produced one by one.
+
+        Parameters
+        ----------
+        voltages : array_like, shape (n, 4), volts
+        **render_kwargs
+            Passed to :meth:`render` (not ``frame_index``).
+        """
+        U = np.asarray(voltages, dtype=np.float64)
+        if U.ndim != 2 or U.shape[1] != 4:
+            raise ValueError(f'voltages: expected shape (n, 4), got {U.shape}')
+        self.rig.dac.quantize(U)  # range check before the first frame
+        for row in U:
+            yield self.render(row, **render_kwargs)

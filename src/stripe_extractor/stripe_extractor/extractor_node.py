@@ -1,0 +1,307 @@
+"""``stripe_extractor`` node: camera images + galvo states in, stripe centres out.
+
+Topics
+------
+- subscribes ``camera/image_raw`` (sensor_msgs/Image, ``qos_profile_sensor_data``): mono8,
+  8UC1, mono16 or 16UC1;
+- subscribes ``galvo/state`` (galvoscan_msgs/GalvoState, best effort, depth 50: compatible
+  with reliable and best-effort publishers);
+- publishes ``stripe/centers`` (galvoscan_msgs/StripeCenters, reliable, depth 50): the
+  image's header, the frame's GalvoState, the centres and the parameters used;
+- publishes ``diagnostics`` (diagnostic_msgs/DiagnosticArray) every ``diagnostics_period``
+  seconds with the node's counters.
+
+Image and state are paired by header stamp (the driver stamps the state with the image's
+stamp); either may arrive first (:class:`~stripe_extractor.pairing.StampPairer`). Bad images
+are logged once per cause, counted and skipped; the node never dies on input.
+
+Composition: ``StripeExtractorNode`` does not call ``rclpy.init``; pass ``context=...`` or
+other ``Node`` keyword arguments and add it to any executor together with other nodes, e.g.
+:func:`spin_composed`.
+"""
+
+from __future__ import annotations
+
+import array
+import time
+
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from galvoscan_msgs.msg import GalvoState, StripeCenters
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import (
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from sensor_msgs.msg import Image
+
+from .extractor import (
+    LINE_WIDTH_RANGE_PX,
+    METHODS,
+    MIN_STRENGTH_RANGE_DN,
+    ORIENTATIONS,
+    ROI_HALF_HEIGHT_RANGE_PX,
+    ExtractorConfig,
+    extract,
+    warm_up,
+)
+from .image_msg import CAUSES, BadImage, image_to_array
+from .pairing import StampPairer
+
+PAIRING_BUFFER_RANGE = (1, 1000)
+DIAGNOSTICS_PERIOD_RANGE_S = (0.1, 60.0)
+
+
+def _stamp_ns(header) -> int:
+    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
+
+
+def _float32_field(values) -> array.array:
+    out = array.array('f')
+    out.frombytes(values.astype('<f4', copy=False).tobytes())
+    return out
+
+
+class StripeExtractorNode(Node):
+    """Thin adapter around :func:`stripe_extractor.extractor.extract` (see module docstring)."""
+
+    def __init__(self, **kwargs):
+        super().__init__('stripe_extractor', **kwargs)
+        defaults = ExtractorConfig()
+        self.declare_parameter('method', defaults.method, ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING,
+            description='Centre extraction method',
+            additional_constraints=f'one of: {", ".join(METHODS)}'))
+        self.declare_parameter('line_width_px', defaults.line_width_px, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE,
+            description='Expected stripe FWHM [px]; sets the Gaussian scale sigma',
+            floating_point_range=[FloatingPointRange(
+                from_value=LINE_WIDTH_RANGE_PX[0], to_value=LINE_WIDTH_RANGE_PX[1])]))
+        self.declare_parameter('min_strength', defaults.min_strength, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE,
+            description='Weakest accepted smoothed peak above background [DN]',
+            floating_point_range=[FloatingPointRange(
+                from_value=MIN_STRENGTH_RANGE_DN[0], to_value=MIN_STRENGTH_RANGE_DN[1])]))
+        self.declare_parameter('roi_half_height', defaults.roi_half_height,
+                               ParameterDescriptor(
+                                   type=ParameterType.PARAMETER_INTEGER,
+                                   description='Half height of the window searched around '
+                                               "each column's candidate peak [px]; "
+                                               '>= ceil(line_width_px)',
+                                   integer_range=[IntegerRange(
+                                       from_value=ROI_HALF_HEIGHT_RANGE_PX[0],
+                                       to_value=ROI_HALF_HEIGHT_RANGE_PX[1], step=1)]))
+        self.declare_parameter('orientation', defaults.orientation, ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING,
+            description='Stripe direction in the image: horizontal = one centre per column, '
+                        'vertical = one centre per row',
+            additional_constraints=f'one of: {", ".join(ORIENTATIONS)}'))
+        self.declare_parameter('pairing_buffer_size', 50, ParameterDescriptor(
+            type=ParameterType.PARAMETER_INTEGER,
+            description='Frames and states each kept waiting for their partner [1]',
+            integer_range=[IntegerRange(from_value=PAIRING_BUFFER_RANGE[0],
+                                        to_value=PAIRING_BUFFER_RANGE[1], step=1)]))
+        self.declare_parameter('diagnostics_period', 1.0, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE,
+            description='Period of the diagnostics message with the counters [s]',
+            floating_point_range=[FloatingPointRange(
+                from_value=DIAGNOSTICS_PERIOD_RANGE_S[0],
+                to_value=DIAGNOSTICS_PERIOD_RANGE_S[1])]))
+
+        self._config = self._config_from({})
+        self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
+        self._counts = {'images_received': 0, 'states_received': 0, 'frames_extracted': 0,
+                        'centers_published': 0, 'rejected_secondary': 0,
+                        'extraction_errors': 0}
+        self._counts.update({f'skipped_{c}': 0 for c in CAUSES})
+        self._logged_causes: set[str] = set()
+        self._extract_s = 0.0
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        warm_up()       # compile / load the numba kernels before the first frame arrives
+
+        self._pub = self.create_publisher(
+            StripeCenters, 'stripe/centers',
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                       history=HistoryPolicy.KEEP_LAST))
+        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        self.create_subscription(Image, 'camera/image_raw', self._on_image,
+                                 qos_profile_sensor_data)
+        self.create_subscription(
+            GalvoState, 'galvo/state', self._on_state,
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       history=HistoryPolicy.KEEP_LAST))
+        self._diag_timer = self.create_timer(
+            self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
+        self.get_logger().info(f'ready: {self._config}')
+
+    # ---- parameters -------------------------------------------------------------------
+    def _config_from(self, changes: dict) -> ExtractorConfig:
+        names = ('method', 'line_width_px', 'min_strength', 'roi_half_height', 'orientation')
+        values = {n: changes.get(n, self.get_parameter(n).value) for n in names}
+        return ExtractorConfig(**values)
+
+    def _validate_parameters(self, params) -> SetParametersResult:
+        changes = {p.name: p.value for p in params}
+        try:
+            self._config_from(changes)
+            if 'pairing_buffer_size' in changes and changes['pairing_buffer_size'] < 1:
+                raise ValueError('pairing_buffer_size must be >= 1')
+            if 'diagnostics_period' in changes and not (
+                    DIAGNOSTICS_PERIOD_RANGE_S[0] <= changes['diagnostics_period']
+                    <= DIAGNOSTICS_PERIOD_RANGE_S[1]):
+                raise ValueError(f'diagnostics_period must be in {DIAGNOSTICS_PERIOD_RANGE_S}')
+        except (ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params) -> None:
+        self._config = self._config_from({})
+        for p in params:
+            if p.name == 'pairing_buffer_size':
+                self._pairer.capacity = p.value
+            elif p.name == 'diagnostics_period':
+                self._diag_timer.cancel()
+                self.destroy_timer(self._diag_timer)
+                self._diag_timer = self.create_timer(p.value, self.publish_diagnostics)
+        self.get_logger().info(f'parameters now {self._config}')
+
+    # ---- data path --------------------------------------------------------------------
+    def _skip(self, cause: str, detail: str) -> None:
+        self._counts[f'skipped_{cause}'] += 1
+        if cause not in self._logged_causes:
+            self._logged_causes.add(cause)
+            self.get_logger().warning(
+                f'skipped {cause}: {detail} (logged once per cause; see diagnostics)')
+
+    def _on_image(self, msg: Image) -> None:
+        self._counts['images_received'] += 1
+        try:
+            img = image_to_array(msg)
+        except BadImage as exc:
+            self._skip(exc.cause, str(exc))
+            return
+        config = self._config
+        t0 = time.perf_counter()
+        try:
+            result = extract(img, config)
+        except Exception as exc:  # noqa: BLE001 - the node must survive any input
+            self._counts['extraction_errors'] += 1
+            self._skip_log_error(exc)
+            return
+        self._extract_s += time.perf_counter() - t0
+        self._counts['frames_extracted'] += 1
+        self._counts['rejected_secondary'] += result.rejected_secondary
+        pair = self._pairer.add_frame(_stamp_ns(msg.header), (msg.header, result))
+        if pair is not None:
+            self._publish(*pair)
+
+    def _skip_log_error(self, exc: Exception) -> None:
+        if 'extraction_error' not in self._logged_causes:
+            self._logged_causes.add('extraction_error')
+            self.get_logger().error(f'skipped extraction_error: {exc!r} (logged once)')
+
+    def _on_state(self, msg: GalvoState) -> None:
+        self._counts['states_received'] += 1
+        pair = self._pairer.add_state(_stamp_ns(msg.header), msg, seq=int(msg.seq))
+        if pair is not None:
+            self._publish(*pair)
+
+    def _publish(self, frame, state: GalvoState) -> None:
+        header, result = frame
+        cfg = result.config
+        out = StripeCenters()
+        out.header = header
+        out.galvo = state
+        out.image_height, out.image_width = result.image_shape
+        out.u = _float32_field(result.u)
+        out.v = _float32_field(result.v)
+        out.width = _float32_field(result.width)
+        out.strength = _float32_field(result.strength)
+        out.method = cfg.method
+        out.sigma = float(cfg.sigma)
+        out.min_strength = float(cfg.min_strength)
+        out.roi_half_height = int(cfg.roi_half_height)
+        out.orientation = (StripeCenters.ORIENTATION_VERTICAL if cfg.orientation == 'vertical'
+                           else StripeCenters.ORIENTATION_HORIZONTAL)
+        out.rejected_secondary = int(result.rejected_secondary)
+        self._pub.publish(out)
+        self._counts['centers_published'] += 1
+
+    # ---- counters ---------------------------------------------------------------------
+    def counters(self) -> dict[str, int]:
+        """Snapshot of every counter [1] (also published on ``diagnostics``)."""
+        c = dict(self._counts)
+        pc = self._pairer.counters
+        c['unmatched_images_dropped'] = pc.unmatched_frames_dropped
+        c['unmatched_states_dropped'] = pc.unmatched_states_dropped
+        c['duplicate_stamps'] = pc.duplicate_stamps
+        c['state_seq_gaps'] = pc.state_seq_gaps
+        c['skipped_total'] = sum(v for k, v in self._counts.items() if k.startswith('skipped_'))
+        return c
+
+    def publish_diagnostics(self) -> None:
+        c = self.counters()
+        status = DiagnosticStatus()
+        status.name = f'{self.get_name()}: stripe extraction'
+        status.hardware_id = ''
+        bad = c['skipped_total'] + c['extraction_errors']
+        status.level = DiagnosticStatus.WARN if bad else DiagnosticStatus.OK
+        mean_ms = 1e3 * self._extract_s / max(c['frames_extracted'], 1)
+        status.message = (f'{c["centers_published"]} published, {bad} bad images skipped, '
+                          f'{mean_ms:.3f} ms mean extraction')
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
+        status.values.append(KeyValue(key='extraction_ms_mean', value=f'{mean_ms:.4f}'))
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        self._diag_pub.publish(msg)
+
+
+def make_executor(context=None):
+    """EventsExecutor where rclpy provides one that works, else SingleThreadedExecutor."""
+    try:
+        from rclpy.experimental import EventsExecutor
+        return EventsExecutor(context=context)
+    except Exception:  # noqa: BLE001 - fall back to the always-available executor
+        return SingleThreadedExecutor(context=context)
+
+
+def spin_composed(nodes, executor=None) -> None:
+    """Spin several nodes (e.g. a camera node and this one) in one process and executor."""
+    executor = executor or make_executor()
+    for node in nodes:
+        executor.add_node(node)
+    try:
+        executor.spin()
+    finally:
+        executor.shutdown()
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = StripeExtractorNode()
+        spin_composed([node])
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
