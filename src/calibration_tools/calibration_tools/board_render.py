@@ -46,22 +46,40 @@ class RenderedView:
     V_T_W: np.ndarray
 
 
+_MAP_STEP = 4  # the pixel-to-board map is smooth: exact on a 4 px grid, bilinear in between
+
+
+def _upsample(a: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+    """Bilinear interpolation of a (Hc, Wc, k) grid sampled every ``step`` px to (h, w, k)."""
+    v = np.arange(h)
+    iv, tv = np.minimum(v // step, a.shape[0] - 2), (v - np.minimum(v // step, a.shape[0] - 2)
+                                                      * step) / step
+    rows = a[iv] * (1.0 - tv)[:, None, None] + a[iv + 1] * tv[:, None, None]
+    u = np.arange(w)
+    iu = np.minimum(u // step, a.shape[1] - 2)
+    tu = (u - iu * step) / step
+    return rows[:, iu] * (1.0 - tu)[None, :, None] + rows[:, iu + 1] * tu[None, :, None]
+
+
 def _pixel_board_map(intr: CameraIntrinsics, V_T_W: np.ndarray):
     """Board (x, y) of every pixel centre and the Jacobian d(x, y)/d(u, v); shapes (H, W, 2)."""
     h, w = intr.height, intr.width
-    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    s = _MAP_STEP
+    vs = np.arange(0, h - 1 + 2 * s, s, dtype=np.float64)
+    us = np.arange(0, w - 1 + 2 * s, s, dtype=np.float64)
+    uu, vv = np.meshgrid(us, vs)
     xy = undistort_points(intr, np.column_stack([uu.ravel(), vv.ravel()]))
     W_T_V = np.linalg.inv(V_T_W)
     rays = np.column_stack([xy, np.ones(len(xy))]) @ W_T_V[:3, :3].T
     o = W_T_V[:3, 3]
     with np.errstate(all="ignore"):
-        s = -o[2] / rays[:, 2]
-        b = o[:2] + s[:, None] * rays[:, :2]
-    b[~(s > 0.0)] = np.nan
-    b = b.reshape(h, w, 2)
-    dbu = np.gradient(b, axis=1)  # d(x, y)/du
-    dbv = np.gradient(b, axis=0)  # d(x, y)/dv
-    return b, dbu, dbv
+        lam = -o[2] / rays[:, 2]
+        b = o[:2] + lam[:, None] * rays[:, :2]
+    b[~(lam > 0.0)] = np.nan
+    b = b.reshape(len(vs), len(us), 2)
+    dbu = np.gradient(b, s, axis=1)  # d(x, y)/du
+    dbv = np.gradient(b, s, axis=0)  # d(x, y)/dv
+    return _upsample(b, s, h, w), _upsample(dbu, s, h, w), _upsample(dbv, s, h, w)
 
 
 def _edge_distance_px(sd_m, grad_dir, dbu, dbv):

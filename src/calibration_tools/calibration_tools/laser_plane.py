@@ -28,7 +28,12 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from calibration_tools.small_board import check_small_board, detect_board, inside_convex_hull
+from calibration_tools.small_board import (
+    away_from_pattern_edges,
+    check_small_board,
+    detect_board,
+    inside_convex_hull,
+)
 from calibration_tools.stages import CaptureView, StageResult
 
 log = logging.getLogger('galvoscan.calibration.laser_plane')
@@ -67,22 +72,29 @@ class PlaneFit:
         return int(np.count_nonzero(self.inliers))
 
 
-def _svd_plane(p: np.ndarray):
-    c = p.mean(axis=0)
-    _, s, vt = np.linalg.svd(p - c, full_matrices=False)
-    n = vt[2]
-    return np.append(n, -n @ c), s / np.sqrt(p.shape[0])
+def _svd_plane(p: np.ndarray, w: np.ndarray | None = None):
+    if w is None:
+        c = p.mean(axis=0)
+        _, s, vt = np.linalg.svd(p - c, full_matrices=False)
+        return np.append(vt[2], -vt[2] @ c), s / np.sqrt(p.shape[0])
+    w = w / w.sum()
+    c = w @ p
+    _, s, vt = np.linalg.svd((p - c) * np.sqrt(w)[:, None], full_matrices=False)
+    return np.append(vt[2], -vt[2] @ c), s
 
 
-def fit_plane_svd(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
-                  max_iter: int = 20, robust_start: bool = True, orient=None,
-                  seed: int = 0) -> PlaneFit:
+def fit_plane_svd(points, *, weights=None, k_sigma: float = 4.0,
+                  min_threshold: float = 1e-6, max_iter: int = 20, robust_start: bool = False,
+                  orient=None, seed: int = 0) -> PlaneFit:
     """Fit a plane to 3-D points with outlier rejection.
 
     Parameters
     ----------
     points : array_like, shape (n, 3), metres
         n >= 3, not all collinear.
+    weights : array_like, shape (n,), optional
+        Non-negative weights of the least-squares fit (e.g. one over the number of points of
+        each board pose, so that every pose counts the same). Rejection ignores them.
     k_sigma : float
         Points farther than ``max(k_sigma * 1.4826 * MAD, min_threshold)`` from the plane are
         rejected; the fit is repeated until the inlier set stops changing.
@@ -91,7 +103,9 @@ def fit_plane_svd(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
     max_iter : int
     robust_start : bool
         Start from the least-median-of-squares plane through random point triples instead of
-        the plain least-squares plane (resists up to about 50 % gross outliers).
+        the plain least-squares plane (resists up to about 50 % gross outliers). Do not use
+        it on points from few stripes: a plane through one stripe holding half of the points
+        has a zero median residual.
     orient : array_like, shape (3,), optional
         Sign convention: the normal is flipped to have a non-negative dot product with this.
         By default the plane's offset e is made <= 0 (normal pointing away from the origin).
@@ -112,6 +126,11 @@ def fit_plane_svd(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
     if not k_sigma > 0:
         raise ValueError(f'k_sigma must be > 0, got {k_sigma}')
     n = p.shape[0]
+    w = None
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (n,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.sum() > 0:
+            raise ValueError(f'weights must be finite, >= 0, not all 0, shape ({n},)')
     plane, s = _svd_plane(p)
     if s[1] <= 1e-9 * max(s[0], 1e-300):
         raise ValueError('points are collinear (or coincident): the plane is undetermined')
@@ -133,9 +152,9 @@ def fit_plane_svd(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
         r = p @ plane[:3] + plane[3]
         sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
         new = np.abs(r) <= max(k_sigma * sigma, min_threshold)
-        if new.sum() < 3:
+        if new.sum() < 3 or (w is not None and not w[new].sum() > 0):
             break
-        plane, s = _svd_plane(p[new])
+        plane, s = _svd_plane(p[new], None if w is None else w[new])
         if np.array_equal(new, inliers):
             break
         inliers = new
@@ -151,6 +170,50 @@ def fit_plane_svd(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
         plane = -plane
     return PlaneFit(plane=plane, rms=float(np.sqrt(np.mean(r * r))),
                     max_abs=float(np.abs(r).max()), inliers=inliers, singular_values=s)
+
+
+def fit_line_trimmed(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-6,
+                     max_iter: int = 20):
+    """Fit a 3-D line with iterative outlier rejection.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3), metres, n >= 2
+    k_sigma : float
+        Points farther than ``max(k_sigma * 1.4826 * median distance, min_threshold)`` from
+        the line are rejected, repeatedly until the inlier set is stable.
+    min_threshold : float, metres
+    max_iter : int
+
+    Returns
+    -------
+    centroid : ndarray, shape (3,), metres
+    direction : ndarray, shape (3,)
+    inliers : ndarray of bool, shape (n,)
+    rms : float, metres
+        RMS distance of the inliers from the line.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or p.shape[0] < 2:
+        raise ValueError(f'points must have shape (n >= 2, 3), got {p.shape}')
+    inliers = np.ones(p.shape[0], dtype=bool)
+    for _ in range(max_iter):
+        c = p[inliers].mean(axis=0)
+        d = np.linalg.svd(p[inliers] - c, full_matrices=False)[2][0]
+        q = p - c
+        r = np.linalg.norm(q - np.outer(q @ d, d), axis=1)
+        # Distances are >= 0: their median estimates 0.6745 sigma... of a 2-D normal the
+        # median radius is 1.1774 sigma; use it for the robust sigma.
+        sigma = np.median(r[inliers]) / 1.1774
+        new = r <= max(k_sigma * sigma, min_threshold)
+        if new.sum() < 2 or np.array_equal(new, inliers):
+            break
+        inliers = new
+    c = p[inliers].mean(axis=0)
+    d = np.linalg.svd(p[inliers] - c, full_matrices=False)[2][0]
+    q = p[inliers] - c
+    r = np.linalg.norm(q - np.outer(q @ d, d), axis=1)
+    return c, d, inliers, float(np.sqrt(np.mean(r * r)))
 
 
 # ----------------------------------------------------------------------------- board pose
@@ -281,6 +344,10 @@ class StripeOnBoard:
         Stripe points in V0 (through the current model's ``V0_T_V``).
     pnp_rms_px : float
         Reprojection RMS of the board pose used.
+    line_rms : float, metres
+        RMS distance of the kept points from their best-fit line (stripe noise).
+    n_trimmed : int
+        Points dropped as off the stripe's line (extraction outliers).
     """
 
     view_index: int
@@ -288,6 +355,8 @@ class StripeOnBoard:
     u2_tilt: float
     points_v0: np.ndarray
     pnp_rms_px: float
+    line_rms: float = 0.0
+    n_trimmed: int = 0
 
 
 @dataclass
@@ -324,7 +393,9 @@ def _check_views(views):
 
 def board_stripe_points(views, model, board, *, extractor_config=None,
                         max_pnp_rms_px: float = 0.5, min_stripe_points: int = 20,
-                        hull_margin_px: float = 3.0, u2_tilt=None) -> StripeCollection:
+                        hull_margin_px: float = 3.0, u2_tilt=None,
+                        line_k_sigma: float = 4.0,
+                        edge_margin: float = 0.6e-3) -> StripeCollection:
     """Back-project the stripe of every laser-on view onto its board and into V0.
 
     Parameters
@@ -345,6 +416,12 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
         Stripe pixels closer than this to the edge of the detected feature grid are dropped.
     u2_tilt : float, volts, optional
         When given, laser-on views at another G2 tilt voltage are rejected with a reason.
+    line_k_sigma : float
+        Rejection threshold of the per-view line fit (:func:`fit_line_trimmed`).
+    edge_margin : float, metres
+        Stripe points closer than this (on the board) to an edge of the printed pattern are
+        dropped: there the stripe's profile is skewed by the albedo step and its centre biased
+        (:func:`small_board.away_from_pattern_edges`).
 
     Returns
     -------
@@ -409,11 +486,27 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
             continue
         p_v, ok = backproject_to_plane(uv, pose.plane, model.intrinsics)
         p_v = p_v[ok]
+        B_T_V = np.linalg.inv(pose.V_T_B)
+        p_v = p_v[away_from_pattern_edges(board, p_v @ B_T_V[:3, :3].T + B_T_V[:3, 3],
+                                          edge_margin)]
+        if p_v.shape[0] < min_stripe_points:
+            _reject(out, f'view {i} (pose {view.pose_index}): {p_v.shape[0]} stripe points '
+                         f'away from pattern edges < {min_stripe_points}')
+            continue
+        # A plane cuts the board in a straight line: drop stripe points off it (extraction
+        # errors where the stripe crosses the pattern's edges).
+        _, _, keep, line_rms = fit_line_trimmed(p_v, k_sigma=line_k_sigma)
+        if keep.sum() < min_stripe_points:
+            _reject(out, f'view {i} (pose {view.pose_index}): {int(keep.sum())} stripe points '
+                         f'on a line < {min_stripe_points}')
+            continue
         T = v0_T_v(model, volts[0], volts[1])
-        p_v0 = p_v @ T[:3, :3].T + T[:3, 3]
+        p_v0 = p_v[keep] @ T[:3, :3].T + T[:3, 3]
         out.stripes.append(StripeOnBoard(view_index=i, pose_index=int(view.pose_index),
                                          u2_tilt=float(volts[3]), points_v0=p_v0,
-                                         pnp_rms_px=pose.reprojection_rms_px))
+                                         pnp_rms_px=pose.reprojection_rms_px,
+                                         line_rms=line_rms,
+                                         n_trimmed=int((~keep).sum())))
     return out
 
 
@@ -448,7 +541,11 @@ def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,
     if len(poses) < min_poses:
         raise ValueError(f'{len(poses)} board pose(s); at least {min_poses} needed for a plane')
     pts = np.concatenate([s.points_v0 for s in stripes])
-    fit = fit_plane_svd(pts, k_sigma=k_sigma, orient=orient)
+    # Each view's error is mostly a rigid shift of its whole line (board-pose error): weight
+    # every view the same, whatever its number of points.
+    weights = np.concatenate([np.full(len(s.points_v0), 1.0 / len(s.points_v0))
+                              for s in stripes])
+    fit = fit_plane_svd(pts, weights=weights, k_sigma=k_sigma, orient=orient)
     if fit.singular_values[1] < min_spread:
         raise ValueError(f'stripe points span only {fit.singular_values[1] * 1e3:.3f} mm RMS '
                          f'across the stripe (< {min_spread * 1e3:.3f} mm): move the board '

@@ -58,6 +58,43 @@ def detect_board(board, image) -> np.ndarray | None:
     return np.asarray(corners, dtype=np.float64).reshape(-1, 2)
 
 
+def away_from_pattern_edges(board, points_b, margin: float) -> np.ndarray:
+    """Which board points are at least ``margin`` from every albedo edge of the pattern.
+
+    A laser stripe that straddles an edge between dark and light parts of the pattern has a
+    skewed profile, so its centre is biased; the laser stages drop those points.
+
+    Parameters
+    ----------
+    board : Checkerboard or CircleGrid
+    points_b : array_like, shape (n, 2) or (n, 3), metres
+        Points in the board frame (x, y on the board; z ignored).
+    margin : float, metres
+        For a checkerboard: distance to the nearest square edge (grid line through the
+        inner corners). For a circle grid: distance outside the nearest circle's rim.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    check_small_board(board)
+    q = np.asarray(points_b, dtype=np.float64)
+    if q.ndim != 2 or q.shape[1] not in (2, 3):
+        raise ValueError(f'points_b must have shape (n, 2) or (n, 3), got {q.shape}')
+    if not margin >= 0.0:
+        raise ValueError(f'margin must be >= 0 m, got {margin!r}')
+    if isinstance(board, Checkerboard):
+        s = board.square
+        dx = np.abs(q[:, 0] / s - np.round(q[:, 0] / s)) * s
+        dy = np.abs(q[:, 1] / s - np.round(q[:, 1] / s)) * s
+        return (dx >= margin) & (dy >= margin)
+    p = board.pitch
+    i = np.clip(np.round(q[:, 0] / p), 0, board.cols - 1)
+    j = np.clip(np.round(q[:, 1] / p), 0, board.rows - 1)
+    r = np.hypot(q[:, 0] - i * p, q[:, 1] - j * p)
+    return r >= 0.5 * board.diameter + margin
+
+
 def inside_convex_hull(points, hull_points, margin: float = 0.0) -> np.ndarray:
     """Which 2-D points lie inside the convex hull of others (shrunk by ``margin``).
 

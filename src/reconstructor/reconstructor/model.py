@@ -7,6 +7,7 @@ the mathematics and notation; the implementation lives in ``reconstructor.geomet
 from reconstructor.geometry.camera import (
     UNDISTORT_MAX_ITER,
     UNDISTORT_STEP_TOL,
+    UNDISTORT_TARGET_ERROR,
     CameraIntrinsics,
     distort_normalised,
     project_points,
@@ -34,6 +35,7 @@ __all__ = [
     "DEFAULT_MIN_RAY_PLANE_ANGLE",
     "UNDISTORT_MAX_ITER",
     "UNDISTORT_STEP_TOL",
+    "UNDISTORT_TARGET_ERROR",
     "CameraIntrinsics",
     "JointCorrection",
     "MirrorParams",

@@ -80,10 +80,13 @@ class Mirror:
         return Mirror(np.asarray(axis_point, dtype=np.float64).copy(), R @ a, R @ r,
                       float(surface_offset))
 
+    def __post_init__(self):
+        object.__setattr__(self, '_binormal', np.cross(self.axis_direction,
+                                                       self.reference_normal))
+
     def normal(self, theta: float) -> np.ndarray:
         """Unit mirror normal at angle ``theta`` [rad] (points away from the light)."""
-        a, r = self.axis_direction, self.reference_normal
-        return r * math.cos(theta) + np.cross(a, r) * math.sin(theta)
+        return self.reference_normal * math.cos(theta) + self._binormal * math.sin(theta)
 
     def plane(self, theta: float):
         """The reflective surface at angle ``theta`` [rad] as ``(n, c)``: ``n . x = c``.

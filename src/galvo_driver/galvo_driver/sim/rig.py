@@ -26,8 +26,6 @@ from .galvo import Dac, GalvoHead, MirrorDrive
 from .spatial import (
     invert_transform,
     make_transform,
-    normalize_plane,
-    plane_from_point_normal,
     reflection_transform,
     rotation_about,
     rotation_from_vector,
@@ -129,7 +127,7 @@ class LaserSource:
     peak_rate: float
     reference_distance: float
 
-    @property
+    @cached_property
     def spread_direction(self) -> np.ndarray:
         """Unit in-plane direction perpendicular to the central beam."""
         return np.cross(self.fan_normal, self.direction)
@@ -167,12 +165,15 @@ class LaserSheet:
     half_angle: float
 
     def transformed(self, A_T_F) -> LaserSheet:
-        """The same sheet expressed in frame A (``A_T_F`` maps this frame to A)."""
+        """The same sheet expressed in frame A (``A_T_F`` maps this frame to A, rigid)."""
         R, t = A_T_F[:3, :3], A_T_F[:3, 3]
-        return LaserSheet(
-            normalize_plane(transform_plane(A_T_F, self.plane)), R @ self.source + t,
-            R @ self.central, self.edge_normals @ R.T,
-            normalize_plane(transform_plane(A_T_F, self.mirror_plane)), self.half_angle)
+
+        def plane(pi):
+            n = R @ pi[:3]
+            return np.append(n, pi[3] - n @ t)
+
+        return LaserSheet(plane(self.plane), R @ self.source + t, R @ self.central,
+                          self.edge_normals @ R.T, plane(self.mirror_plane), self.half_angle)
 
 
 @dataclass(frozen=True)
@@ -432,13 +433,13 @@ class Rig:
             src = _reflect_point(n, c, src)
             normal = _reflect_dir(n, normal)
         central = out[0]
-        edges = []
-        for k in (1, 2):
-            en = np.cross(normal, out[k])
-            edges.append(en if en @ central > 0.0 else -en)
+        edges = np.cross(normal, out[1:])
+        edges /= np.linalg.norm(edges, axis=1)[:, None]
+        edges *= np.sign(edges @ central)[:, None]
         n_t, c_t = planes[1]
-        sheet = LaserSheet(plane_from_point_normal(src, normal), src, central,
-                           np.array([unit(v) for v in edges]), np.append(n_t, -c_t), half)
+        normal = normal / np.linalg.norm(normal)
+        sheet = LaserSheet(np.append(normal, -float(normal @ src)), src, central, edges,
+                           np.append(n_t, -c_t), half)
         return sheet.transformed(self.G_T_G2)
 
     # ----------------------------------------------------------- reporting

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import raykernels as rk
 from .config import ConfigError, Section, read_yaml_file, read_yaml_text
 from .spatial import invert_transform, make_transform, rotation_from_vector
 
@@ -99,19 +100,24 @@ class SceneObject:
         return a
 
     def _checker_dark(self, x, y, w):
+        """Box-filtered (pixel footprint w) share of dark squares around (x, y)."""
         nx, ny = self.params['squares']
         s = self.params['square_size']
-        xs, ys = x + 0.5 * nx * s, y + 0.5 * ny * s
-        inside = (xs >= 0) & (xs <= nx * s) & (ys >= 0) & (ys <= ny * s)
 
-        def wave(t):  # box-filtered square wave: +1 in even cells, -1 in odd ones
-            k = np.floor(t / s)
+        def axis(t, n):
+            # t from the pattern's edge; +1/-1 for even/odd cells, box-filtered across the
+            # internal lines only, and the fraction of the footprint inside the pattern
+            k = np.clip(np.floor(t / s), 0, n - 1)
             sign = 1.0 - 2.0 * np.mod(k, 2.0)
-            edge = np.minimum(t - k * s, (k + 1) * s - t)
-            return sign * np.minimum(1.0, edge / (0.5 * w))
+            lo_edge = np.where(k > 0, t - k * s, np.inf)
+            hi_edge = np.where(k < n - 1, (k + 1) * s - t, np.inf)
+            wave = sign * np.minimum(1.0, np.minimum(lo_edge, hi_edge) / (0.5 * w))
+            inside = np.clip(0.5 + np.minimum(t, n * s - t) / w, 0.0, 1.0)
+            return wave, inside
 
-        cover = 0.5 + 0.5 * wave(xs) * wave(ys)
-        return np.where(inside, cover, 0.0)
+        wx, ix = axis(x + 0.5 * nx * s, nx)
+        wy, iy = axis(y + 0.5 * ny * s, ny)
+        return ix * iy * (0.5 + 0.5 * wx * wy)
 
     def _circle_cover(self, x, y, w):
         pr = self.params
@@ -279,6 +285,9 @@ class Scene:
         self.objects = list(objects)
         self._packed = None
         self.faces = self._collect_faces()
+        self.albedo_table = np.array([o.albedo for o in self.objects], dtype=np.float64)
+        self.textured = np.array([o.type in ('checkerboard', 'circle_board')
+                                  for o in self.objects], dtype=np.bool_)
         self.spheres = [(k, o.W_T_O[:3, :3] @ p.center + o.W_T_O[:3, 3], p.radius)
                         for k, o in enumerate(self.objects) for p in o.prims
                         if isinstance(p, _Sphere)]
@@ -292,16 +301,17 @@ class Scene:
         Returns
         -------
         tuple
-            ``(ptype (P,), pobj (P,), R (P, 3, 3), T (P, 3), prm (P, 6))``.
+            ``(ptype (P,), pobj (P,), R (P, 3, 3), T (P, 3), prm (P, 8))``.
         """
         if self._packed is None:
             types, objs, Rs, Ts, prms = [], [], [], [], []
             for k, o in enumerate(self.objects):
                 for p in o.prims:
-                    prm = np.zeros(6)
+                    prm = np.zeros(8)
+                    prm[6] = float(np.array_equal(o.W_T_O[:3, :3], np.eye(3)))
                     if isinstance(p, _Box):
                         types.append(0)
-                        prm[:3], prm[3:] = p.lo, p.hi
+                        prm[:3], prm[3:6] = p.lo, p.hi
                     elif isinstance(p, _Sphere):
                         types.append(1)
                         prm[:3], prm[3] = p.center, p.radius
@@ -346,11 +356,12 @@ class Scene:
                                  True))
         if not rows:
             z = np.zeros((0, 3))
-            return Faces(z, z, z, np.zeros((0, 2)), z, np.zeros(0, int), np.zeros(0, bool))
+            return Faces(z, z, z, np.zeros((0, 2)), z, np.zeros(0, np.int64),
+                         np.zeros(0, np.bool_))
         cols = list(zip(*rows, strict=True))
         return Faces(np.array(cols[0]), np.array(cols[1]), np.array(cols[2]),
                      np.array(cols[3], dtype=np.float64), np.array(cols[4]),
-                     np.array(cols[5], dtype=int), np.array(cols[6], dtype=bool))
+                     np.array(cols[5], dtype=np.int64), np.array(cols[6], dtype=np.bool_))
 
     # ------------------------------------------------------------ tracing
     def intersect(self, origins, directions) -> Hits:
@@ -465,18 +476,19 @@ class Scene:
         footprint : ndarray, shape (n,), metres
             Size of one pixel on the surface, for anti-aliased textures.
         """
-        out = np.zeros(len(points))
-        for k in np.unique(obj):
-            if k < 0:
-                continue
+        obj = np.asarray(obj)
+        out = np.where(obj >= 0, self.albedo_table[np.maximum(obj, 0)], 0.0)
+        for k in np.flatnonzero(self.textured):
             m = obj == k
+            if not np.any(m):
+                continue
             ob = self.objects[k]
             pl = (points[m] - ob.W_T_O[:3, 3]) @ ob.W_T_O[:3, :3]
             out[m] = ob.albedo_local(pl, footprint[m])
         return out
 
     # ----------------------------------------------- laser-sheet curves
-    def sheet_segments(self, plane, half_spaces, max_length: float = 100.0):
+    def sheet_segments(self, plane, half_spaces, viewer, source, max_length: float = 100.0):
         """Intersections of a plane with every planar face, clipped to half-spaces.
 
         Parameters
@@ -485,6 +497,9 @@ class Scene:
             Unit-normal plane (world).
         half_spaces : ndarray, shape (k, 2, 3)
             Each ``(q, w)`` keeps points with ``(x - q) . w >= 0``.
+        viewer, source : ndarray, shape (3,)
+            Faces whose front side faces away from the viewer (camera centre) or the light
+            source are skipped (two-sided faces: when the two are on different sides).
 
         Returns
         -------
@@ -493,48 +508,18 @@ class Scene:
             (m, 3), object index (m,), two-sidedness (m,).
         """
         F = self.faces
-        N, e = plane[:3], plane[3]
-        L = np.cross(F.normal, N)
-        ln = np.linalg.norm(L, axis=1)
-        keep = ln > 1e-12
-        alpha = F.e1 @ N
-        beta = F.e2 @ N
-        gamma = -(F.center @ N + e)
-        ab2 = alpha * alpha + beta * beta
-        keep &= ab2 > 1e-24
-        with np.errstate(divide='ignore', invalid='ignore'):
-            a0 = gamma * alpha / ab2
-            b0 = gamma * beta / ab2
-            s_ab = np.sqrt(ab2)
-            da, db = -beta / s_ab, alpha / s_ab
-        lo = np.full(len(F.obj), -max_length)
-        hi = np.full(len(F.obj), max_length)
-
-        def clip(g0, g1):  # keep g0 + s g1 >= 0
-            nonlocal lo, hi
-            with np.errstate(divide='ignore', invalid='ignore'):
-                s = -g0 / g1
-            pos = g1 > 0
-            neg = g1 < 0
-            lo = np.where(pos, np.maximum(lo, s), lo)
-            hi = np.where(neg, np.minimum(hi, s), hi)
-            bad = (g1 == 0) & (g0 < 0)
-            hi = np.where(bad, -np.inf, hi)
-
-        h1, h2 = F.half[:, 0], F.half[:, 1]
-        clip(h1 - a0, -da)
-        clip(h1 + a0, da)
-        clip(h2 - b0, -db)
-        clip(h2 + b0, db)
-        P0 = F.center + a0[:, None] * F.e1 + b0[:, None] * F.e2
-        D = da[:, None] * F.e1 + db[:, None] * F.e2
-        for q, w in half_spaces:
-            clip((P0 - q) @ w, D @ w)
-        keep &= hi > lo
-        keep &= np.isfinite(lo) & np.isfinite(hi)
-        A = P0[keep] + lo[keep, None] * D[keep]
-        B = P0[keep] + hi[keep, None] * D[keep]
-        return A, B, F.normal[keep], F.obj[keep], F.two_sided[keep]
+        n = len(F.obj)
+        A = np.empty((n, 3))
+        B = np.empty((n, 3))
+        N = np.empty((n, 3))
+        obj = np.empty(n, np.int64)
+        two = np.empty(n, np.bool_)
+        hs = np.ascontiguousarray(half_spaces, dtype=np.float64).reshape(-1, 2, 3)
+        m = rk.sheet_segments(F.center, F.e1, F.e2, F.half, F.normal, F.obj, F.two_sided,
+                              np.asarray(plane, np.float64), hs,
+                              np.asarray(viewer, np.float64), np.asarray(source, np.float64),
+                              float(max_length), A, B, N, obj, two)
+        return A[:m], B[:m], N[:m], obj[:m], two[:m]
 
     def sheet_circles(self, plane):
         """Circles where a plane cuts the spheres.

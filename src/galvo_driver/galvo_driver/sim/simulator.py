@@ -217,7 +217,10 @@ class Simulator:
             rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3], n1, [c1], n2, [c2],
             rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]])
         if laser_on:
-            geo.sheet = rig.laser_sheet_G(th[2], th[3]).transformed(rig.W_T_G)
+            sh = rig.laser_sheet_G(th[2], th[3]).transformed(rig.W_T_G)
+            geo.sheet = sh
+            geo.extra['sheet'] = np.concatenate([sh.plane, sh.source, sh.edge_normals.ravel(),
+                                                 sh.mirror_plane])
         return geo
 
     def project_points(self, points_W, angles) -> np.ndarray:
@@ -279,99 +282,10 @@ class Simulator:
         hs += [(sh.source, sh.edge_normals[0]), (sh.source, sh.edge_normals[1])]
         return np.array([np.array(h) for h in hs])
 
-    def _project_V(self, P_V):
+    def _intrinsics(self) -> np.ndarray:
         cam = self.rig.camera
-        z = P_V[..., 2]
-        x = P_V[..., 0] / z
-        y = P_V[..., 1] / z
-        if cam.has_distortion:
-            x, y = cam.distort(x, y)
-        return cam.fx * x + cam.cx, cam.fy * y + cam.cy
-
-    def _segment_crossings(self, geo, A, B):
-        """Points on segments A->B (world) whose projection has integer u."""
-        if len(A) == 0:
-            return np.zeros(0, int), np.zeros(0), np.zeros(0, int)
-        cam = self.rig.camera
-        R, t = geo.V_T_W[:3, :3], geo.V_T_W[:3, 3]
-        Av = A @ R.T + t
-        Bv = B @ R.T + t
-        ua, _ = self._project_V(Av)
-        ub, _ = self._project_V(Bv)
-        lo = np.maximum(np.ceil(np.minimum(ua, ub)), 0)
-        hi = np.minimum(np.floor(np.maximum(ua, ub)), cam.width - 1)
-        cnt = np.maximum(hi - lo + 1, 0).astype(int)
-        seg = np.repeat(np.arange(len(A)), cnt)
-        if len(seg) == 0:
-            return np.zeros(0, int), np.zeros(0), np.zeros(0, int)
-        start = np.repeat(np.cumsum(cnt) - cnt, cnt)
-        col = lo[seg] + (np.arange(len(seg)) - start)
-        a, b = Av[seg], Bv[seg]
-        xc = (col - cam.cx) / cam.fx
-        ga = a[:, 0] - xc * a[:, 2]
-        gb = b[:, 0] - xc * b[:, 2]
-        with np.errstate(divide='ignore', invalid='ignore'):
-            s = np.where(np.abs(ga - gb) > 0, ga / (ga - gb), 0.5)
-        s = np.clip(s, 0.0, 1.0)
-        D = b - a
-        if cam.has_distortion:
-            h = 1e-7
-            for _ in range(4):
-                f0, _ = self._project_V(a + s[:, None] * D)
-                fp, _ = self._project_V(a + (s + h)[:, None] * D)
-                fm, _ = self._project_V(a + (s - h)[:, None] * D)
-                der = (fp - fm) / (2 * h)
-                with np.errstate(divide='ignore', invalid='ignore'):
-                    s = s - np.where(der != 0, (f0 - col) / der, 0.0)
-        u, _ = self._project_V(a + s[:, None] * D)
-        ok = (np.abs(u - col) < 1e-6) & (s >= -1e-9) & (s <= 1 + 1e-9)
-        return seg[ok], s[ok], col[ok].astype(int)
-
-    def _circle_crossings(self, geo, circles):
-        cam = self.rig.camera
-        R, t = geo.V_T_W[:3, :3], geo.V_T_W[:3, 3]
-        out = []
-        for k, (obj, cc, rho, e1, e2, sc, _) in enumerate(circles):
-            dist = float(np.linalg.norm(cc - geo.center))
-            n = int(np.clip(2 * np.pi * rho * cam.fx / max(dist, 1e-3) / 4, 64, 4096))
-            phi = np.linspace(0.0, 2 * np.pi, n + 1)
-            cv, s1, s2 = R @ cc + t, R @ e1, R @ e2
-
-            def pts(ph, cv=cv, s1=s1, s2=s2, rho=rho):
-                return cv + rho * (np.cos(ph)[:, None] * s1 + np.sin(ph)[:, None] * s2)
-
-            Pv = pts(phi)
-            with np.errstate(divide='ignore', invalid='ignore'):
-                u, _ = self._project_V(Pv)
-            u = np.where(Pv[:, 2] > _NEAR, u, np.nan)
-            u0, u1 = u[:-1], u[1:]
-            valid = np.isfinite(u0) & np.isfinite(u1)
-            mn = np.where(valid, np.minimum(u0, u1), 0.0)
-            mx = np.where(valid, np.maximum(u0, u1), -1.0)
-            lo = np.maximum(np.floor(mn) + 1, 0)
-            hi = np.minimum(np.floor(mx), cam.width - 1)
-            cnt = np.where(valid, np.maximum(hi - lo + 1, 0), 0).astype(int)
-            iv = np.repeat(np.arange(n), cnt)
-            if len(iv) == 0:
-                continue
-            start = np.repeat(np.cumsum(cnt) - cnt, cnt)
-            col = lo[iv] + (np.arange(len(iv)) - start)
-            w = (col - u0[iv]) / (u1[iv] - u0[iv])
-            ph = phi[iv] + w * (phi[iv + 1] - phi[iv])
-            h = 1e-8
-            for _ in range(4):
-                f0, _ = self._project_V(pts(ph))
-                fp, _ = self._project_V(pts(ph + h))
-                fm, _ = self._project_V(pts(ph - h))
-                der = (fp - fm) / (2 * h)
-                with np.errstate(divide='ignore', invalid='ignore'):
-                    ph = ph - np.where(der != 0, (f0 - col) / der, 0.0)
-            uu, _ = self._project_V(pts(ph))
-            ok = np.abs(uu - col) < 1e-6
-            P = cc + rho * (np.cos(ph[ok])[:, None] * e1 + np.sin(ph[ok])[:, None] * e2)
-            out.append((P, (P - sc) / np.linalg.norm(P - sc, axis=1)[:, None],
-                        np.full(int(ok.sum()), obj), col[ok].astype(int)))
-        return out
+        return np.concatenate([[cam.fx, cam.fy, cam.cx, cam.cy], cam.distortion,
+                               [cam.width, cam.height]]).astype(np.float64)
 
     def _free_towards(self, X, target, mirror_plane):
         """True where nothing blocks the segment from X towards ``target`` up to the mirror."""
@@ -387,55 +301,46 @@ class Simulator:
         return ~out
 
     def _stripe_crossings(self, geo: _Geometry):
+        """True stripe points (see StripeTruth), sorted by column then v, or None."""
         sheet = geo.sheet
         cam = self.rig.camera
         hs = self._half_spaces(geo)
-        A, B, nrm, obj, two = self.scene.sheet_segments(sheet.plane, hs)
-        seg, s, col = self._segment_crossings(geo, A, B)
-        Xs = [A[seg] + s[:, None] * (B[seg] - A[seg])]
-        Ns = [nrm[seg]]
-        objs = [obj[seg]]
-        cols = [col]
-        twos = [two[seg]]
-        for P, Nn, ob, cl in self._circle_crossings(geo, self.scene.sheet_circles(sheet.plane)):
-            Xs.append(P)
-            Ns.append(Nn)
-            objs.append(ob)
-            cols.append(cl)
-            twos.append(np.zeros(len(P), bool))
-        X = np.concatenate(Xs)
-        N = np.concatenate(Ns)
-        ob = np.concatenate(objs)
-        cl = np.concatenate(cols)
-        two = np.concatenate(twos)
-        if len(X) == 0:
+        A, B, nrm, obj, two = self.scene.sheet_segments(sheet.plane, hs, geo.center,
+                                                        sheet.source)
+        circles = self.scene.sheet_circles(sheet.plane)
+        cap = (len(A) + 2 * len(circles)) * cam.width + 16
+        X = np.empty((cap, 3))
+        N = np.empty((cap, 3))
+        ob = np.empty(cap, np.int64)
+        cl = np.empty(cap, np.int64)
+        u = np.empty(cap)
+        v = np.empty(cap)
+        ptype, _, R, T, prm = self.scene.packed()
+        intr = self._intrinsics()
+        psheet = geo.extra['sheet']
+        VTW = np.ascontiguousarray(geo.V_T_W)
+        m = 0
+        if len(A):
+            m = rk.segment_crossings(ptype, R, T, prm, VTW, intr, geo.center, geo.cam_mirror,
+                                     psheet, A, B, nrm, two, obj.astype(np.int64), _NEAR, X,
+                                     N, ob, cl, u, v)
+        for k, cc, rho, e1, e2, sc, _ in circles:
+            dist = float(np.linalg.norm(cc - geo.center))
+            samples = int(np.clip(2 * np.pi * rho * cam.fx / max(dist, 1e-3) / 4, 64, 4096))
+            m += rk.circle_crossings(ptype, R, T, prm, VTW, intr, geo.center, geo.cam_mirror,
+                                     psheet, cc, rho, e1, e2, sc, samples, k, _NEAR, X[m:],
+                                     N[m:], ob[m:], cl[m:], u[m:], v[m:])
+        if m == 0:
             return None
-        to_cam = geo.center - X
-        facing = np.einsum('ij,ij->i', N, to_cam)
-        N = np.where((two & (facing < 0))[:, None], -N, N)
-        facing = np.abs(facing) * np.where(two, 1.0, np.sign(facing))
-        Pv = X @ geo.V_T_W[:3, :3].T + geo.V_T_W[:3, 3]
-        u, v = self._project_V(Pv)
-        to_src = sheet.source - X
-        keep = ((facing > 0) & (Pv[:, 2] > _NEAR) & (v >= -0.5) & (v <= cam.height - 0.5)
-                & (np.einsum('ij,ij->i', N, to_src) > 0)
-                & (to_src @ sheet.edge_normals[0] <= 0) & (to_src @ sheet.edge_normals[1] <= 0))
-        keep &= ~self.scene.inside_solid(X)
-        idx = np.flatnonzero(keep)
-        if len(idx):
-            vis = self._free_towards(X[idx], geo.center, geo.cam_mirror)
-            idx = idx[vis]
-        if len(idx):
-            lit = self._free_towards(X[idx], sheet.source, sheet.mirror_plane)
-            idx = idx[lit]
-        if len(idx) == 0:
-            return None
-        order = np.lexsort((v[idx], cl[idx]))
-        idx = idx[order]
-        dup = np.zeros(len(idx), bool)
-        dup[1:] = (cl[idx][1:] == cl[idx][:-1]) & (np.abs(np.diff(v[idx])) < 1e-6)
-        idx = idx[~dup]
-        return X[idx], N[idx], ob[idx], cl[idx], u[idx], v[idx]
+        X, N, ob, cl, u, v = X[:m], N[:m], ob[:m], cl[:m], u[:m], v[:m]
+        order = np.lexsort((v, cl))
+        X, N, ob, cl, u, v = X[order], N[order], ob[order], cl[order], u[order], v[order]
+        dup = np.zeros(m, bool)
+        dup[1:] = (cl[1:] == cl[:-1]) & (np.abs(np.diff(v)) < 1e-6)
+        if np.any(dup):
+            keep = ~dup
+            X, N, ob, cl, u, v = X[keep], N[keep], ob[keep], cl[keep], u[keep], v[keep]
+        return X, N, ob, cl, u, v
 
     def stripe_truth(self, geo: _Geometry) -> StripeTruth:
         """Ground-truth stripe for a frame geometry (see :class:`StripeTruth`)."""
@@ -473,72 +378,73 @@ class Simulator:
             shade = (1.0 - im.directional_fraction) + im.directional_fraction * np.maximum(
                 nv @ im.light_direction, 0.0)
             img[hit] = im.ambient_rate * exposure * alb * shade
-        h, w = cam.height // step, cam.width // step
-        img = img.reshape(h, w)
-        if not full:
-            img = cv2.resize(img, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
-        return img
+        return img.reshape(cam.height // step, cam.width // step)
 
-    def _laser_layer(self, geo, crossings, energy, rng, img):
-        """Add the laser stripe (electrons) to ``img`` around the true crossings."""
+    def _laser_layer(self, geo, crossings, energy, rng):
+        """The laser stripe (electrons) in windows around the true points.
+
+        Returns
+        -------
+        tuple (ndarray shape (rows, width) float32, int)
+            The band of image rows holding the stripe and its first row.
+        """
         rig, cam, sheet = self.rig, self.rig.camera, geo.sheet
         X, N, _, col, _, v = crossings
         sigma = rig.laser.sigma
-        # sheet-distance change per pixel along the column, from the local tangent plane
+        # change of the distance to the sheet per pixel along the column, from the local
+        # tangent plane: sets each window's half height (3.5 sigma plus 2 blur sigma)
         R = geo.W_T_V[:3, :3]
         x = (col - cam.cx) / cam.fx
-        dv = np.stack([x, (v + 1.0 - cam.cy) / cam.fy, np.ones_like(x)], 1) @ R.T
-        dm = np.stack([x, (v - 1.0 - cam.cy) / cam.fy, np.ones_like(x)], 1) @ R.T
+        ones = np.ones_like(x)
+        dp = np.stack([x, (v + 1.0 - cam.cy) / cam.fy, ones], 1) @ R.T
+        dm = np.stack([x, (v - 1.0 - cam.cy) / cam.fy, ones], 1) @ R.T
         num = np.einsum('ij,ij->i', N, X - geo.center)
         with np.errstate(divide='ignore', invalid='ignore'):
-            pp = geo.center + (num / np.einsum('ij,ij->i', N, dv))[:, None] * dv
-            pm = geo.center + (num / np.einsum('ij,ij->i', N, dm))[:, None] * dm
+            pp = (num / np.einsum('ij,ij->i', N, dp))[:, None] * dp
+            pm = (num / np.einsum('ij,ij->i', N, dm))[:, None] * dm
             slope = 0.5 * np.abs((pp - pm) @ sheet.plane[:3])
-            sig_px = sigma / np.maximum(slope, 1e-12)
-        half = np.ceil(3.5 * sig_px + 2.5 * rig.image.psf_sigma + 1.0)
-        half = np.clip(np.where(np.isfinite(half), half, 40), 2, 40).astype(np.int64)
+            half = np.ceil(3.5 * sigma / slope + 2.0 * rig.image.psf_sigma)
+        half = np.clip(np.nan_to_num(half, nan=40.0, posinf=40.0), 2, 40).astype(np.int64)
         v0 = np.rint(v).astype(np.int64)
-        cnt = 2 * half + 1
-        rep = np.repeat(np.arange(len(v0)), cnt)
-        start = np.repeat(np.cumsum(cnt) - cnt, cnt)
-        rows = v0[rep] - half[rep] + (np.arange(len(rep)) - start)
-        cols = col[rep].astype(np.int64)
-        ok = (rows >= 0) & (rows < cam.height)
-        rows, cols = rows[ok], cols[ok]
-        ptype, pobj, Rp, Tp, prm = self.scene.packed()
-        n = len(rows)
-        val = np.empty(n)
-        prim = np.empty(n, np.int64)
-        P = np.empty((n, 3))
-        packed_sheet = np.concatenate([sheet.plane, sheet.source, sheet.edge_normals.ravel(),
-                                       sheet.mirror_plane])
-        rk.laser_pixels(ptype, Rp, Tp, prm, geo.extra['cam'], self._grid, rows, cols,
-                        packed_sheet, sigma, val, prim, P)
-        idx = np.flatnonzero(val > 0.0)
-        if len(idx) == 0:
-            return
-        Pi = P[idx]
-        foot = np.linalg.norm(Pi - geo.center, axis=1) / cam.fx
-        alb = self.scene.albedo(Pi, pobj[prim[idx]], foot)
-        vals = energy * rig.laser.reference_distance * alb * val[idx]
-        c = rig.image.speckle_contrast
-        if c > 0:
-            vals *= np.maximum(1.0 + c * rng.standard_normal(len(idx)), 0.0)
-        r_i, c_i = rows[idx], cols[idx]
-        r0, r1 = int(r_i.min()), int(r_i.max()) + 1
         psf = rig.image.psf_sigma
         pad = int(np.ceil(3 * psf)) + 1 if psf > 0 else 0
-        b0, b1 = max(r0 - pad, 0), min(r1 + pad, cam.height)
+        b0 = max(int((v0 - half).min()) - pad, 0)
+        b1 = min(int((v0 + half).max()) + 1 + pad, cam.height)
+        if b1 <= b0:
+            return np.zeros((0, cam.width), np.float32), 0
         band = np.zeros((b1 - b0, cam.width), np.float32)
-        band[r_i - b0, c_i] = vals
+        c = rig.image.speckle_contrast
+        if c > 0 and self._pool is not None:
+            z, zoff = self._pool, int(rng.integers(0, len(self._pool)))
+        elif c > 0:
+            z, zoff = rng.standard_normal(int(np.sum(2 * half + 1))), 0
+        else:
+            z, zoff = np.zeros(1, np.float32), 0
+        ptype, pobj, Rp, Tp, prm = self.scene.packed()
+        cap = int(np.sum(2 * half + 1)) if np.any(self.scene.textured) else 1
+        tex_rc = np.empty((cap, 2), np.int64)
+        tex_p = np.empty((cap, 3))
+        tex_val = np.empty(cap)
+        tex_obj = np.empty(cap, np.int64)
+        scale = energy * rig.laser.reference_distance
+        m = rk.laser_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table,
+                             self.scene.textured, geo.extra['cam'], self._grid,
+                             col.astype(np.int64), v0, half, geo.extra['sheet'], sigma, scale,
+                             c, z, zoff, band, b0, tex_rc, tex_p, tex_val, tex_obj)
+        if m:
+            P = tex_p[:m]
+            foot = np.linalg.norm(P - geo.center, axis=1) / cam.fx
+            alb = self.scene.albedo(P, tex_obj[:m], foot)
+            band[tex_rc[:m, 0] - b0, tex_rc[:m, 1]] = tex_val[:m] * alb
         if psf > 0:
             band = cv2.GaussianBlur(band, (0, 0), psf, borderType=cv2.BORDER_CONSTANT)
-        img[b0:b1] += band
+        return band, b0
 
-    def _sensor(self, img, rng) -> np.ndarray:
-        im = self.rig.image
+    def _sensor(self, bg, band, b0, rng) -> np.ndarray:
+        """Background (None, coarse or full) + stripe band -> noisy 8-bit image."""
+        im, cam = self.rig.image, self.rig.camera
+        n = cam.width * cam.height
         if im.noisy:
-            n = img.size
             if self._pool is not None:
                 off = int(rng.integers(0, len(self._pool) - n))
                 z = self._pool[off:off + n]
@@ -546,10 +452,14 @@ class Simulator:
                 z = rng.standard_normal(n, dtype=np.float32)
         else:
             z = np.zeros(0, np.float32)
-        out = np.empty(img.shape, np.uint8)
-        rk.sensor(img, z, float(im.full_well), bool(im.shot_noise), float(im.read_noise ** 2),
-                  1.0 / im.electrons_per_dn, float(im.black_level),
-                  float((1 << im.bit_depth) - 1), out)
+        empty = np.zeros((0, 0), np.float32)
+        full = bg is not None and bg.shape == (cam.height, cam.width)
+        bg_full = bg if full else empty
+        bg_coarse = bg if (bg is not None and not full) else empty
+        out = np.empty((cam.height, cam.width), np.uint8)
+        rk.sensor(bg_full, bg_coarse, self.coarse_step, band, b0, z, float(im.full_well),
+                  bool(im.shot_noise), float(im.read_noise ** 2), 1.0 / im.electrons_per_dn,
+                  float(im.black_level), float((1 << im.bit_depth) - 1), out)
         return out
 
     def render(self, voltages, *, laser_on: bool = True, background: str = 'coarse',
@@ -596,23 +506,22 @@ class Simulator:
         geo = self.geometry(angles, laser_on)
         full = background == 'full'
         ambient = full or not laser_on or rig.image.ambient_in_laser_frames
-        cam = rig.camera
+        bg = None
         if ambient:
-            img = self._background(geo, exposure, full)
+            bg = self._background(geo, exposure, full)
             if full and rig.image.psf_sigma > 0:
-                img = cv2.GaussianBlur(img, (0, 0), rig.image.psf_sigma)
-        else:
-            img = np.zeros((cam.height, cam.width), np.float32)
+                bg = cv2.GaussianBlur(bg, (0, 0), rig.image.psf_sigma)
         stripe = StripeTruth.empty()
+        band, b0 = np.zeros((0, rig.camera.width), np.float32), 0
         if laser_on:
             res = self._stripe_crossings(geo)
             if res is not None:
                 energy = rig.laser.peak_rate * exposure * laser_power
-                self._laser_layer(geo, res, energy, rng, img)
+                band, b0 = self._laser_layer(geo, res, energy, rng)
                 X, N, ob, cl, u, v = res
                 R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
                 stripe = StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
-        image = self._sensor(img, rng)
+        image = self._sensor(bg, band, b0, rng)
         nan4 = np.full(4, np.nan)
         plane_W = geo.sheet.plane if laser_on else nan4
         truth = FrameTruth(

@@ -14,16 +14,19 @@ The inverse has no closed form. :func:`undistort_points` runs the fixed-point it
 ``xd`` or at a cheap approximate inverse (series inverse of the radial part minus the
 tangential term). The iteration is a contraction with a small constant rho for this rig's
 telephoto lens, so after a step of size s the remaining error is at most
-``rho / (1 - rho) * s``. Once per :class:`CameraIntrinsics`, a 41 x 31 grid over the image
-plus a 5 % margin (the "box") fixes rho (twice the largest observed step ratio), the step size
-that guarantees ``UNDISTORT_TARGET_ERROR``, the start, and the number of steps every grid point
-needs to get there.
+``rho / (1 - rho) * s``.
 
-At run time, a batch whose points all lie in the box runs exactly that fixed number of steps
-(the hot path). Otherwise the last step of each point is checked, and points that fail keep
-iterating from ``xd`` until their step is below ``UNDISTORT_STEP_TOL``, up to
-``UNDISTORT_MAX_ITER`` steps; points that still have not converged (beyond the fold of the
-distortion polynomial) are reported as not converged.
+Once per :class:`CameraIntrinsics` a polar grid over the "disk" (centred on the principal
+point, radius 5 % beyond the farthest image corner in distorted normalised coordinates; the
+bare corner radius if the distortion folds within that margin) fixes rho (twice the largest
+observed step ratio), the last-step size that guarantees ``UNDISTORT_TARGET_ERROR``, the start
+and the number of steps every grid point needs to get there.
+
+At run time a batch whose points all lie in the disk (one reduction over ``|xd|^2``) runs
+exactly that fixed number of steps: the hot path. Otherwise the last step of each point is
+checked, and points that fail restart from ``xd`` and iterate until their step is below
+``UNDISTORT_STEP_TOL``, up to ``UNDISTORT_MAX_ITER`` steps; points that still have not
+converged (beyond the fold of the distortion polynomial) are reported as not converged.
 """
 
 from __future__ import annotations
@@ -43,8 +46,8 @@ UNDISTORT_TARGET_ERROR = 1e-13
 UNDISTORT_STEP_TOL = 1e-14
 #: Iteration cap of the iterative undistortion.
 UNDISTORT_MAX_ITER = 200
-# Margin around the image, as a fraction of its size, covered by the fixed iteration count.
-_GRID_MARGIN = 0.05
+# Disk radii tried for the fixed-count hot path, as multiples of the farthest-corner radius.
+_DISK_SCALES = (1.05, 1.0)
 
 
 @dataclass(frozen=True)
@@ -112,26 +115,32 @@ class CameraIntrinsics:
             n_fast=0,
             fast_tol=UNDISTORT_STEP_TOL,
         )
-        # The box: image plus margin, in distorted normalised coordinates.
-        mw, mh = _GRID_MARGIN * self.width, _GRID_MARGIN * self.height
-        us = np.linspace(-mw, self.width + mw, 41)
-        vs = np.linspace(-mh, self.height + mh, 31)
-        plan.box = (
-            (us[0] - self.cx) / self.fx,
-            (us[-1] - self.cx) / self.fx,
-            (vs[0] - self.cy) / self.fy,
-            (vs[-1] - self.cy) / self.fy,
-        )
-        uu, vv = np.meshgrid(us, vs)
-        xd = (np.stack([uu.ravel(), vv.ravel()]) - plan.c) * plan.finv
-        if plan.distorted:
-            plan.use_guess, plan.n_fast, plan.fast_tol, x = _fixed_iteration_plan(plan, xd)
-            if x is None:  # nothing in the box converges: no fast path
-                plan.box = (0.0, -1.0, 0.0, -1.0)
+        # The hot-path disk. If some grid point of the disk does not converge (strong
+        # distortion folding near the corners), retry with the bare corner radius; if that
+        # fails too there is no hot path.
+        corners = (np.array([[0.0, self.width], [0.0, self.height]]) - plan.c) * plan.finv
+        r_corner = float(np.hypot(np.abs(corners[0]).max(), np.abs(corners[1]).max()))
+        plan.s_max = -1.0  # |xd|^2 bound of the disk; negative: no hot path
+        radius = np.linspace(0.0, 1.0, 41) ** 0.5  # denser towards the rim
+        angle = np.linspace(0.0, 2.0 * np.pi, 72, endpoint=False)
+        rr, aa = np.meshgrid(radius, angle)
+        unit = np.stack([(rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel()])
+        x = None
+        for scale in _DISK_SCALES:
+            xd = scale * r_corner * unit
+            if plan.distorted:
+                use_guess, n_fast, fast_tol, x = _fixed_iteration_plan(plan, xd)
+                plan.fast_tol = fast_tol
+                if x is None:
+                    continue
+                plan.use_guess, plan.n_fast = use_guess, n_fast
+            else:
                 x = xd
-        else:
-            x = xd
-        # Largest ray length sqrt(1 + r2) in the box (with 1 % slack), for the angle test.
+            plan.s_max = (scale * r_corner) ** 2 * (1.0 - 1e-12)
+            break
+        if x is None:
+            x = np.zeros((2, 1))
+        # Largest ray length sqrt(1 + r2) in the disk (with 1 % slack), for the angle test.
         r2 = x[0] * x[0] + x[1] * x[1]
         plan.ray_norm_max = 1.01 * float(np.sqrt(1.0 + np.nanmax(r2)))
         return plan
@@ -161,20 +170,23 @@ def _distort(plan: SimpleNamespace, x: np.ndarray) -> np.ndarray:
     return x * radial + (plan.p_row2 @ x) * x + r2 * plan.p_col
 
 
-def _initial_guess(plan: SimpleNamespace, xd: np.ndarray) -> np.ndarray:
+def _initial_guess(plan: SimpleNamespace, xd: np.ndarray, s: np.ndarray) -> np.ndarray:
     """Approximate inverse: series inverse of the radial part minus the tangential term at xd.
 
-    ``xd (1 + b1 s + b2 s^2 + b3 s^3) - tangential(xd)``, ``s = |xd|^2``, with
+    ``xd (1 + b1 s + b2 s^2 + b3 s^3) - tangential(xd)``, ``s = |xd|^2`` (given), with
     ``b1 = -k1, b2 = 3 k1^2 - k2, b3 = -12 k1^3 + 8 k1 k2 - k3``.
     """
-    x2 = xd * xd
-    s = x2[0] + x2[1]
     x = xd * (1.0 + s * (plan.b1 + s * (plan.b2 + s * plan.b3)))
     if plan.has_tangential:
         delta = (plan.p_row2 @ xd) * xd
         delta += s * plan.p_col
         x -= delta
     return x
+
+
+def _sq_norm(x: np.ndarray) -> np.ndarray:
+    x2 = x * x
+    return x2[0] + x2[1]
 
 
 def _iterate_until_converged(plan, xd, max_iter):
@@ -211,14 +223,14 @@ def _grid_steps(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray):
 
 
 def _fixed_iteration_plan(plan: SimpleNamespace, xd: np.ndarray):
-    """Choose the start, fixed step count and last-step tolerance on the box grid ``xd``.
+    """Choose the start, fixed step count and last-step tolerance on the disk grid ``xd``.
 
     Returns (use_guess, n_fast, fast_tol, x) with x the converged grid, or x None when no grid
     point converges.
     """
     variants = {
         False: _grid_steps(plan, xd, xd),
-        True: _grid_steps(plan, xd, _initial_guess(plan, xd)),
+        True: _grid_steps(plan, xd, _initial_guess(plan, xd, _sq_norm(xd))),
     }
     # Contraction estimate from consecutive steps well above round-off (same map for both).
     rho_obs = 0.0
@@ -233,7 +245,7 @@ def _fixed_iteration_plan(plan: SimpleNamespace, xd: np.ndarray):
     needed = {}
     for use_guess, (steps, _) in variants.items():
         good = steps[-1] <= UNDISTORT_STEP_TOL
-        # Every grid point must converge for the fixed count to cover the box.
+        # Every grid point must converge for the fixed count to cover the disk.
         needed[use_guess] = (
             int((np.argmax(steps <= tol, axis=0) + 1).max()) if good.all() else None
         )
@@ -268,42 +280,45 @@ def undistort_normalised(intr: CameraIntrinsics, xd: np.ndarray):
         None when every input is finite.
     converged : ndarray of bool, shape (n,), or None
         None when every point converged.
-    in_box : bool
-        True when every point lies in the image-plus-margin box (then both masks are None).
+    in_disk : bool
+        True when every point lies in the hot-path disk (then both masks are None).
     """
     plan = intr._plan
     if xd.shape[1] == 0:
         return xd, None, None, False
-    lo0, lo1 = xd.min(axis=1).tolist()
-    hi0, hi1 = xd.max(axis=1).tolist()
-    x_lo, x_hi, y_lo, y_hi = plan.box
-    if lo0 >= x_lo and hi0 <= x_hi and lo1 >= y_lo and hi1 <= y_hi:  # False with NaN
+    s = _sq_norm(xd)
+    s_max = float(s.max())
+    if s_max <= plan.s_max:  # False with NaN
         if not plan.distorted:
             return xd, None, None, True
-        x = _initial_guess(plan, xd) if plan.use_guess else xd
+        x = _initial_guess(plan, xd, s) if plan.use_guess else xd
         for _ in range(plan.n_fast):
             x = _iterate(plan, xd, x)
         return x, None, None, True
     finite = None
-    if not (np.isfinite(lo0 + lo1 + hi0 + hi1)):
+    if not np.isfinite(s_max):
         finite = np.isfinite(xd).all(axis=0)
         xd[:, ~finite] = 0.0
-        if finite.all():  # only overflow in the sum
+        s[~finite] = 0.0
+        if finite.all():  # only overflow in |xd|^2
             finite = None
     if not plan.distorted:
         return xd, finite, None, False
     with np.errstate(all="ignore"):
-        x = _initial_guess(plan, xd) if plan.use_guess else xd
+        x = _initial_guess(plan, xd, s) if plan.use_guess else xd
         x_prev = x
         for _ in range(plan.n_fast):
             x_prev = x
             x = _iterate(plan, xd, x)
-        step_ok = (np.abs(x - x_prev) <= plan.fast_tol).all(axis=0)
-        if plan.n_fast and step_ok.all():
-            return x, finite, None, False
+        if plan.n_fast:
+            step_ok = (np.abs(x - x_prev) <= plan.fast_tol).all(axis=0)
+            if step_ok.all():
+                return x, finite, None, False
+            bad = np.flatnonzero(~step_ok)
+        else:  # no fixed-count plan: every point takes the slow path
+            bad = np.arange(xd.shape[1])
         # Points that need more steps (outside the image) restart from xd, the most robust
         # start, and iterate to the strict tolerance; some never converge (no preimage).
-        bad = np.flatnonzero(~step_ok)
         x = x.copy()
         x[:, bad], conv_b = _iterate_until_converged(plan, xd[:, bad], UNDISTORT_MAX_ITER)
     converged = np.ones(xd.shape[1], dtype=bool)

@@ -72,7 +72,7 @@ def laser_plane_v0(model: RigModel, u2_tilt) -> np.ndarray:
     s = np.sin(alpha)[..., None]
     out = np.empty(u.shape + (4,))
     out[..., :3] = c * pre.n0 + s * pre.m + (1.0 - c) * pre.q
-    out[..., 3] = (-pre.n0P + pre.n0P) - (c * pre.n0P + s * pre.mP + (1.0 - c) * pre.qP)[..., 0]
+    out[..., 3] = (pre.e0 + pre.n0P) - (c * pre.n0P + s * pre.mP + (1.0 - c) * pre.qP)[..., 0]
     return out
 
 

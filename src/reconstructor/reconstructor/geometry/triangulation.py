@@ -29,7 +29,7 @@ from .rig import RigModel, v0_T_v, v0_T_v_scalar
 DEFAULT_MIN_RAY_PLANE_ANGLE = 1e-3
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False, slots=True)
 class TriangulationResult:
     """Triangulated points; one row per input pixel.
 
@@ -153,9 +153,9 @@ def triangulate(
     plane_v = T.T @ np.array(laser_plane_v0_scalar(model, u2t))
     if model.correction is not None:
         T = np.asarray(model.correction.V0c_T_V0(u1p, u1t), dtype=np.float64) @ T
-    x, finite, converged, in_box = _rays(model.intrinsics, uv)
+    x, finite, converged, in_disk = _rays(model.intrinsics, uv)
     neg_e = -float(plane_v[3])
-    if in_box and neg_e != 0.0:
+    if in_disk and neg_e != 0.0:
         # Hot path: one reduction proves, for every ray at once, |denom| > sin(min_angle)
         # * max |ray| (not nearly parallel) and sign(denom) = sign(-e), i.e. Z > 0.
         denom = plane_v[:2] @ x
