@@ -81,9 +81,9 @@ def full_image_hessian(img: np.ndarray, sigma: float, min_strength: float):
     t += np.multiply(ry, ny, out=root)
     with np.errstate(divide='ignore', invalid='ignore'):
         np.divide(t, lam, out=t)
-    t *= -1.0                                     # t = -(grad . n) / lam
-    du = np.multiply(t, nx, out=nx)
-    dv = np.multiply(t, ny, out=ny)
+        t *= -1.0                                 # t = -(grad . n) / lam
+        du = np.multiply(t, nx, out=nx)
+        dv = np.multiply(t, ny, out=ny)
     g -= g.mean(axis=0)
     with np.errstate(invalid='ignore'):
         ok = (lam < 0) & (np.abs(du) <= 0.5) & (np.abs(dv) <= 0.5) & (g >= min_strength)
@@ -161,6 +161,34 @@ def accuracy(frames, fn):
     return float(np.sqrt(np.mean(err**2))), float(np.mean(covs)), float(np.max(np.abs(err)))
 
 
+def simulator_report() -> dict:
+    """RMS against the physical simulator's ground truth (galvo_driver.sim), if present."""
+    try:
+        from galvo_driver.sim.rig import load_rig
+        from galvo_driver.sim.scene import load_scene
+        from galvo_driver.sim.simulator import Simulator
+    except ImportError as exc:
+        print(f'simulator not available ({exc}); no simulator figures')
+        return {}
+    out = {}
+    print('simulator ground truth (plane scene, 3 frames): RMS of v - v_true(u) [px]')
+    for rig in ('ideal', 'reference'):
+        sim = Simulator(load_rig(rig), load_scene('plane'), seed=11)
+        for method in ('steger', 'center_of_gravity'):
+            cfg = ExtractorConfig(method=method, line_width_px=4.7, min_strength=15.0)
+            errs = []
+            for k, u2 in enumerate((0.0, 0.03, -0.03)):
+                frame = sim.render(np.array([0.2 * k, -0.1 * k, 0.0, u2]), frame_index=k)
+                st = frame.truth.stripe
+                res = extract(frame.image, cfg)
+                order = np.argsort(st.u)
+                errs.append(res.v - np.interp(res.u, st.u[order], st.v[order]))
+            rms = float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))
+            print(f'  rig {rig:9s} {method:18s} rms {rms:.4f}')
+            out[f'sim_{rig}_{method}_rms_px'] = round(rms, 5)
+    return out
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--frames', type=int, default=10)
@@ -216,6 +244,7 @@ def main():
             results[(label, name)] = (rms, cov)
             print(f'  {label:46s} {name:10s} rms {rms:.4f}  coverage {cov:.4f}  '
                   f'max {mx:.3f}')
+    sim_figures = simulator_report()
     rms, cov = results[('noise 4 DN', 'steger')]
     out = {
         'extractor_ms_per_frame': round(ext_ms, 4),
@@ -230,6 +259,7 @@ def main():
         'rms_px_speckle03': round(
             results[('speckle contrast 0.3, grain 1 px, noise 4 DN', 'steger')][0], 5),
         'cog_rms_px': round(results[('noise 4 DN', 'cog')][0], 5),
+        **sim_figures,
     }
     print(json.dumps(out))
 

@@ -111,7 +111,7 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env):
             if i % 2:
                 msgs.reverse()
                 args.reverse()
-            for pub, m in zip(msgs, args):
+            for pub, m in zip(msgs, args, strict=True):
                 pub(m)
                 t.spin_for(0.03)
         t.spin_until(lambda: len(t.centers) >= 6, 15, '6 StripeCenters')
@@ -152,10 +152,14 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env):
         t.spin_until(lambda: any(m.header.stamp.sec == 300 for m in t.centers), 10,
                      'the good frame after the bad ones')
         assert not [m for m in t.centers if 200 <= m.header.stamp.sec < 300]
+        t.spin_until(lambda: int(t.counters().get('centers_published', 0)) >= 7, 10,
+                     'diagnostics counting the last frame')
         c = t.counters()
         assert {k: int(c[k]) for k in want} == want
         assert int(c['skipped_total']) == 5
-        assert int(c['images_received']) >= 12 and int(c['centers_published']) >= 7
+        assert int(c['images_received']) == 12 and int(c['centers_published']) == 7
+        assert int(c['frames_extracted']) == 7
+        assert int(c['unmatched_states_dropped']) == 5    # the bad frames' states
 
         # 3. Parameters: a bad value is rejected with a reason, a good one is applied.
         client = node.create_client(SetParameters, '/stripe_extractor/set_parameters')

@@ -16,6 +16,7 @@ to that (undistorted, normalised) centre.
 from __future__ import annotations
 
 import numpy as np
+
 from reconstructor.model import (
     CameraIntrinsics,
     RigModel,

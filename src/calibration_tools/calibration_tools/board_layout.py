@@ -152,7 +152,9 @@ class CircleBoard:
         if idx.ndim != 1 or (idx.size and not np.issubdtype(idx.dtype, np.integer)):
             raise ValueError(f"index must be a 1-D integer array, got {idx.dtype} {idx.shape}")
         if idx.size and (idx.min() < 0 or idx.max() >= self.n_circles):
-            raise ValueError(f"index must be in [0, {self.n_circles}), got {idx.min()}..{idx.max()}")
+            raise ValueError(
+                f"index must be in [0, {self.n_circles}), got {idx.min()}..{idx.max()}"
+            )
         return idx.astype(np.int64)
 
 

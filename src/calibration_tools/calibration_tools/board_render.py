@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
 from reconstructor.model import CameraIntrinsics, RigModel, project_points, undistort_points
 
 from .board_geometry import project_circle_centres, view_T_board
@@ -247,17 +248,34 @@ def render_target(
         zeros = np.zeros_like(dist_x)
         px_x = np.abs(_edge_distance_px(dist_x, np.stack([ones, zeros], -1), dbu, dbv))
         px_y = np.abs(_edge_distance_px(dist_y, np.stack([zeros, ones], -1), dbu, dbv))
+        # Squares k = -1 .. cols (x) and -1 .. rows (y); the stripe sign is +1 for even k.
+        px_x = np.nan_to_num(px_x, nan=1.0)
+        px_y = np.nan_to_num(px_y, nan=1.0)
         sign_x = np.where(np.mod(np.floor(fx), 2) == 0, 1.0, -1.0)
         sign_y = np.where(np.mod(np.floor(fy), 2) == 0, 1.0, -1.0)
-        # Smooth each stripe pattern over +-0.5 px of its edges.
-        ax = sign_x * np.clip(np.nan_to_num(px_x, nan=1.0) * 2.0, 0.0, 1.0)
-        ay = sign_y * np.clip(np.nan_to_num(px_y, nan=1.0) * 2.0, 0.0, 1.0)
+        # Inner lines: smooth each stripe pattern over +-0.5 px. Outer lines (the border of
+        # the squares, next to the white margin): the stripe keeps the inner square's sign
+        # and the pixel's coverage of the squares region scales the result.
         with np.errstate(invalid="ignore"):
-            in_squares = (fx >= -1) & (fx <= board.cols) & (fy >= -1) & (fy <= board.rows)
+            lx, ly = np.rint(fx), np.rint(fy)
+            outer_x = (lx == -1) | (lx == board.cols)
+            outer_y = (ly == -1) | (ly == board.rows)
+            in_x = (fx >= -1) & (fx <= board.cols)
+            in_y = (fy >= -1) & (fy <= board.rows)
+        kx = np.where(lx == -1, -1, board.cols - 1)
+        ky = np.where(ly == -1, -1, board.rows - 1)
+        inner_sx = np.where(np.mod(kx, 2) == 0, 1.0, -1.0)
+        inner_sy = np.where(np.mod(ky, 2) == 0, 1.0, -1.0)
+        ax = np.where(outer_x, inner_sx, sign_x * np.clip(px_x * 2.0, 0.0, 1.0))
+        ay = np.where(outer_y, inner_sy, sign_y * np.clip(px_y * 2.0, 0.0, 1.0))
+        wx = np.where(outer_x, np.clip(0.5 + np.where(in_x, px_x, -px_x), 0.0, 1.0),
+                      in_x.astype(float))
+        wy = np.where(outer_y, np.clip(0.5 + np.where(in_y, px_y, -px_y), 0.0, 1.0),
+                      in_y.astype(float))
+        with np.errstate(invalid="ignore"):
             inside = (fx >= -2) & (fx <= board.cols + 1) & (fy >= -2) & (fy <= board.rows + 1)
-        # Square at floor(fx), floor(fy) = (-1, -1) (corner of the board) is dark.
-        dark = 0.5 + 0.5 * ax * ay
-        coverage = np.where(in_squares, dark, 0.0)
+        # Square (-1, -1), the board's first corner square, is dark.
+        coverage = wx * wy * (0.5 + 0.5 * ax * ay)
         p = obj @ V_T_W[:3, :3].T + V_T_W[:3, 3]
         uv = project_points(intrinsics, p)
         with np.errstate(invalid="ignore"):
@@ -280,7 +298,9 @@ def render_target(
                 (np.rint(fx) >= 0) & (np.rint(fx) < board.cols)
                 & (np.rint(fy) >= 0) & (np.rint(fy) < board.rows)
             )
-            inside = (fx >= -1.5) & (fx <= board.cols + 0.5) & (fy >= -1.5) & (fy <= board.rows + 0.5)
+            inside = (
+                (fx >= -1.5) & (fx <= board.cols + 0.5) & (fy >= -1.5) & (fy <= board.rows + 0.5)
+            )
         coverage = np.where(on_grid, np.clip(0.5 - np.nan_to_num(sd_px, nan=1.0), 0.0, 1.0), 0.0)
         radii = np.full(len(obj), board.diameter / 2.0)
         uv = project_circle_centres(intrinsics, V_T_W, obj, radii)

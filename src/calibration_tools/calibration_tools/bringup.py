@@ -5,8 +5,9 @@ from one YAML file laid out as ``node_name: ros__parameters: {...}``, exactly as
 file would pass it, so the same file works with an apt ROS install.
 
 One process
-    All nodes on one ``rclpy.experimental.EventsExecutor`` (measured here: no loss at
-    500 Hz; ``MultiThreadedExecutor`` loses most frames).
+    All nodes on one ``rclpy.experimental.EventsExecutor``, driven by ``spin_once`` (its
+    ``spin()`` ignores SIGINT/SIGTERM in rclpy 7.1). ``MultiThreadedExecutor`` loses most
+    500 Hz frames here.
 Separate processes
     Each node runs its own console script with ``--ros-args --params-file``. The supervisor
     watches them: a node that exits unexpectedly is logged and, with ``respawn``, restarted
@@ -181,12 +182,11 @@ def run_one_process(nodes, params_file=None, duration=None, args=None):
             node = node_class(name)()
             instances.append(node)
             executor.add_node(node)
-        if duration is None:
-            executor.spin()
-        else:
-            t_end = time.monotonic() + duration
-            while rclpy.ok() and time.monotonic() < t_end:
-                executor.spin_once(timeout_sec=0.1)
+        # EventsExecutor.spin() in rclpy 7.1 ignores SIGINT/SIGTERM (measured here); a
+        # spin_once loop stops on both.
+        t_end = None if duration is None else time.monotonic() + duration
+        while rclpy.ok() and (t_end is None or time.monotonic() < t_end):
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
 from reconstructor.model import RigModel
 
 from .board_geometry import pixels_to_board, project_circle_centres, view_T_board
@@ -256,14 +257,17 @@ def detect_circles(
             rejected.append(f"{where}: radius {r0:.0f} px above max_radius_px")
             continue
         # Grey levels inside (eroded blob) and in a ring just outside (dilated blob).
-        pad = int(np.ceil(0.6 * r0)) + 4
+        pad = int(np.ceil(0.6 * r0)) + 12
         x0, y0 = max(x - pad, 0), max(y - pad, 0)
         x1, y1 = min(x + bw + pad, w), min(y + bh + pad, h)
         blob = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
         roi = imgf[y0:y1, x0:x1]
-        inner = cv2.erode(blob, kernel, iterations=max(1, int(0.15 * r0 / 2)))
-        outer = cv2.dilate(blob, kernel, iterations=max(2, int(0.25 * r0 / 2)))
-        ring = (outer > 0) & (cv2.dilate(blob, kernel, iterations=2) == 0)
+        # 5x5 kernel: each iteration moves the boundary by 2 px. Keep 4 px away from the
+        # edge on both sides, sample at least 4 px of ring.
+        inner = cv2.erode(blob, kernel, iterations=max(2, int(0.15 * r0 / 2)))
+        gap = cv2.dilate(blob, kernel, iterations=2)
+        outer = cv2.dilate(gap, kernel, iterations=max(2, int(0.25 * r0 / 2)))
+        ring = (outer > 0) & (gap == 0)
         if inner.sum() < 5 or ring.sum() < 5:
             rejected.append(f"{where}: too small to measure")
             continue

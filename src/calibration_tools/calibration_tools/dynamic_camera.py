@@ -15,188 +15,49 @@ DESIGN.md section 3 step 2 and the paper's section III (Eqs. 9-16, 18-1):
 4. :func:`transfer_matrix_error`: the paper's Eq. 18-1 comparison of model transfer
    matrices ``Vn_T_V0`` with true or measured ones at 36 G1 positions (-10..10 V, 4 V steps).
 
-Observability: ``V0_T_V`` depends on the tilt mirror's angle only through
-``θ2 - θ2(0)`` (two reflections about planes through the tilt axis compose to a rotation
-about that axis), so ``g1_tilt.theta0`` cannot be calibrated from views and is never
-refined. ``g1_pan.theta0`` is observable (it sets the direction of the tilt axis in V0).
+``g1_tilt.theta0`` is never refined: it is unobservable from views (see
+:mod:`calibration_tools.board_fit`). The building blocks live in :mod:`.circle_board`
+(detection, one-view identification), :mod:`.board_identify` (all views),
+:mod:`.board_fit` (PnP, refinement) and are re-exported here.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import cv2
 import numpy as np
-from reconstructor.model import (
-    CameraIntrinsics,
-    MirrorParams,
-    RigModel,
-    g_T_v,
-    rigid_inverse,
-    undistort_points,
-    v0_T_v,
-)
-from scipy.optimize import least_squares
 
-from .board_geometry import (
-    ellipse_centres_normalised,
-    pixels_to_board,
-    project_circle_centres,
+from reconstructor.model import RigModel, g_T_v, rigid_inverse, v0_T_v
+
+from .board_fit import (
+    RefineResult,
+    ViewObservation,
+    _as_transform,
+    _rotation_angle,
+    _transform,
+    pnp_view,
+    refine,
+)
+from .board_identify import (
+    IdentificationResult,
+    _observations,
+    board_pose_from_views,
+    identify_views,
 )
 from .board_layout import PAPER_CIRCLE_BOARD, CircleBoard
-from .circle_board import CircleDetections, ViewIdentification, detect_circles, identify_view
+from .circle_board import CircleDetections, detect_circles
 from .stages import CaptureView, StageResult
 
 #: The paper's verification grid: -10 V to 10 V in 4 V steps on both G1 axes (36 positions).
 PAPER_GRID_VOLTAGES = np.arange(-10.0, 10.0 + 1e-9, 4.0)
 
 
-# ------------------------------------------------------------------------------ small maths
-def rodrigues(rotvec) -> np.ndarray:
-    """Rotation matrix of a rotation vector (axis * angle, radians), shape (3, 3)."""
-    w = np.asarray(rotvec, dtype=np.float64)
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        K = _skew(w)
-        return np.eye(3) + K + 0.5 * K @ K
-    k = w / th
-    K = _skew(k)
-    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * K @ K
-
-
-def _skew(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
-def _transform(R, t) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = t
-    return T
-
-
-def _as_transform(T, name) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise ValueError(f"{name} must be a finite (4, 4) transform, got shape {T.shape}")
-    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(
-        T[3], [0, 0, 0, 1]
-    ):
-        raise ValueError(f"{name} must be a rigid transform")
-    return T
-
-
 def paper_grid() -> np.ndarray:
     """The paper's 36 G1 positions, shape (36, 2), volts: (U1_pan, U1_tilt)."""
     up, ut = np.meshgrid(PAPER_GRID_VOLTAGES, PAPER_GRID_VOLTAGES, indexing="ij")
     return np.column_stack([up.ravel(), ut.ravel()])
-
-
-# ------------------------------------------------------------------------------ observations
-@dataclass(frozen=True)
-class ViewObservation:
-    """Identified circles of one view.
-
-    Attributes
-    ----------
-    voltages : ndarray, shape (2,), volts
-        (U1_pan, U1_tilt).
-    index : ndarray, shape (m,), int
-        Board circle indices.
-    uv : ndarray, shape (m, 2), pixels
-        Detected ellipse centres.
-    pose_index : int
-        Board pose the view belongs to.
-    view_id : int
-        Caller's id of the view (e.g. its position in the input list).
-    """
-
-    voltages: np.ndarray
-    index: np.ndarray
-    uv: np.ndarray
-    pose_index: int = 0
-    view_id: int = -1
-
-    def __post_init__(self):
-        v = np.asarray(self.voltages, dtype=np.float64)
-        if v.shape != (2,) or not np.isfinite(v).all():
-            raise ValueError(f"voltages must be 2 finite volts, got {self.voltages!r}")
-        idx = np.asarray(self.index, dtype=np.int64)
-        uv = np.asarray(self.uv, dtype=np.float64)
-        if idx.ndim != 1 or uv.shape != (len(idx), 2):
-            raise ValueError(f"uv must have shape ({len(idx)}, 2) to match index, got {uv.shape}")
-        object.__setattr__(self, "voltages", v)
-        object.__setattr__(self, "index", idx)
-        object.__setattr__(self, "uv", uv)
-
-
-# ------------------------------------------------------------------------------ PnP
-def pnp_view(
-    intrinsics: CameraIntrinsics, points_w, radii, uv, *, ellipse_correction: bool = True
-) -> tuple[np.ndarray, float]:
-    """Board pose in one (virtual) camera from identified circle centres.
-
-    Parameters
-    ----------
-    intrinsics : CameraIntrinsics
-    points_w : array_like, shape (m, 3), metres
-        Circle centres in the board frame (z = 0), m >= 4.
-    radii : array_like, shape (m,), metres
-        Circle radii (for the ellipse-centre correction).
-    uv : array_like, shape (m, 2), pixels
-        Detected ellipse centres.
-    ellipse_correction : bool
-        Correct for the offset between ellipse centre and projected circle centre.
-
-    Returns
-    -------
-    V_T_W : ndarray, shape (4, 4)
-    rms_px : float
-        RMS reprojection error, pixels.
-    """
-    P = np.asarray(points_w, dtype=np.float64)
-    uv = np.asarray(uv, dtype=np.float64)
-    r = np.asarray(radii, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 4:
-        raise ValueError(f"points_w must have shape (m >= 4, 3), got {P.shape}")
-    if uv.shape != (len(P), 2):
-        raise ValueError(f"uv must have shape ({len(P)}, 2), got {uv.shape}")
-    if r.shape != (len(P),):
-        raise ValueError(f"radii must have shape ({len(P)},), got {r.shape}")
-    x_obs = undistort_points(intrinsics, uv)
-    if not np.isfinite(x_obs).all():
-        raise ValueError("uv: pixels could not be undistorted")
-    K = np.eye(3)
-    zero = np.zeros(len(P))
-    try:
-        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
-            P, x_obs.reshape(-1, 1, 2), K, None, flags=cv2.SOLVEPNP_IPPE
-        )
-    except cv2.error as exc:
-        raise ValueError(f"PnP failed: {exc}") from None
-    best = None
-    for rvec, tvec in zip(rvecs, tvecs):
-        # A planar target has two PnP solutions; keep those with the board in front.
-        x = x_obs.copy()
-        for _ in range(3 if ellipse_correction else 1):
-            rvec, tvec = cv2.solvePnPRefineLM(P, x.reshape(-1, 1, 2), K, None, rvec, tvec)
-            T = _transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
-            if ellipse_correction:
-                x = x_obs - (ellipse_centres_normalised(T, P, r)
-                             - ellipse_centres_normalised(T, P, zero))
-        depth = P @ T[2, :3] + T[2, 3]
-        if not np.all(depth > 0.0):
-            continue
-        pred = project_circle_centres(intrinsics, T, P, r if ellipse_correction else zero)
-        rms = float(np.sqrt(np.mean(np.sum((pred - uv) ** 2, axis=1))))
-        if np.isfinite(rms) and (best is None or rms < best[1]):
-            best = (T, rms)
-    if best is None:
-        raise ValueError("PnP found no pose with the board in front of the camera")
-    return best
 
 
 # ------------------------------------------------------------------------------ Eq. 16
@@ -220,11 +81,6 @@ class LinearLD:
     translation_rms_m: float
     rotation_rms_rad: float
     n_views: int
-
-
-def _rotation_angle(R) -> np.ndarray:
-    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.arccos(np.clip(c, -1.0, 1.0))
 
 
 def solve_l_d_linear(theta_pan, theta_tilt, Vr_T_Vn, theta_ref) -> LinearLD:
@@ -284,240 +140,6 @@ def solve_l_d_linear(theta_pan, theta_tilt, Vr_T_Vn, theta_ref) -> LinearLD:
         float(np.sqrt(np.mean(res.reshape(n, 3) ** 2) * 3.0)),
         float(np.sqrt(np.mean(ang**2))),
         n,
-    )
-
-
-# ------------------------------------------------------------------------------ refinement
-@dataclass(frozen=True)
-class RefineResult:
-    """Result of :func:`refine`.
-
-    Attributes
-    ----------
-    model : RigModel
-        Input model with the refined parameters replaced.
-    board_poses : dict of int to ndarray, shape (4, 4)
-        Refined ``V0_T_W`` per board pose.
-    residuals_px : list of ndarray, shape (m_i, 2)
-        Per view (input order), predicted minus detected ellipse centres, pixels.
-    rms_px : float
-        RMS reprojection error over all circles (norm of the 2-D residual), pixels.
-    std : dict of str to float
-        1-sigma standard errors of the refined model parameters (SI), from the Jacobian.
-    names : tuple of str
-        Refined model parameters (dotted names as in ``RigModel.to_dict()``).
-    success : bool
-    message : str
-    """
-
-    model: RigModel
-    board_poses: dict
-    residuals_px: list
-    rms_px: float
-    std: dict
-    names: tuple
-    success: bool
-    message: str
-
-
-def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly):
-    names = []
-    if refine_l_d:
-        names += ["l", "d"]
-    if refine_mirrors:
-        names += ["g1_pan.k", "g1_tilt.k"]
-    if refine_theta0:
-        names += ["g1_pan.theta0"]
-    for j in range(refine_poly):
-        names += [f"g1_pan.poly[{j}]", f"g1_tilt.poly[{j}]"]
-    return names
-
-
-def _get_param(model, name):
-    if name in ("l", "d"):
-        return getattr(model, name)
-    mirror, attr = name.split(".")
-    mp = getattr(model, mirror)
-    if attr.startswith("poly"):
-        j = int(attr[5:-1])
-        return mp.poly[j] if j < len(mp.poly) else 0.0
-    return getattr(mp, attr)
-
-
-def _set_params(model: RigModel, names, values) -> RigModel:
-    kw = {}
-    mirrors = {"g1_pan": model.g1_pan, "g1_tilt": model.g1_tilt}
-    mirror_kw = {"g1_pan": {}, "g1_tilt": {}}
-    polys = {key: list(mirrors[key].poly) for key in mirrors}
-    for name, value in zip(names, values):
-        if name in ("l", "d"):
-            kw[name] = float(value)
-            continue
-        mirror, attr = name.split(".")
-        if attr.startswith("poly"):
-            j = int(attr[5:-1])
-            while len(polys[mirror]) <= j:
-                polys[mirror].append(0.0)
-            polys[mirror][j] = float(value)
-            mirror_kw[mirror]["poly"] = tuple(polys[mirror])
-        else:
-            mirror_kw[mirror][attr] = float(value)
-    for key, changes in mirror_kw.items():
-        if changes:
-            kw[key] = dataclasses.replace(mirrors[key], **changes)
-    return dataclasses.replace(model, **kw) if kw else model
-
-
-def refine(
-    model: RigModel,
-    observations: Sequence[ViewObservation],
-    board: CircleBoard,
-    board_poses,
-    *,
-    refine_l_d: bool = True,
-    refine_mirrors: bool = True,
-    refine_theta0: bool = True,
-    refine_poly: int = 0,
-    refine_pose: bool = True,
-    loss: str = "linear",
-    f_scale_px: float = 1.0,
-    ellipse_correction: bool = True,
-    max_nfev: int = 200,
-) -> RefineResult:
-    """Nonlinear least squares on the reprojection error of all identified circles.
-
-    Parameters
-    ----------
-    model : RigModel
-        Starting values; intrinsics and every parameter not refined stay fixed.
-    observations : sequence of ViewObservation
-    board : CircleBoard
-    board_poses : ndarray shape (4, 4), or dict of int to ndarray shape (4, 4)
-        Initial ``V0_T_W`` (metres) per ``pose_index`` (one array: pose 0).
-    refine_l_d : bool
-        Refine l and d.
-    refine_mirrors : bool
-        Refine k of both G1 mirrors.
-    refine_theta0 : bool
-        Refine ``g1_pan.theta0`` (``g1_tilt.theta0`` is unobservable, see module doc).
-    refine_poly : int
-        Number of higher-order coefficients of both G1 responses to refine (0, 1 or 2).
-    refine_pose : bool
-        Refine the board poses.
-    loss : str
-        scipy loss ('linear', 'soft_l1', 'huber', 'cauchy', ...); robust losses for
-        data that may hold outliers.
-    f_scale_px : float
-        Residual scale of robust losses, pixels.
-    ellipse_correction : bool
-        Predict ellipse centres (True) or projected circle centres.
-    max_nfev : int
-
-    Returns
-    -------
-    RefineResult
-    """
-    if not observations:
-        raise ValueError("observations must not be empty")
-    if isinstance(board_poses, dict):
-        poses = {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
-    else:
-        poses = {0: _as_transform(board_poses, "board_poses")}
-    if refine_poly not in (0, 1, 2):
-        raise ValueError(f"refine_poly must be 0, 1 or 2, got {refine_poly}")
-    obs = list(observations)
-    for i, o in enumerate(obs):
-        if not isinstance(o, ViewObservation):
-            raise ValueError(f"observations[{i}] must be a ViewObservation")
-        if o.pose_index not in poses:
-            raise ValueError(f"observations[{i}].pose_index {o.pose_index} has no board pose")
-    pose_keys = sorted({o.pose_index for o in obs})
-    names = _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly)
-    x_model0 = np.array([_get_param(model, n) for n in names], dtype=np.float64)
-    counts = np.array([len(o.index) for o in obs])
-    index = np.concatenate([o.index for o in obs])
-    uv_obs = np.concatenate([o.uv for o in obs])
-    P = board.points(index)
-    radii = board.radius(index) if ellipse_correction else np.zeros(len(index))
-    volts = np.array([o.voltages for o in obs])
-    view_of = np.repeat(np.arange(len(obs)), counts)
-    pose_of_view = np.array([pose_keys.index(o.pose_index) for o in obs])
-    R0 = [poses[k][:3, :3] for k in pose_keys]
-    t0 = [poses[k][:3, 3] for k in pose_keys]
-    n_model = len(names)
-    n_pose = 6 * len(pose_keys) if refine_pose else 0
-    # Parameter scales: lengths in mm-ish units, angles in mrad-ish units.
-    scale = []
-    for n in names:
-        if n in ("l", "d"):
-            scale.append(1e-3)
-        elif n.endswith(".k"):
-            scale.append(1e-5)
-        elif n.endswith("theta0"):
-            scale.append(1e-4)
-        else:
-            scale.append(1e-5)
-    scale = np.array(scale + [1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3] * (n_pose // 6))
-
-    def unpack(z):
-        x = z * scale
-        m = _set_params(model, names, x_model0 + x[:n_model]) if n_model else model
-        Ts = []
-        for j in range(len(pose_keys)):
-            if refine_pose:
-                w = x[n_model + 6 * j: n_model + 6 * j + 3]
-                dt = x[n_model + 6 * j + 3: n_model + 6 * j + 6]
-                Ts.append(_transform(rodrigues(w) @ R0[j], t0[j] + dt))
-            else:
-                Ts.append(_transform(R0[j], t0[j]))
-        return m, Ts
-
-    def predict(z):
-        m, Ts = unpack(z)
-        V_T_V0 = rigid_inverse(v0_T_v(m, volts[:, 0], volts[:, 1]))
-        V_T_W = V_T_V0 @ np.stack(Ts)[pose_of_view]
-        return project_circle_centres(m.intrinsics, V_T_W[view_of], P, radii)
-
-    def fun(z):
-        r = (predict(z) - uv_obs).ravel()
-        return np.where(np.isfinite(r), r, 1e6)
-
-    z0 = np.zeros(n_model + n_pose)
-    if len(z0) == 0:
-        sol_x = z0
-        success, message = True, "nothing to refine"
-        jac = np.zeros((2 * len(index), 0))
-    else:
-        if 2 * len(index) < len(z0):
-            raise ValueError(f"{2 * len(index)} residuals cannot fix {len(z0)} parameters")
-        sol = least_squares(
-            fun, z0, method="trf", loss=loss, f_scale=f_scale_px, x_scale=1.0,
-            max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12,
-        )
-        sol_x, success, message, jac = sol.x, bool(sol.success), str(sol.message), sol.jac
-    m, Ts = unpack(sol_x)
-    res = (predict(sol_x) - uv_obs)
-    per_view = np.split(res, np.cumsum(counts)[:-1])
-    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    std = {}
-    if n_model:
-        dof = max(2 * len(index) - len(z0), 1)
-        s2 = float(np.sum(res**2)) / dof
-        try:
-            cov = np.linalg.pinv(jac.T @ jac) * s2
-            sd = np.sqrt(np.clip(np.diag(cov)[:n_model], 0.0, None)) * scale[:n_model]
-            std = {n: float(v) for n, v in zip(names, sd)}
-        except np.linalg.LinAlgError:
-            std = {}
-    return RefineResult(
-        model=m,
-        board_poses={k: T for k, T in zip(pose_keys, Ts)},
-        residuals_px=per_view,
-        rms_px=rms,
-        std=std,
-        names=tuple(names),
-        success=success,
-        message=message,
     )
 
 
@@ -596,311 +218,6 @@ def transfer_matrix_error(model_est: RigModel, reference, voltages=None) -> Tran
     return TransferMatrixError(U, err, float(np.sqrt(np.mean(err**2))), terr, rerr)
 
 
-# ------------------------------------------------------------------------------ identification
-@dataclass
-class IdentificationResult:
-    """Result of :func:`identify_views`.
-
-    Attributes
-    ----------
-    views : list of ViewIdentification
-        One per input view, in input order.
-    model : RigModel
-        Model refined during identification.
-    board_poses : dict of int to ndarray, shape (4, 4)
-    refinement : RefineResult or None
-        Last refinement on the accepted views.
-    verify_px : float
-        Reprojection tolerance of the final verification, pixels.
-    rounds : int
-    """
-
-    views: list
-    model: RigModel
-    board_poses: dict
-    refinement: RefineResult | None
-    verify_px: float
-    rounds: int
-    log: list = field(default_factory=list)
-
-
-def _lattice_shift(offsets, period):
-    """Circular mean of lattice offsets modulo ``period``; shape (2,)."""
-    ang = 2.0 * np.pi * np.asarray(offsets) / period
-    mean = np.arctan2(np.sin(ang).mean(axis=0), np.cos(ang).mean(axis=0))
-    return mean * period / (2.0 * np.pi)
-
-
-def _mean_rotation(Rs) -> np.ndarray:
-    """Chordal L2 mean of rotation matrices (projection of their sum onto SO(3))."""
-    U_, _, Vt = np.linalg.svd(np.sum(Rs, axis=0))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U_ @ Vt))])
-    return U_ @ D @ Vt
-
-
-def board_pose_from_views(
-    detections: Sequence[CircleDetections],
-    voltages,
-    model: RigModel,
-    board: CircleBoard,
-    prior,
-    *,
-    min_circles: int = 4,
-    max_outlier_deg: float = 3.0,
-) -> tuple[np.ndarray, int]:
-    """Board orientation and plane from per-view PnP, keeping the prior's in-plane position.
-
-    Each view with at least ``min_circles`` circles is labelled relative to its first circle
-    (lattice steps predicted with the prior, which need only be right to ~10 degrees), its
-    board pose is solved by PnP and mapped into V0 with the approximate model. The mean
-    orientation and median plane offset of those views replace the prior's; the prior's
-    board origin is moved along its V0 ray onto the new plane. The position along the board
-    stays the prior's (it is fixed modulo the sub-pattern by the large circles later).
-
-    Parameters
-    ----------
-    detections : sequence of CircleDetections
-    voltages : array_like, shape (n, 2), volts
-    model : RigModel
-    board : CircleBoard
-    prior : array_like, shape (4, 4)
-        Approximate ``V0_T_W``, metres.
-    min_circles : int
-    max_outlier_deg : float
-        Views whose orientation differs more from the mean are left out.
-
-    Returns
-    -------
-    V0_T_W : ndarray, shape (4, 4)
-    n_views : int
-        Views used (0: the prior is returned unchanged).
-    """
-    prior = _as_transform(prior, "prior")
-    U = np.asarray(voltages, dtype=np.float64)
-    if U.shape != (len(detections), 2):
-        raise ValueError(f"voltages must have shape ({len(detections)}, 2), got {U.shape}")
-    Rs, ts = [], []
-    for det, u in zip(detections, U):
-        if len(det) < min_circles:
-            continue
-        xy = pixels_to_board(model, det.centres, u[0], u[1], prior)
-        if not np.isfinite(xy).all():
-            continue
-        frac = board.lattice_coords(xy)
-        rel = frac - frac[0]
-        lab = np.rint(rel)
-        if np.abs(rel - lab).max() > 0.3 or len({tuple(r) for r in lab}) != len(lab):
-            continue
-        rc = lab + np.rint(frac[0])
-        P = np.column_stack([
-            (rc[:, 1] - board.centre_col) * board.pitch,
-            (rc[:, 0] - board.centre_row) * board.pitch,
-            np.zeros(len(rc)),
-        ])
-        radii = np.where(board.is_large_rc(rc[:, 0], rc[:, 1]) & det.large & det.size_known,
-                         board.large_diameter / 2.0, board.small_diameter / 2.0)
-        try:
-            V_T_W, _ = pnp_view(model.intrinsics, P, radii, det.centres)
-        except (ValueError, cv2.error):
-            continue
-        T = v0_T_v(model, u[0], u[1]) @ V_T_W
-        Rs.append(T[:3, :3])
-        ts.append(T[:3, 3])
-    if not Rs:
-        return prior.copy(), 0
-    Rs = np.array(Rs)
-    ts = np.array(ts)
-    R = _mean_rotation(Rs)
-    for _ in range(2):
-        ang = np.degrees(_rotation_angle(np.swapaxes(Rs, -1, -2) @ R))
-        keep = ang <= max_outlier_deg
-        if keep.sum() == 0:
-            return prior.copy(), 0
-        R = _mean_rotation(Rs[keep])
-    n = R[:, 2]
-    offset = float(np.median(ts[keep] @ n))  # plane: n . x = offset
-    o = prior[:3, 3]
-    denom = float(n @ o)
-    t = o * (offset / denom) if abs(denom) > 1e-9 else o
-    return _transform(R, t), int(keep.sum())
-
-
-def identify_views(
-    detections: Sequence[CircleDetections],
-    voltages,
-    model: RigModel,
-    board: CircleBoard,
-    board_poses,
-    *,
-    pose_index=None,
-    refine_mirrors: bool = True,
-    refine_theta0: bool = True,
-    refine_poly: int = 0,
-    max_offset_pitch: float = 0.25,
-    verify_sigma: float = 8.0,
-    verify_floor_px: float = 2.0,
-    verify_max_pitch: float = 0.2,
-    max_rounds: int = 8,
-    progress: Callable | None = None,
-) -> IdentificationResult:
-    """Identify the circles of many views of the board while refining the model.
-
-    Round 0 fixes the board position modulo the sub-pattern period with the views that show
-    a large circle; each later round labels every view with :func:`identify_view`, refines
-    the model and board poses on the accepted views (robust loss), and repeats until the
-    accepted labels stop changing. Finally every view is verified against the refined model:
-    its circles must reproject within ``verify_px`` (``verify_sigma`` robust sigmas, at least
-    ``verify_floor_px``, at most ``verify_max_pitch`` pitches) or the view is rejected.
-
-    Parameters
-    ----------
-    detections : sequence of CircleDetections
-    voltages : array_like, shape (n, 2), volts
-        (U1_pan, U1_tilt) per view.
-    model : RigModel
-        Approximate model (nominal rig data).
-    board : CircleBoard
-    board_poses : ndarray shape (4, 4), or dict of int to ndarray shape (4, 4)
-        Approximate ``V0_T_W`` per board pose (metres); its position on the board needs to
-        be right to within 3 pitches for absolute labels (large circles fix the rest).
-    pose_index : array_like of int, shape (n,), optional
-        Board pose of each view (default all 0).
-    refine_mirrors, refine_theta0, refine_poly
-        As :func:`refine`.
-    max_offset_pitch : float
-        Largest prediction error accepted when labelling a view without a large circle.
-    verify_sigma, verify_floor_px, verify_max_pitch : float
-        Final reprojection tolerance (see above).
-    max_rounds : int
-    progress : callable, optional
-        ``progress(done, total, message)`` after each round.
-
-    Returns
-    -------
-    IdentificationResult
-    """
-    n = len(detections)
-    U = np.asarray(voltages, dtype=np.float64)
-    if U.shape != (n, 2) or not np.isfinite(U).all():
-        raise ValueError(f"voltages must have shape ({n}, 2) and be finite, got {U.shape}")
-    pidx = np.zeros(n, dtype=np.int64) if pose_index is None else np.asarray(pose_index)
-    if pidx.shape != (n,):
-        raise ValueError(f"pose_index must have shape ({n},), got {pidx.shape}")
-    if isinstance(board_poses, dict):
-        poses = {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
-    else:
-        poses = {0: _as_transform(board_poses, "board_poses")}
-    for p in set(pidx.tolist()):
-        if p not in poses:
-            raise ValueError(f"pose_index {p} has no entry in board_poses")
-    log: list[str] = []
-    period = board.sub_pattern
-
-    def label_all(m, ps, **kw):
-        return [
-            identify_view(det, U[i, 0], U[i, 1], m, ps[int(pidx[i])], board, **kw)
-            if len(det) else identify_view(det, 0.0, 0.0, m, ps[int(pidx[i])], board)
-            for i, det in enumerate(detections)
-        ]
-
-    # Round 0: board orientation and plane from per-view PnP, then the lattice position
-    # of each board pose from the large-circle views.
-    for p in sorted(poses):
-        sel = np.flatnonzero(pidx == p)
-        poses[p], used = board_pose_from_views(
-            [detections[i] for i in sel], U[sel], model, board, poses[p]
-        )
-        log.append(f"pose {p}: orientation from {used} PnP views")
-    ids = label_all(model, poses, max_offset_pitch=0.49, max_spread_pitch=0.25)
-    for p in sorted(poses):
-        offs = [
-            ids[i].offset_pitch for i in range(n)
-            if pidx[i] == p and ids[i].mode == "large" and np.isfinite(ids[i].offset_pitch).all()
-        ]
-        if not offs:
-            log.append(f"pose {p}: no view shows a large circle; relying on the pose prior")
-            continue
-        shift = _lattice_shift(offs, period)
-        delta = np.array([shift[1], shift[0], 0.0]) * board.pitch  # (row, col) -> (x, y)
-        poses[p] = poses[p] @ _transform(np.eye(3), -delta)
-        log.append(f"pose {p}: {len(offs)} large-circle views; board prior shifted by "
-                   f"({shift[0]:+.2f}, {shift[1]:+.2f}) pitch (row, col)")
-    m = model
-    prev = None
-    rounds = 0
-    ref = None
-    for rounds in range(1, max_rounds + 1):
-        ids = label_all(m, poses, max_offset_pitch=max_offset_pitch)
-        accepted = [i for i in range(n) if ids[i].accepted]
-        key = tuple((i, tuple(ids[i].index)) for i in accepted)
-        if progress is not None:
-            progress(rounds, max_rounds, f"identification round {rounds}: "
-                     f"{len(accepted)}/{n} views labelled")
-        if key == prev:
-            break
-        prev = key
-        obs = _observations(ids, detections, U, pidx, accepted)
-        n_pts = sum(len(o.index) for o in obs)
-        if n_pts < 12:
-            log.append(f"round {rounds}: only {n_pts} labelled circles, cannot refine")
-            break
-        spread = np.ptp(U[accepted], axis=0) if accepted else np.zeros(2)
-        enough = len(accepted) >= 6 and spread.min() > 1.0
-        ref = refine(
-            m, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
-            refine_l_d=enough and rounds >= 2,
-            refine_mirrors=refine_mirrors and enough,
-            refine_theta0=refine_theta0 and enough and rounds >= 2,
-            refine_poly=refine_poly if (enough and rounds >= 3) else 0,
-            loss="soft_l1", f_scale_px=2.0,
-        )
-        m = ref.model
-        poses.update(ref.board_poses)
-        log.append(f"round {rounds}: {len(accepted)} views labelled, robust fit rms "
-                   f"{ref.rms_px:.3f} px")
-    # Final verification against the refined model.
-    pitch_px = _pitch_px(m, board, poses)
-    ids = label_all(m, poses, max_offset_pitch=max_offset_pitch)
-    verify_px = verify_floor_px
-    for _ in range(3):
-        accepted = [i for i in range(n) if ids[i].accepted]
-        if not accepted:
-            break
-        obs = _observations(ids, detections, U, pidx, accepted)
-        ref = refine(
-            m, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
-            refine_l_d=len(accepted) >= 6, refine_mirrors=refine_mirrors and len(accepted) >= 6,
-            refine_theta0=refine_theta0 and len(accepted) >= 6,
-            refine_poly=refine_poly if len(accepted) >= 6 else 0,
-            loss="soft_l1", f_scale_px=max(verify_px / 4.0, 0.5),
-        )
-        m = ref.model
-        poses.update(ref.board_poses)
-        res = np.concatenate(ref.residuals_px)
-        sigma = 1.4826 * float(np.median(np.abs(res - np.median(res, axis=0))))
-        verify_px = float(np.clip(verify_sigma * sigma, verify_floor_px,
-                                  verify_max_pitch * pitch_px))
-        ids = label_all(m, poses, max_offset_pitch=max_offset_pitch, max_residual_px=verify_px)
-        if [i for i in range(n) if ids[i].accepted] == accepted:
-            break
-    log.append(f"verification: tolerance {verify_px:.2f} px, "
-               f"{sum(v.accepted for v in ids)}/{n} views accepted")
-    return IdentificationResult(ids, m, poses, ref, verify_px, rounds, log)
-
-
-def _observations(ids, detections, U, pidx, accepted):
-    return [
-        ViewObservation(U[i], ids[i].index, detections[i].centres, int(pidx[i]), i)
-        for i in accepted
-    ]
-
-
-def _pitch_px(model: RigModel, board: CircleBoard, poses) -> float:
-    """Board pitch in pixels at the V0 view of the nearest board pose."""
-    z = min(float(T[2, 3]) for T in poses.values())
-    return model.intrinsics.fx * board.pitch / max(z, 1e-3)
-
-
 # ------------------------------------------------------------------------------ the stage
 def default_board_pose(distance: float) -> np.ndarray:
     """``V0_T_W`` of a board facing V0 with its centre circle on the V0 optical axis.
@@ -962,7 +279,7 @@ def _linear_l_d(obs, pnp, model, U, max_rotation_deg: float = 0.2):
     )
     ang = np.degrees(_rotation_angle(np.swapaxes(Rm[:, :3, :3], -1, -2) @ T[:, :3, :3]))
     ok = ang <= max_rotation_deg
-    for j, a in zip(j_[~ok], ang[~ok]):
+    for j, a in zip(j_[~ok], ang[~ok], strict=True):
         notes.append(f"Eq. 16: view {j} left out, PnP rotation off by {a:.2f} deg")
     if ok.sum() < 2:
         return None, notes + ["Eq. 16: fewer than 2 consistent PnP views"]
@@ -1020,7 +337,8 @@ def run_dynamic_camera(
         ``reprojection_max_px``, ``linear_translation_rms_m`` (Eq. 16),
         ``transfer_translation_rms_m`` / ``transfer_rotation_rms_rad`` (model vs PnP-measured
         transfer matrices). ``extra['dynamic_camera']``: Eq. 16 (l, d), standard errors, board
-        poses, the paper's Eq. 18-1 RMSE in mm against the measured matrices.
+        poses, the paper's Eq. 18-1 RMSE in mm against the measured matrices, and per
+        accepted view (input index) its circle labels and detected centres.
     """
     if not isinstance(board, CircleBoard):
         raise ValueError("board must be a CircleBoard")
@@ -1137,6 +455,9 @@ def run_dynamic_camera(
         "std": dict(fin.std),
         "identification_verify_px": ident.verify_px,
         "identification_log": list(ident.log) + lin_notes,
+        # Input view index -> board circle index and detected centre (px) of its circles.
+        "labels": {keep[o.view_id]: o.index.tolist() for o in obs},
+        "centres_px": {keep[o.view_id]: o.uv.tolist() for o in obs},
     }
     if lin is not None:
         residuals["linear_translation_rms_m"] = lin.translation_rms_m
@@ -1171,28 +492,19 @@ def run_dynamic_camera(
     )
 
 
-def true_poses_voltages(model: RigModel, voltages) -> np.ndarray:
-    """``V0_T_V`` of a model at voltages ``(n, 2)``; shape (n, 4, 4) (reference for tests)."""
-    U = np.asarray(voltages, dtype=np.float64)
-    if U.ndim != 2 or U.shape[1] != 2:
-        raise ValueError(f"voltages must have shape (n, 2), got {U.shape}")
-    return v0_T_v(model, U[:, 0], U[:, 1])
-
-
 __all__ = [
     "PAPER_GRID_VOLTAGES",
     "IdentificationResult",
     "LinearLD",
-    "MirrorParams",
     "RefineResult",
     "TransferMatrixError",
     "ViewObservation",
+    "board_pose_from_views",
     "default_board_pose",
     "identify_views",
     "paper_grid",
     "pnp_view",
     "refine",
-    "rodrigues",
     "run_dynamic_camera",
     "solve_l_d_linear",
     "transfer_matrix_error",

@@ -120,8 +120,8 @@ def plane_rotation_angles(planes, direction, reference: int = 0) -> np.ndarray:
     return np.arctan2(np.cross(ref, normals) @ n, normals @ ref)
 
 
-def fit_axis(planes, voltages=None, *, anchor=(0.0, 0.0, 0.0), reference_dir=None,
-             fit_offset: bool = False, poly_degree: int = 1) -> AxisFit:
+def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
+             reference_dir=None, fit_offset: bool = False, poly_degree: int = 1) -> AxisFit:
     """Fit the common rotation axis of laser planes, and the angle per volt.
 
     Parameters
@@ -131,6 +131,9 @@ def fit_axis(planes, voltages=None, *, anchor=(0.0, 0.0, 0.0), reference_dir=Non
         ``fit_offset``).
     voltages : array_like, shape (m,), volts, optional
         G2 tilt voltage of each plane; enables the angle-per-volt fit.
+    weights : array_like, shape (m,), optional
+        Relative weight of each plane (inverse variance of its normal), used in
+        ``sum w_i n_i n_i^T``, in the point's least squares and in the angle fit. Default: 1.
     anchor : array_like, shape (3,), metres
         P is the axis point closest to it (default: the V0 origin).
     reference_dir : array_like, shape (3,), optional
@@ -162,7 +165,14 @@ def fit_axis(planes, voltages=None, *, anchor=(0.0, 0.0, 0.0), reference_dir=Non
         raise ValueError(f'poly_degree must be an integer >= 1, got {poly_degree!r}')
     N = pl[:, :3]
     e = pl[:, 3]
-    evals, evecs = np.linalg.eigh(N.T @ N)
+    w = np.ones(m)
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (m,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.max() > 0:
+            raise ValueError(f'weights must be finite, >= 0, not all 0, shape ({m},)')
+        w = w / w.max()
+    sw = np.sqrt(w)
+    evals, evecs = np.linalg.eigh((N * w[:, None]).T @ N)
     if evals[1] < 1e-14 * max(evals[2], 1e-300):
         raise ValueError('the planes are all parallel: their normals do not span a plane, so '
                          'they define no axis (sweep the laser over a wider range)')
@@ -183,7 +193,7 @@ def fit_axis(planes, voltages=None, *, anchor=(0.0, 0.0, 0.0), reference_dir=Non
         if m < 3:
             raise ValueError('fit_offset needs at least 3 planes')
         A = np.column_stack([A, -np.ones(m)])
-    sol, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+    sol, *_ = np.linalg.lstsq(A * sw[:, None], rhs * sw, rcond=None)
     P = a + B @ sol[:2]
     rho = float(sol[2]) if fit_offset else 0.0
     dist = N @ P + e - rho
@@ -207,7 +217,7 @@ def fit_axis(planes, voltages=None, *, anchor=(0.0, 0.0, 0.0), reference_dir=Non
         if degree >= 1:
             # alpha = c + 2 (k U + p0 U^2 + ...)
             V = np.column_stack([np.ones(m)] + [u ** (p + 1) for p in range(degree)])
-            coef, *_ = np.linalg.lstsq(V, rot, rcond=None)
+            coef, *_ = np.linalg.lstsq(V * sw[:, None], rot * sw, rcond=None)
             fit_rms = float(np.sqrt(np.mean((V @ coef - rot) ** 2)))
             k = float(coef[1] / 2.0)
             poly = tuple(float(c / 2.0) for c in coef[2:])
@@ -249,7 +259,8 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     board : board_layout.Checkerboard or board_layout.CircleGrid
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
     fit_offset, poly_degree, anchor
-        See :func:`fit_axis`.
+        See :func:`fit_axis`. Planes are weighted by the squared spread of their points
+        across the stripe (a plane from nearby board poses has a poorly known tilt).
     k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread
         See :func:`laser_plane.board_stripe_points` and :func:`laser_plane.plane_from_stripes`.
 
@@ -274,7 +285,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     groups: dict[int, list] = {}
     for s in coll.stripes:
         groups.setdefault(int(round(s.u2_tilt / VOLTAGE_TOL)), []).append(s)
-    planes, volts, rms = [], [], []
+    planes, volts, rms, weights = [], [], [], []
     orient = model.laser_plane_v0[:3]
     for key in sorted(groups):
         stripes = groups[key]
@@ -290,11 +301,14 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         planes.append(fit.plane)
         volts.append(u2)
         rms.append(fit.rms)
+        # A plane's tilt across the stripe is known to about (pose error) / (spread of its
+        # points across the stripe): weight by the spread squared.
+        weights.append(fit.singular_values[1] ** 2)
     need = 3 if fit_offset else 2
     if len(planes) < need:
         raise ValueError(f'laser_axis: {len(planes)} usable laser plane(s), at least {need} '
                          f'needed; rejected: {rejected}')
-    fit = fit_axis(np.array(planes), np.array(volts), anchor=anchor,
+    fit = fit_axis(np.array(planes), np.array(volts), weights=np.array(weights), anchor=anchor,
                    reference_dir=model.laser_axis_dir, fit_offset=fit_offset,
                    poly_degree=poly_degree)
     updates = {'laser_axis_dir': [float(v) for v in fit.direction],

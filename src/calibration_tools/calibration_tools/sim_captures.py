@@ -68,22 +68,6 @@ def board_scene_yaml(board, translation, rotation_vector) -> str:
                               pattern=_CIRCLES.format(nx=board.cols, ny=board.rows, p=p,
                                                       d=board.diameter))
 
-_SPHERE_YAML = """
-format_version: 1
-name: cal2_sphere
-objects:
-  - type: sphere
-    name: sphere
-    pose: {{translation: {c}, rotation_vector: [0.0, 0.0, 0.0]}}
-    radius: {radius}
-    albedo: 0.75
-  - type: plane
-    name: wall
-    pose: {{translation: {w}, rotation_vector: [0.0, 0.0, 0.0]}}
-    albedo: 0.3
-{extra}"""
-
-
 def _rotvec(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
@@ -203,3 +187,95 @@ def board_poses_on_laser(sim, model, u2_tilts, depths, board, *,
                 truths.append(frame.truth)
             pose += 1
     return views, truths
+
+
+def sphere_scene_yaml(centre, radius: float, wall_z: float | None = None,
+                      occluder=None) -> str:
+    """Simulator scene text: the calibration sphere, optionally a wall behind it and a box.
+
+    Parameters
+    ----------
+    centre : array_like, shape (3,), metres
+        Sphere centre in the scene frame W.
+    radius : float, metres
+    wall_z : float, metres, optional
+        A wall (plane z = wall_z, facing the camera) behind the sphere.
+    occluder : (array_like shape (3,), array_like shape (3,)), optional
+        Centre and size [m] of a box standing in front of the sphere.
+    """
+    def pose(t):
+        return f'{{translation: {[float(v) for v in t]}, rotation_vector: [0.0, 0.0, 0.0]}}'
+
+    objects = [f'  - type: sphere\n    name: sphere\n    pose: {pose(centre)}\n'
+               f'    radius: {float(radius)}\n    albedo: 0.75\n']
+    if wall_z is not None:
+        objects.append(f'  - type: plane\n    name: wall\n    pose: {pose([0, 0, wall_z])}\n'
+                       f'    albedo: 0.3\n')
+    if occluder is not None:
+        oc, size = occluder
+        objects.append(f'  - type: box\n    name: occluder\n    pose: {pose(oc)}\n'
+                       f'    size: {[float(v) for v in size]}\n    albedo: 0.5\n')
+    return 'format_version: 1\nname: cal2_sphere\nobjects:\n' + ''.join(objects)
+
+
+def sphere_g1_grid(sim, model, u2_tilt: float, radius: float, pans, tilts, *,
+                   depth: float = 0.65, wall_gap: float | None = 0.0, occluder=None,
+                   occluded_nodes=(), pose_index: int = 0):
+    """Laser-on frames of a sphere with G2 fixed and G1 stepped over a grid.
+
+    The sphere is placed where ``model``'s laser plane at ``u2_tilt`` crosses the V0 optical
+    axis at ``depth`` (its front surface there); G1 is aimed at its centre, then offset by
+    every (pan, tilt) of the grid.
+
+    Parameters
+    ----------
+    sim : galvo_driver.sim.simulator.Simulator
+        Its scene is replaced.
+    model : reconstructor.model.RigModel
+        The operator's approximate model (placement and aiming only).
+    u2_tilt : float, volts
+    radius : float, metres
+    pans, tilts : sequence of float, volts
+        G1 offsets from the aimed voltages (the grid).
+    depth : float, metres
+    wall_gap : float or None, metres
+        Wall this far behind the sphere's back (None: no wall).
+    occluder : (offset, size), optional
+        A box (offset of its centre from the sphere centre, size; metres) present only in
+        the frames of ``occluded_nodes`` (someone's hand in front of the sphere).
+    occluded_nodes : sequence of (int, int)
+        (pan index, tilt index) of the frames that see the occluder.
+    pose_index : int
+
+    Returns
+    -------
+    views : list of CaptureView
+    truths : list of FrameTruth
+    centre : ndarray, shape (3,), metres
+        Where the sphere was placed (scene frame).
+    aim : ndarray, shape (2,), volts
+        The G1 voltages aimed at the sphere (grid origin).
+    """
+    from galvo_driver.sim.scene import load_scene_text
+    from reconstructor.model import laser_plane_v0
+
+    u2 = float(_quantize(sim, u2_tilt))
+    pi = laser_plane_v0(model, u2)
+    front = np.array([0.0, -(pi[2] * depth + pi[3]) / pi[1], depth])
+    centre = front + np.array([0.0, 0.0, radius])
+    wall = None if wall_gap is None else centre[2] + radius + wall_gap
+    plain = load_scene_text(sphere_scene_yaml(centre, radius, wall))
+    blocked = plain
+    if occluder is not None:
+        box = (centre + np.asarray(occluder[0], dtype=np.float64), occluder[1])
+        blocked = load_scene_text(sphere_scene_yaml(centre, radius, wall, box))
+    aim = aim_g1(model, centre)
+    views, truths = [], []
+    for a, dp in enumerate(pans):
+        for b, dt in enumerate(tilts):
+            sim.set_scene(blocked if (a, b) in set(map(tuple, occluded_nodes)) else plain)
+            volts = _quantize(sim, [aim[0] + dp, aim[1] + dt, 0.0, u2])
+            frame = sim.render(volts)
+            views.append(CaptureView(frame.image, volts, True, pose_index))
+            truths.append(frame.truth)
+    return views, truths, centre, aim

@@ -301,7 +301,8 @@ def test_metadata_hashes_are_used_when_present(killed, tmp_path):
     info = yaml.safe_load((tmp_path / 'out' / 'metadata.yaml').read_text())
     topics = info['rosbag2_bagfile_information']['topics_with_message_count']
     by_type = {t['topic_metadata']['type']: t['topic_metadata'] for t in topics}
-    assert by_type['galvoscan_msgs/msg/GalvoState']['type_description_hash'] == 'RIHS01_' + 'ab' * 32
+    stored = by_type['galvoscan_msgs/msg/GalvoState']['type_description_hash']
+    assert stored == 'RIHS01_' + 'ab' * 32
     assert recovered_messages(tmp_path / 'out') == written
 
 
@@ -328,3 +329,38 @@ def test_cli(killed, tmp_path, capsys):
     assert '/galvo/state: 14' in out
     assert main([str(directory), '-o', str(tmp_path / 'out')]) == 1  # output exists
     assert 'exists' in capsys.readouterr().err
+
+
+def test_message_indexes_point_at_their_messages(tmp_path):
+    """Each chunk's message index records (opcode 0x07) give (log time, offset) of its messages;
+    check them against the chunk's records, parsed here from the MCAP layout."""
+    bag = BagWriter(tmp_path / 'ix', chunk_size=3000, flush_interval=None).open()
+    bag.add_topic('/galvo/state', 'galvoscan_msgs/msg/GalvoState')
+    for i in range(12):
+        if i == 5:  # a channel record in the middle of a chunk
+            bag.add_topic('/camera/image_raw', 'sensor_msgs/msg/Image')
+        if i >= 5 and i % 2:
+            bag.write('/camera/image_raw', bytearray(cdr(image(i))), 100 + i)
+        bag.write('/galvo/state', memoryview(cdr(galvo_state(i))), 100 + i)
+    bag.close()
+    data = (tmp_path / 'ix' / 'ix.mcap').read_bytes()
+    pos, checked, chunk_records = 8, 0, None
+    while pos + 9 <= len(data):
+        op, length = struct.unpack_from('<BQ', data, pos)
+        body = data[pos + 9 : pos + 9 + length]
+        if op == 0x06:
+            (n,) = struct.unpack_from('<I', body, 28)
+            chunk_records = body[28 + 4 + n + 8 :]
+        elif op == 0x07:
+            cid, nbytes = struct.unpack_from('<HI', body, 0)
+            for k in range(nbytes // 16):
+                log_time, offset = struct.unpack_from('<QQ', body, 6 + 16 * k)
+                rop, _, rcid, _, rlog = struct.unpack_from('<BQHIQ', chunk_records, offset)
+                assert (rop, rcid, rlog) == (0x05, cid, log_time)
+                checked += 1
+        elif op == 0x02:  # footer
+            break
+        pos += 9 + length
+    assert checked == 12 + 4  # every message is indexed (images at i = 5, 7, 9, 11)
+    got = [(m.topic, m.log_time_ns) for m in read_messages(tmp_path / 'ix')]
+    assert len(got) == 16 and got[-1] == ('/galvo/state', 111)

@@ -66,7 +66,8 @@ def test_type_hash_equals_rosidl_generated_hash(name):
     described = json.loads((INSTALLED_MSG_DIR / f'{name}.json').read_text())
     expected = {h['type_name']: h['hash_string'] for h in described['type_hashes']}
     store = make_typestore(REPO_MSG_DIR)
-    assert store.hash_rihs01(f'galvoscan_msgs/msg/{name}') == expected[f'galvoscan_msgs/msg/{name}']
+    msgtype = f'galvoscan_msgs/msg/{name}'
+    assert store.hash_rihs01(msgtype) == expected[msgtype]
 
 
 def test_string_constants_are_unquoted():

@@ -295,7 +295,8 @@ def test_chunk_size_closes_chunks(tmp_path):
     bag = BagWriter(tmp_path / 'b', chunk_size=500, flush_interval=None).open()
     bag.add_topic('/c', 'galvoscan_msgs/msg/StripeCenters')
     for i in range(6):  # each StripeCenters here is > 500 bytes
-        bag.write('/c', bytes(STORE.serialize_cdr(stripe_centers(i), StripeCenters.__msgtype__)), i)
+        data = bytes(STORE.serialize_cdr(stripe_centers(i), StripeCenters.__msgtype__))
+        bag.write('/c', data, i)
     assert bag.chunks_flushed == 6
     bag.close()
     with (tmp_path / 'b' / 'b.mcap').open('rb') as stream:

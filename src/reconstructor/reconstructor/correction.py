@@ -456,7 +456,7 @@ def _numbers(value, key: str, depth: int, shape=None) -> np.ndarray:
     try:
         arr = np.array(nested, dtype=np.float64)
     except ValueError:
-        raise ValueError(f'{key} must be a regular nested list of shape {shape}') from None
+        raise ValueError(f'{key} must have shape {shape} (a regular nested list)') from None
     if shape is not None and arr.shape != tuple(shape):
         raise ValueError(f'{key} must have shape {tuple(shape)}, got {arr.shape}')
     return arr

@@ -177,8 +177,8 @@ def gaussian_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @functools.lru_cache(maxsize=32)
 def stacked_kernels(sigma: float) -> np.ndarray:
-    """``gaussian_kernels(sigma)`` stacked to shape (3, K + 1), float64, read-only (cached)."""
-    kern = np.ascontiguousarray(np.stack(gaussian_kernels(sigma)))
+    """``gaussian_kernels(sigma)`` stacked to shape (3, K + 1), float32, read-only (cached)."""
+    kern = np.ascontiguousarray(np.stack(gaussian_kernels(sigma)), dtype=np.float32)
     kern.setflags(write=False)
     return kern
 

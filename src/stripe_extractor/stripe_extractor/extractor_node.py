@@ -55,7 +55,7 @@ from .extractor import (
     extract,
     warm_up,
 )
-from .image_msg import CAUSES, BadImage, image_to_array
+from .image_msg import CAUSES, BadImageError, image_to_array
 from .pairing import StampPairer
 
 PAIRING_BUFFER_RANGE = (1, 1000)
@@ -189,7 +189,7 @@ class StripeExtractorNode(Node):
         self._counts['images_received'] += 1
         try:
             img = image_to_array(msg)
-        except BadImage as exc:
+        except BadImageError as exc:
             self._skip(exc.cause, str(exc))
             return
         config = self._config
@@ -270,12 +270,13 @@ class StripeExtractorNode(Node):
 
 
 def make_executor(context=None):
-    """EventsExecutor where rclpy provides one that works, else SingleThreadedExecutor."""
-    try:
-        from rclpy.experimental import EventsExecutor
-        return EventsExecutor(context=context)
-    except Exception:  # noqa: BLE001 - fall back to the always-available executor
-        return SingleThreadedExecutor(context=context)
+    """The executor used by :func:`main`: ``SingleThreadedExecutor``.
+
+    ``rclpy.experimental.EventsExecutor`` was tried on this rclpy (7.1, PyPI wheels): its
+    timers never fired, it used half a core while idle and it ignored SIGTERM, so it is not
+    used. ``MultiThreadedExecutor`` loses most 500 Hz images (TOOLCHAIN.md).
+    """
+    return SingleThreadedExecutor(context=context)
 
 
 def spin_composed(nodes, executor=None) -> None:

@@ -17,7 +17,7 @@ ENCODINGS = {'mono8': np.uint8, '8UC1': np.uint8, 'mono16': np.uint16, '16UC1': 
 CAUSES = ('unsupported_encoding', 'zero_size', 'step_too_small', 'data_length', 'too_small')
 
 
-class BadImage(ValueError):
+class BadImageError(ValueError):
     """The message cannot be read as an image; ``cause`` is one of :data:`CAUSES`."""
 
     def __init__(self, cause: str, detail: str):
@@ -31,25 +31,25 @@ def image_to_array(msg) -> np.ndarray:
 
     Raises
     ------
-    BadImage
+    BadImageError
         Unsupported encoding, zero size, step < width * bytes per pixel, data length !=
         step * height, or smaller than 3x3 px.
     """
     dtype = ENCODINGS.get(msg.encoding)
     if dtype is None:
-        raise BadImage('unsupported_encoding',
+        raise BadImageError('unsupported_encoding',
                        f'encoding {msg.encoding!r} (supported: {", ".join(ENCODINGS)})')
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h == 0 or w == 0:
-        raise BadImage('zero_size', f'{w}x{h} px')
+        raise BadImageError('zero_size', f'{w}x{h} px')
     bpp = np.dtype(dtype).itemsize
     if step < w * bpp:
-        raise BadImage('step_too_small', f'step {step} < width {w} x {bpp} bytes')
+        raise BadImageError('step_too_small', f'step {step} < width {w} x {bpp} bytes')
     n = len(msg.data)
     if n != step * h:
-        raise BadImage('data_length', f'{n} bytes != step {step} x height {h}')
+        raise BadImageError('data_length', f'{n} bytes != step {step} x height {h}')
     if h < 3 or w < 3:
-        raise BadImage('too_small', f'{w}x{h} px (at least 3x3 needed)')
+        raise BadImageError('too_small', f'{w}x{h} px (at least 3x3 needed)')
     raw = np.frombuffer(msg.data, np.uint8).reshape(h, step)
     if step != w * bpp:
         raw = raw[:, :w * bpp]

@@ -4,25 +4,32 @@ No rclpy here. For each column (stripe mostly horizontal; the caller transposes 
 
 1. The candidate row ``p`` from :mod:`.candidates` (largest 3x3 box sum of the column).
 2. Region of interest: rows ``p - R .. p + R`` of this column, ``R = roi_half_height``. The
-   column profile smoothed by the Gaussian ``g_sigma`` is evaluated there; its maximum is the
-   pixel ``r0`` and the smaller of its two end values is the background.
+   column profile smoothed by the Gaussian ``g_sigma`` is climbed from ``p`` to its maximum,
+   the pixel ``r0``; the smaller of its values at the two ROI ends is the background. A
+   column whose smoothed peak is below ``min_strength`` has no stripe.
 3. At ``r0`` the Hessian ``H = [[r_uu, r_uv], [r_uv, r_vv]]`` and the gradient ``(r_u, r_v)``
    are computed from separable Gaussian-derivative kernels (scale sigma) on the
-   ``(2K+3) x (2K+1)`` pixels around it (K = ceil(3 sigma)). The stripe normal ``n`` is the
+   ``(2K+1) x (2K+1)`` pixels around it (K = ceil(3 sigma)). The stripe normal ``n`` is the
    eigenvector of the most negative eigenvalue ``lambda``; the sub-pixel offset along it is
    ``t = -(grad . n) / lambda``. The point ``(c + t n_u, r0 + t n_v)`` is accepted if
    ``|t n_u| <= 0.5`` and ``|t n_v| <= 0.5`` (Steger's condition: the line point lies in this
-   pixel); otherwise the neighbouring pixel in the direction of ``t n_v`` is tried once.
+   pixel); otherwise the neighbouring pixel the offset points to is tried once, and if the
+   two estimates straddle the pixel boundary the nearer one is kept.
 4. ``strength`` = smoothed value at the sub-pixel point minus background;
    ``width = 2.3548 sqrt(S^2 - sigma^2)`` with ``S^2 = -strength / lambda`` (for a Gaussian
    profile of std s, smoothing gives std S = sqrt(s^2 + sigma^2) and curvature -peak/S^2).
 5. The secondary candidate of the column (if any) is smoothed the same way; if its strength
    reaches ``min_strength`` it is rejected and counted.
 
-Columns closer than K to the left/right border use the column profile only (normal fixed to
-the column, the one-dimensional case of the same formulae). Rows closer than K + 1 to the
-top/bottom border give no centre. Work per column is O(R K + K^2): the full image is never
-filtered.
+The 2-D kernels are used only where the stripe is present in every column of the footprint
+``c-K .. c+K`` with peak rows that differ by at most ``|dc| + 2``; elsewhere (left/right
+image borders, line ends at occlusions, jumps at depth steps) the column profile alone is
+used (normal fixed to the column: the one-dimensional case of the same formulae), which is
+unbiased there. Rows closer than K + 1 to the top/bottom border give no centre. Work per
+column is O(R K + K^2): the full image is never filtered.
+
+Known limit: within about K columns of a sharp corner of the stripe (e.g. a box edge) the
+2-D estimate can be off by a few tenths of a pixel.
 """
 
 from __future__ import annotations
@@ -312,6 +319,6 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig):
     """
     sigma = config.sigma
     out = np.empty((4, img.shape[1]), np.float32)
-    n, nsec = steger_columns(img, config.roi_half_height, stacked_kernels(sigma).astype(np.float32), sigma,
+    n, nsec = steger_columns(img, config.roi_half_height, stacked_kernels(sigma), sigma,
                              config.min_strength, out)
     return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec

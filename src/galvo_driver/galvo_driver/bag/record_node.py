@@ -36,9 +36,8 @@ from rclpy.qos import (
     QoSProfile,
     ReliabilityPolicy,
 )
-from rclpy.utilities import remove_ros_args
 
-from .ros_messages import import_message_class, qos_to_rosbags
+from .ros_messages import import_message_class, qos_to_rosbags, split_ros_args
 from .writer import ROSBAGS_CHUNK_LIMIT, BagWriter
 
 #: Topics recorded when none are named, with their types.
@@ -272,7 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     Returns 0 on success, 1 on an error (the bag is closed in every case).
     """
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(remove_ros_args(['galvoscan record', *argv])[1:])
+    cli_args, ros_args = split_ros_args(argv)
+    args = build_parser().parse_args(cli_args)
     try:
         topics = parse_topic_specs(args.topics) if args.topics else dict(DEFAULT_TOPICS)
         if args.duration is not None and not args.duration > 0:
@@ -286,7 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'galvoscan record: error: {err}', file=sys.stderr)
         return 1
 
-    rclpy.init(args=['galvoscan record', *argv])
+    rclpy.init(args=['galvoscan record', *ros_args])
     node = None
     status = 0
     try:

@@ -19,10 +19,9 @@ from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
-from rclpy.utilities import remove_ros_args
 
 from .reader import BagReadError, read_messages, read_topics
-from .ros_messages import import_message_class, qos_from_rosbags
+from .ros_messages import import_message_class, qos_from_rosbags, split_ros_args
 
 
 def _absolute(name: str) -> str:
@@ -172,7 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Replay a bag once (or with ``--loop`` until Ctrl-C/SIGTERM). Returns an exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(remove_ros_args(['galvoscan replay', *argv])[1:])
+    cli_args, ros_args = split_ros_args(argv)
+    args = build_parser().parse_args(cli_args)
     try:
         remap = parse_remaps(args.remap)
         if args.qos_depth < 1:
@@ -183,7 +183,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'galvoscan replay: error: {err}', file=sys.stderr)
         return 1
 
-    rclpy.init(args=['galvoscan replay', *argv])
+    rclpy.init(args=['galvoscan replay', *ros_args])
     node = None
     status = 0
     try:

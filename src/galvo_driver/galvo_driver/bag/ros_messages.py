@@ -7,7 +7,7 @@ messages) into a rosbag2 directory.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +31,28 @@ from rosbags.interfaces import (
 from rosbags.typesys.store import Typestore
 
 from .writer import ROSBAGS_CHUNK_LIMIT, write_bag
+
+
+def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Split ``argv`` into (our arguments, ROS arguments).
+
+    ROS arguments are every ``--ros-args ...`` section up to a ``--`` terminator. Unlike
+    ``rclpy.utilities.remove_ros_args`` this leaves ``FROM:=TO`` outside ``--ros-args`` to us.
+    """
+    ours: list[str] = []
+    ros: list[str] = []
+    in_ros = False
+    for arg in argv:
+        if arg == '--ros-args':
+            in_ros = True
+            ros.append(arg)
+        elif in_ros and arg == '--':
+            in_ros = False
+        elif in_ros:
+            ros.append(arg)
+        else:
+            ours.append(arg)
+    return ours, ros
 
 
 def import_message_class(msgtype: str) -> type:

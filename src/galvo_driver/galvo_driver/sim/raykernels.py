@@ -19,7 +19,7 @@ EPS = 1e-7
 BOX, SPHERE, RECT = 0, 1, 2
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _local(R, T, prm, p, x, y, z):
     qx, qy, qz = x - T[p, 0], y - T[p, 1], z - T[p, 2]
     if prm[p, 6] != 0.0:  # identity rotation
@@ -29,7 +29,7 @@ def _local(R, T, prm, p, x, y, z):
             R[p, 0, 2] * qx + R[p, 1, 2] * qy + R[p, 2, 2] * qz)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _local_dir(R, prm, p, x, y, z):
     if prm[p, 6] != 0.0:
         return x, y, z
@@ -38,7 +38,7 @@ def _local_dir(R, prm, p, x, y, z):
             R[p, 0, 2] * x + R[p, 1, 2] * y + R[p, 2, 2] * z)
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _slab(lo, hi, o, d, inv):
     """Entry/exit of a ray with one slab (inv = 1/d); (t_near, t_far) or (inf, -inf)."""
     if d == 0.0:
@@ -52,7 +52,7 @@ def _slab(lo, hi, o, d, inv):
     return t1, t2
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _box(prm, p, ox, oy, oz, dx, dy, dz, ix, iy, iz):
     """(t_in, t_out, axis of t_in) of a ray and an axis-aligned box (i* = 1/d*)."""
     a0, b0 = _slab(prm[p, 0], prm[p, 3], ox, dx, ix)
@@ -66,74 +66,12 @@ def _box(prm, p, ox, oy, oz, dx, dy, dz, ix, iy, iz):
     return t_in, min(b0, b1, b2), ax
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _inv(x):
     return 1.0 / x if x != 0.0 else 0.0
 
 
-@njit(cache=True, inline='always')
-def closest_hit(ptype, R, T, prm, ox, oy, oz, dx, dy, dz):
-    """Closest primitive hit of one ray: (t, prim, nx, ny, nz), prim = -1 for none."""
-    best = np.inf
-    bp = -1
-    bnx = bny = bnz = 0.0
-    wix, wiy, wiz = _inv(dx), _inv(dy), _inv(dz)
-    for p in range(ptype.shape[0]):
-        lx, ly, lz = _local(R, T, prm, p, ox, oy, oz)
-        ex, ey, ez = _local_dir(R, prm, p, dx, dy, dz)
-        kind = ptype[p]
-        if kind == BOX:
-            if prm[p, 6] != 0.0:
-                ix, iy, iz = wix, wiy, wiz
-            else:
-                ix, iy, iz = _inv(ex), _inv(ey), _inv(ez)
-            t_in, t_out, ax = _box(prm, p, lx, ly, lz, ex, ey, ez, ix, iy, iz)
-            if t_in <= t_out and t_in > EPS and t_in < best:
-                best = t_in
-                bp = p
-                nx = ny = nz = 0.0
-                if ax == 0:
-                    nx = -1.0 if ex > 0 else 1.0
-                elif ax == 1:
-                    ny = -1.0 if ey > 0 else 1.0
-                else:
-                    nz = -1.0 if ez > 0 else 1.0
-                bnx, bny, bnz = nx, ny, nz
-        elif kind == SPHERE:
-            cx, cy, cz, r = prm[p, 0], prm[p, 1], prm[p, 2], prm[p, 3]
-            qx, qy, qz = lx - cx, ly - cy, lz - cz
-            b = qx * ex + qy * ey + qz * ez
-            c = qx * qx + qy * qy + qz * qz - r * r
-            disc = b * b - c
-            if disc >= 0.0:
-                t = -b - math.sqrt(disc)
-                if t > EPS and t < best:
-                    best = t
-                    bp = p
-                    bnx = (qx + t * ex) / r
-                    bny = (qy + t * ey) / r
-                    bnz = (qz + t * ez) / r
-        else:
-            if ez != 0.0:
-                t = -lz / ez
-                if t > EPS and t < best:
-                    x = lx + t * ex
-                    y = ly + t * ey
-                    if abs(x) <= prm[p, 0] and abs(y) <= prm[p, 1]:
-                        best = t
-                        bp = p
-                        bnx = 0.0
-                        bny = 0.0
-                        bnz = -1.0 if ez > 0 else 1.0
-    if bp >= 0:
-        wx = R[bp, 0, 0] * bnx + R[bp, 0, 1] * bny + R[bp, 0, 2] * bnz
-        wy = R[bp, 1, 0] * bnx + R[bp, 1, 1] * bny + R[bp, 1, 2] * bnz
-        wz = R[bp, 2, 0] * bnx + R[bp, 2, 1] * bny + R[bp, 2, 2] * bnz
-        return best, bp, wx, wy, wz
-    return best, bp, 0.0, 0.0, 0.0
-
-
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def is_blocked(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tmax):
     """Whether a surface or a solid's interior lies on the segment (see Scene.occluded)."""
     wix, wiy, wiz = _inv(dx), _inv(dy), _inv(dz)
@@ -169,19 +107,6 @@ def is_blocked(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tmax):
 
 
 @njit(cache=True)
-def trace_closest(ptype, R, T, prm, o, d, t_out, prim_out, n_out):
-    """Closest hits of rays o (n, 3) + t d (n, 3), world frame."""
-    for i in range(o.shape[0]):
-        t, p, nx, ny, nz = closest_hit(ptype, R, T, prm, o[i, 0], o[i, 1], o[i, 2],
-                                       d[i, 0], d[i, 1], d[i, 2])
-        t_out[i] = t
-        prim_out[i] = p
-        n_out[i, 0] = nx
-        n_out[i, 1] = ny
-        n_out[i, 2] = nz
-
-
-@njit(cache=True)
 def trace_blocked(ptype, R, T, prm, o, d, tmax, out):
     for i in range(o.shape[0]):
         out[i] = is_blocked(ptype, R, T, prm, o[i, 0], o[i, 1], o[i, 2], d[i, 0], d[i, 1],
@@ -193,7 +118,7 @@ def _camera_ray(cam, x, y):
     """Pixel ray (x, y, 1) in C traced off the two G1 mirrors, returned in W.
 
     ``cam`` packs: [0:9] G_R_C, [9:12] camera centre in G, [12:15] n1, [15] c1,
-    [16:19] n2, [19] c2, [20:29] W_R_G, [29:32] W_t_G.
+    [16:19] n2, [19] c2, [20:29] W_R_G, [29:32] W_t_G, [32:35] virtual camera centre in W.
     """
     inv = 1.0 / math.sqrt(x * x + y * y + 1.0)
     dx = (cam[0] * x + cam[1] * y + cam[2]) * inv
@@ -224,88 +149,6 @@ def camera_rays(cam, xy, o_out, d_out):
         d_out[i, 0], d_out[i, 1], d_out[i, 2] = dx, dy, dz
 
 
-@njit(cache=True)
-def trace_pixels_closest(ptype, R, T, prm, cam, xy, t_out, prim_out, n_out, p_out):
-    """Camera rays for normalised pixel coordinates, traced into the scene."""
-    for i in range(xy.shape[0]):
-        ox, oy, oz, dx, dy, dz = _camera_ray(cam, xy[i, 0], xy[i, 1])
-        t, p, nx, ny, nz = closest_hit(ptype, R, T, prm, ox, oy, oz, dx, dy, dz)
-        t_out[i] = t
-        prim_out[i] = p
-        n_out[i, 0], n_out[i, 1], n_out[i, 2] = nx, ny, nz
-        if p >= 0:
-            p_out[i, 0], p_out[i, 1], p_out[i, 2] = ox + t * dx, oy + t * dy, oz + t * dz
-        else:
-            p_out[i, 0] = p_out[i, 1] = p_out[i, 2] = np.nan
-
-
-@njit(cache=True)
-def laser_pixels(ptype, R, T, prm, cam, grid, rows, cols, sheet, sigma, val_out, prim_out,
-                 p_out):
-    """Laser irradiance factor of window pixels (before albedo and speckle).
-
-    ``sheet`` packs: [0:4] centre plane, [4:7] virtual apex, [7:10] and [10:13] inward
-    edge normals, [13:17] last G2 mirror plane. The value is
-    ``cos(incidence) / distance * exp(-delta^2 / (2 sigma^2))`` where the point is lit
-    (facing the apex, inside the fan, segment to the G2 mirror free), else 0.
-    """
-    for i in range(rows.shape[0]):
-        x = grid[rows[i], cols[i], 0]
-        y = grid[rows[i], cols[i], 1]
-        ox, oy, oz, dx, dy, dz = _camera_ray(cam, x, y)
-        t, p, nx, ny, nz = closest_hit(ptype, R, T, prm, ox, oy, oz, dx, dy, dz)
-        prim_out[i] = p
-        val_out[i] = 0.0
-        if p < 0:
-            p_out[i, 0] = p_out[i, 1] = p_out[i, 2] = np.nan
-            continue
-        px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-        p_out[i, 0], p_out[i, 1], p_out[i, 2] = px, py, pz
-        delta = sheet[0] * px + sheet[1] * py + sheet[2] * pz + sheet[3]
-        if abs(delta) >= 5.0 * sigma:
-            continue
-        sx, sy, sz = sheet[4] - px, sheet[5] - py, sheet[6] - pz
-        dist = math.sqrt(sx * sx + sy * sy + sz * sz)
-        cos_i = (nx * sx + ny * sy + nz * sz) / dist
-        if cos_i <= 0.0:
-            continue
-        if sx * sheet[7] + sy * sheet[8] + sz * sheet[9] > 0.0:
-            continue
-        if sx * sheet[10] + sy * sheet[11] + sz * sheet[12] > 0.0:
-            continue
-        ux, uy, uz = sx / dist, sy / dist, sz / dist
-        den = ux * sheet[13] + uy * sheet[14] + uz * sheet[15]
-        tm = dist
-        if den != 0.0:
-            tmm = -(px * sheet[13] + py * sheet[14] + pz * sheet[15] + sheet[16]) / den
-            if tmm > 0.0 and tmm < dist:
-                tm = tmm
-        if is_blocked(ptype, R, T, prm, px, py, pz, ux, uy, uz, tm - EPS):
-            continue
-        val_out[i] = cos_i / dist * math.exp(-0.5 * (delta / sigma) ** 2)
-
-
-@njit(cache=True)
-def _bilinear_taps(n_out, n_src, step):
-    """cv2.resize INTER_LINEAR source taps for upscaling n_src -> n_out by ``step``."""
-    i0 = np.empty(n_out, np.int64)
-    i1 = np.empty(n_out, np.int64)
-    w = np.empty(n_out, np.float32)
-    for k in range(n_out):
-        x = (k + 0.5) / step - 0.5
-        if x < 0.0:
-            x = 0.0
-        if x > n_src - 1:
-            x = float(n_src - 1)
-        j = int(math.floor(x))
-        if j > n_src - 2:
-            j = max(n_src - 2, 0)
-        i0[k] = j
-        i1[k] = min(j + 1, n_src - 1)
-        w[k] = np.float32(x - j)
-    return i0, i1, w
-
-
 @njit(cache=True, fastmath=True)
 def _quantise_row(e, z, zoff, noisy, fw, r2, sh, ig, bl, tp, out_row):
     zero = np.float32(0.0)
@@ -321,12 +164,10 @@ def _quantise_row(e, z, zoff, noisy, fw, r2, sh, ig, bl, tp, out_row):
 
 
 @njit(cache=True, fastmath=True)
-def sensor(bg_full, bg_coarse, step, band, b0, z, full_well, shot, read2, inv_gain, black,
-           top, out):
+def sensor(bg, band, b0, z, full_well, shot, read2, inv_gain, black, top, out):
     """Compose the image in electrons and convert it to DN.
 
-    Electrons = background (``bg_full`` (H, W), or ``bg_coarse`` upsampled bilinearly by
-    ``step`` as cv2.resize does, or none when both are empty) + ``band`` on rows b0..;
+    Electrons = background ``bg`` (H, W) (or none when empty) + ``band`` on rows b0..;
     then clip at the full well, add shot/read noise with the N(0, 1) draws ``z`` (empty:
     no noise) and quantise with rounding to [0, top].
     """
@@ -338,38 +179,27 @@ def sensor(bg_full, bg_coarse, step, band, b0, z, full_well, shot, read2, inv_ga
     tp = np.float32(top)
     sh = np.float32(1.0 if shot else 0.0)
     noisy = z.shape[0] > 0
-    full = bg_full.shape[0] > 0
-    coarse = bg_coarse.shape[0] > 0
+    has_bg = bg.shape[0] > 0
     nb = band.shape[0]
     e = np.zeros(w, np.float32)
-    if coarse:
-        x0, x1, wx = _bilinear_taps(w, bg_coarse.shape[1], step)
-        y0, y1, wy = _bilinear_taps(h, bg_coarse.shape[0], step)
-        line = np.empty(bg_coarse.shape[1], np.float32)
     for r in range(h):
-        if full:
-            for c in range(w):
-                e[c] = bg_full[r, c]
-        elif coarse:
-            a, b = np.float32(1.0) - wy[r], wy[r]
-            for k in range(line.shape[0]):
-                line[k] = a * bg_coarse[y0[r], k] + b * bg_coarse[y1[r], k]
-            for c in range(w):
-                e[c] = line[x0[c]] + wx[c] * (line[x1[c]] - line[x0[c]])
         rb = r - b0
-        if 0 <= rb < nb:
-            if full or coarse:
+        in_band = 0 <= rb < nb
+        if has_bg:
+            for c in range(w):
+                e[c] = bg[r, c]
+            if in_band:
                 for c in range(w):
                     e[c] += band[rb, c]
-            else:
-                for c in range(w):
-                    e[c] = band[rb, c]
-        elif not (full or coarse) and rb == nb:
+        elif in_band:
+            for c in range(w):
+                e[c] = band[rb, c]
+        elif rb == nb or r == 0:
             e[:] = 0.0
         _quantise_row(e, z, r * w, noisy, fw, r2, sh, ig, bl, tp, out[r])
 
 
-@njit(cache=True, inline='always')
+@njit(cache=True)
 def _project(VTW, intr, x, y, z):
     """World point -> (u, v, depth) through the virtual camera (plumb_bob distortion)."""
     X = VTW[0, 0] * x + VTW[0, 1] * y + VTW[0, 2] * z + VTW[0, 3]
@@ -564,70 +394,6 @@ def circle_crossings(ptype, R, T, prm, VTW, intr, center, cam_mirror, sheet, cc,
 
 
 @njit(cache=True)
-def laser_windows(ptype, R, T, prm, pobj, albedo, textured, cam, grid, cols, v0, half, sheet,
-                  sigma, scale, speckle, z, zoff, band, b0, tex_rc, tex_p, tex_val, tex_obj):
-    """Render the laser stripe into ``band`` (rows b0.. of the image), window by window.
-
-    Window j covers rows v0[j] - half[j] .. v0[j] + half[j] of column cols[j]. A pixel's
-    value is ``scale * albedo * cos(incidence) / distance * exp(-delta^2 / 2 sigma^2)``
-    times the speckle factor ``max(0, 1 + speckle * z)`` where the laser reaches its hit
-    point (see :func:`laser_pixels`), else it is left alone. Pixels on textured objects are
-    returned in ``tex_*`` without the albedo instead; the count of those is returned.
-    """
-    H = grid.shape[0]
-    nz = z.shape[0]
-    k = zoff
-    m = 0
-    for j in range(cols.shape[0]):
-        c = cols[j]
-        r0 = max(v0[j] - half[j], 0)
-        r1 = min(v0[j] + half[j], H - 1)
-        for r in range(r0, r1 + 1):
-            ox, oy, oz, dx, dy, dz = _camera_ray(cam, grid[r, c, 0], grid[r, c, 1])
-            t, p, nx, ny, nzz = closest_hit(ptype, R, T, prm, ox, oy, oz, dx, dy, dz)
-            if p < 0:
-                continue
-            px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
-            delta = sheet[0] * px + sheet[1] * py + sheet[2] * pz + sheet[3]
-            if abs(delta) >= 5.0 * sigma:
-                continue
-            sx, sy, sz = sheet[4] - px, sheet[5] - py, sheet[6] - pz
-            dist = math.sqrt(sx * sx + sy * sy + sz * sz)
-            cos_i = (nx * sx + ny * sy + nzz * sz) / dist
-            if cos_i <= 0.0:
-                continue
-            if sx * sheet[7] + sy * sheet[8] + sz * sheet[9] > 0.0:
-                continue
-            if sx * sheet[10] + sy * sheet[11] + sz * sheet[12] > 0.0:
-                continue
-            ux, uy, uz = sx / dist, sy / dist, sz / dist
-            den = ux * sheet[13] + uy * sheet[14] + uz * sheet[15]
-            tm = dist
-            if den != 0.0:
-                tmm = -(px * sheet[13] + py * sheet[14] + pz * sheet[15] + sheet[16]) / den
-                if 0.0 < tmm < dist:
-                    tm = tmm
-            if is_blocked(ptype, R, T, prm, px, py, pz, ux, uy, uz, tm - EPS):
-                continue
-            val = scale * cos_i / dist * math.exp(-0.5 * (delta / sigma) ** 2)
-            if speckle > 0.0:
-                f = 1.0 + speckle * z[k % nz]
-                k += 1
-                val *= f if f > 0.0 else 0.0
-            o = pobj[p]
-            if textured[o]:
-                if m < tex_val.shape[0]:
-                    tex_rc[m, 0], tex_rc[m, 1] = r, c
-                    tex_p[m, 0], tex_p[m, 1], tex_p[m, 2] = px, py, pz
-                    tex_val[m] = val
-                    tex_obj[m] = o
-                    m += 1
-            else:
-                band[r - b0, c] = val * albedo[o]
-    return m
-
-
-@njit(cache=True)
 def sheet_segments(center, e1, e2, half, normal, fobj, two, plane, hs, viewer, source,
                    max_length, A_out, B_out, N_out, obj_out, two_out):
     """Segments where the plane cuts each rectangular face (see Scene.sheet_segments)."""
@@ -690,3 +456,371 @@ def sheet_segments(center, e1, e2, half, normal, fobj, two, plane, hs, viewer, s
         two_out[m] = two[f]
         m += 1
     return m
+
+
+TEX_NONE, TEX_CHECKER, TEX_CIRCLES = 0, 1, 2
+
+
+@njit(cache=True, inline='always')
+def _checker_axis(t, n, s, w):
+    k = math.floor(t / s)
+    k = min(max(k, 0.0), n - 1.0)
+    sign = 1.0 - 2.0 * (k % 2.0)
+    lo_edge = t - k * s if k > 0 else np.inf
+    hi_edge = (k + 1.0) * s - t if k < n - 1 else np.inf
+    wave = sign * min(1.0, min(lo_edge, hi_edge) / (0.5 * w))
+    inside = min(max(0.5 + min(t, n * s - t) / w, 0.0), 1.0)
+    return wave, inside
+
+
+@njit(cache=True, inline='always')
+def albedo_at(tex, oR, oT, albedo, o, px, py, pz, foot):
+    """Albedo of object o at world point p seen with a pixel footprint ``foot`` [m].
+
+    ``tex[o]`` packs the texture: [0] kind (TEX_*), then for a checkerboard nx, ny,
+    square size, dark albedo; for a circle board nx, ny, pitch, sub-pattern, small and big
+    diameter, circle albedo. Same maths as SceneObject.albedo_local.
+    """
+    a = albedo[o]
+    kind = tex[o, 0]
+    if kind == TEX_NONE:
+        return a
+    qx, qy, qz = px - oT[o, 0], py - oT[o, 1], pz - oT[o, 2]
+    lx = oR[o, 0, 0] * qx + oR[o, 1, 0] * qy + oR[o, 2, 0] * qz
+    ly = oR[o, 0, 1] * qx + oR[o, 1, 1] * qy + oR[o, 2, 1] * qz
+    lz = oR[o, 0, 2] * qx + oR[o, 1, 2] * qy + oR[o, 2, 2] * qz
+    if abs(lz) >= 1e-6:
+        return a
+    w = max(foot, 1e-9)
+    if kind == TEX_CHECKER:
+        nx, ny, s = tex[o, 1], tex[o, 2], tex[o, 3]
+        wx, ix = _checker_axis(lx + 0.5 * nx * s, nx, s, w)
+        wy, iy = _checker_axis(ly + 0.5 * ny * s, ny, s, w)
+        dark = ix * iy * (0.5 + 0.5 * wx * wy)
+        return a + (tex[o, 4] - a) * dark
+    nx, ny, pitch, sub = tex[o, 1], tex[o, 2], tex[o, 3], tex[o, 4]
+    i = min(max(np.rint(lx / pitch + 0.5 * (nx - 1.0)), 0.0), nx - 1.0)
+    j = min(max(np.rint(ly / pitch + 0.5 * (ny - 1.0)), 0.0), ny - 1.0)
+    cx = (i - 0.5 * (nx - 1.0)) * pitch
+    cy = (j - 0.5 * (ny - 1.0)) * pitch
+    c = math.floor(sub / 2.0)
+    big = (i % sub == c) and (j % sub == c)
+    r = 0.5 * (tex[o, 6] if big else tex[o, 5])
+    sd = r - math.sqrt((lx - cx) ** 2 + (ly - cy) ** 2)
+    cover = min(max(0.5 + sd / w, 0.0), 1.0)
+    return a + (tex[o, 7] - a) * cover
+
+
+@njit(cache=True)
+def ambient_pixels(ptype, R, T, prm, pobj, cam, xy, foot_scale, center, albedo, tex, oR, oT,
+                   scale, light, directional, out):
+    """Room-light signal of pixels: ``scale * albedo * ((1 - f) + f max(0, n . light))``.
+
+    ``xy`` (n, 2) are undistorted normalised pixel coordinates; ``foot_scale`` is the pixel
+    footprint angle [rad] used to anti-alias textures.
+    """
+    n = xy.shape[0]
+    ox = np.empty(n)
+    oy = np.empty(n)
+    oz = np.empty(n)
+    dx = np.empty(n)
+    dy = np.empty(n)
+    dz = np.empty(n)
+    for i in range(n):
+        ox[i], oy[i], oz[i], dx[i], dy[i], dz[i] = _camera_ray(cam, xy[i, 0], xy[i, 1])
+    tb = np.empty(n)
+    pb = np.empty(n, np.int64)
+    ab = np.empty(n, np.int64)
+    soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab)
+    for i in range(n):
+        p = pb[i]
+        if p < 0:
+            out[i] = 0.0
+            continue
+        t = tb[i]
+        px, py, pz = ox[i] + t * dx[i], oy[i] + t * dy[i], oz[i] + t * dz[i]
+        nx, ny, nz = _hit_normal(ptype, R, T, prm, p, ab[i], px, py, pz, dx[i], dy[i], dz[i])
+        vx, vy, vz = px - center[0], py - center[1], pz - center[2]
+        rng = math.sqrt(vx * vx + vy * vy + vz * vz)
+        cos_v = abs(nx * vx + ny * vy + nz * vz) / rng
+        foot = rng * foot_scale / max(cos_v, 0.2)
+        a = albedo_at(tex, oR, oT, albedo, pobj[p], px, py, pz, foot)
+        lam = nx * light[0] + ny * light[1] + nz * light[2]
+        out[i] = scale * a * ((1.0 - directional) + directional * max(lam, 0.0))
+
+# ---------------------------------------------------------------------------------------
+# Structure-of-arrays passes: one primitive at a time over all rays (vectorisable loops).
+# IEEE inf/NaN semantics are kept (no 'nnan'/'ninf' fast-math flags).
+_FM = {'nsz', 'arcp', 'contract', 'afn', 'reassoc'}
+
+
+@njit(cache=True, fastmath=_FM)
+def soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab):
+    """Closest hits of rays (o, d) given as coordinate arrays; writes t (inf: none),
+    primitive (-1: none) and, for boxes, the slab axis of the entry face."""
+    n = ox.shape[0]
+    for i in range(n):
+        tb[i] = np.inf
+        pb[i] = -1
+        ab[i] = 0
+    for p in range(ptype.shape[0]):
+        kind = ptype[p]
+        tx, ty, tz = T[p, 0], T[p, 1], T[p, 2]
+        r00, r01, r02 = R[p, 0, 0], R[p, 0, 1], R[p, 0, 2]
+        r10, r11, r12 = R[p, 1, 0], R[p, 1, 1], R[p, 1, 2]
+        r20, r21, r22 = R[p, 2, 0], R[p, 2, 1], R[p, 2, 2]
+        a0, a1, a2 = prm[p, 0], prm[p, 1], prm[p, 2]
+        b0, b1, b2 = prm[p, 3], prm[p, 4], prm[p, 5]
+        if kind == BOX:
+            for i in range(n):
+                qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
+                lx = r00 * qx + r10 * qy + r20 * qz
+                ly = r01 * qx + r11 * qy + r21 * qz
+                lz = r02 * qx + r12 * qy + r22 * qz
+                ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
+                ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
+                ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+                ix, iy, iz = 1.0 / ex, 1.0 / ey, 1.0 / ez
+                t1, t2 = (a0 - lx) * ix, (b0 - lx) * ix
+                nx_, fx_ = min(t1, t2), max(t1, t2)
+                t1, t2 = (a1 - ly) * iy, (b1 - ly) * iy
+                ny_, fy_ = min(t1, t2), max(t1, t2)
+                t1, t2 = (a2 - lz) * iz, (b2 - lz) * iz
+                nz_, fz_ = min(t1, t2), max(t1, t2)
+                tin = max(nx_, max(ny_, nz_))
+                tout = min(fx_, min(fy_, fz_))
+                ax = 0 if (nx_ >= ny_ and nx_ >= nz_) else (1 if ny_ >= nz_ else 2)
+                hit = (tin <= tout) and (tin > EPS) and (tin < tb[i])
+                tb[i] = tin if hit else tb[i]
+                pb[i] = p if hit else pb[i]
+                ab[i] = ax if hit else ab[i]
+        elif kind == SPHERE:
+            cx, cy, cz, r = a0, a1, a2, b0
+            for i in range(n):
+                qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
+                lx = r00 * qx + r10 * qy + r20 * qz - cx
+                ly = r01 * qx + r11 * qy + r21 * qz - cy
+                lz = r02 * qx + r12 * qy + r22 * qz - cz
+                ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
+                ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
+                ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+                b = lx * ex + ly * ey + lz * ez
+                disc = b * b - (lx * lx + ly * ly + lz * lz - r * r)
+                t = -b - math.sqrt(max(disc, 0.0))
+                hit = (disc >= 0.0) and (t > EPS) and (t < tb[i])
+                tb[i] = t if hit else tb[i]
+                pb[i] = p if hit else pb[i]
+        else:
+            for i in range(n):
+                qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
+                lx = r00 * qx + r10 * qy + r20 * qz
+                ly = r01 * qx + r11 * qy + r21 * qz
+                lz = r02 * qx + r12 * qy + r22 * qz
+                ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
+                ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
+                ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+                t = -lz / ez
+                hit = ((t > EPS) and (t < tb[i]) and (abs(lx + t * ex) <= a0)
+                       and (abs(ly + t * ey) <= a1))
+                tb[i] = t if hit else tb[i]
+                pb[i] = p if hit else pb[i]
+
+
+@njit(cache=True, fastmath=_FM)
+def soa_blocked(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tmax, out):
+    """Segments o + t d, 0 < t < tmax, blocked by a surface or a solid's interior."""
+    n = ox.shape[0]
+    for i in range(n):
+        out[i] = False
+    for p in range(ptype.shape[0]):
+        kind = ptype[p]
+        tx, ty, tz = T[p, 0], T[p, 1], T[p, 2]
+        r00, r01, r02 = R[p, 0, 0], R[p, 0, 1], R[p, 0, 2]
+        r10, r11, r12 = R[p, 1, 0], R[p, 1, 1], R[p, 1, 2]
+        r20, r21, r22 = R[p, 2, 0], R[p, 2, 1], R[p, 2, 2]
+        a0, a1, a2 = prm[p, 0], prm[p, 1], prm[p, 2]
+        b0, b1, b2 = prm[p, 3], prm[p, 4], prm[p, 5]
+        for i in range(n):
+            qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
+            lx = r00 * qx + r10 * qy + r20 * qz
+            ly = r01 * qx + r11 * qy + r21 * qz
+            lz = r02 * qx + r12 * qy + r22 * qz
+            ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
+            ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
+            ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+            if kind == BOX:
+                ix, iy, iz = 1.0 / ex, 1.0 / ey, 1.0 / ez
+                t1, t2 = (a0 - lx) * ix, (b0 - lx) * ix
+                nx_, fx_ = min(t1, t2), max(t1, t2)
+                t1, t2 = (a1 - ly) * iy, (b1 - ly) * iy
+                ny_, fy_ = min(t1, t2), max(t1, t2)
+                t1, t2 = (a2 - lz) * iz, (b2 - lz) * iz
+                nz_, fz_ = min(t1, t2), max(t1, t2)
+                tin = max(nx_, max(ny_, nz_))
+                tout = min(fx_, min(fy_, fz_))
+                hit = (tin <= tout) and (tout > EPS) and (tin < tmax[i])
+            elif kind == SPHERE:
+                qx, qy, qz = lx - a0, ly - a1, lz - a2
+                b = qx * ex + qy * ey + qz * ez
+                disc = b * b - (qx * qx + qy * qy + qz * qz - b0 * b0)
+                root = math.sqrt(max(disc, 0.0))
+                hit = (disc > 0.0) and (-b + root > EPS) and (-b - root < tmax[i])
+            else:
+                t = -lz / ez
+                hit = ((t > EPS) and (t < tmax[i]) and (abs(lx + t * ex) <= a0)
+                       and (abs(ly + t * ey) <= a1))
+            out[i] = out[i] or hit
+
+
+@njit(cache=True, inline='always')
+def _hit_normal(ptype, R, T, prm, p, ax, px, py, pz, dx, dy, dz):
+    """World normal, facing the ray, of primitive p at the hit point p (box: entry axis)."""
+    kind = ptype[p]
+    if kind == BOX:
+        e = R[p, 0, ax] * dx + R[p, 1, ax] * dy + R[p, 2, ax] * dz
+        s = -1.0 if e > 0 else 1.0
+        return s * R[p, 0, ax], s * R[p, 1, ax], s * R[p, 2, ax]
+    if kind == SPHERE:
+        cx = R[p, 0, 0] * prm[p, 0] + R[p, 0, 1] * prm[p, 1] + R[p, 0, 2] * prm[p, 2] + T[p, 0]
+        cy = R[p, 1, 0] * prm[p, 0] + R[p, 1, 1] * prm[p, 1] + R[p, 1, 2] * prm[p, 2] + T[p, 1]
+        cz = R[p, 2, 0] * prm[p, 0] + R[p, 2, 1] * prm[p, 1] + R[p, 2, 2] * prm[p, 2] + T[p, 2]
+        r = prm[p, 3]
+        return (px - cx) / r, (py - cy) / r, (pz - cz) / r
+    e = R[p, 0, 2] * dx + R[p, 1, 2] * dy + R[p, 2, 2] * dz
+    s = -1.0 if e > 0 else 1.0
+    return s * R[p, 0, 2], s * R[p, 1, 2], s * R[p, 2, 2]
+
+
+@njit(cache=True)
+def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, v0, half, sheet,
+                  sigma, scale, speckle, z, zoff, band, b0, foot_scale):
+    """Render the laser stripe into ``band`` (rows b0.. of the image), window by window.
+
+    Window j covers rows v0[j] - half[j] .. v0[j] + half[j] of column cols[j]. A pixel's
+    ray is traced off the G1 mirrors into the scene; its value is
+    ``scale * albedo * cos(incidence) / distance * exp(-delta^2 / 2 sigma^2)`` times the
+    speckle factor ``max(0, 1 + speckle * z)`` where the laser reaches the hit point (it
+    faces the fan's apex, lies inside the fan, and the segment to the last G2 mirror is
+    free), else the pixel is left alone. ``sheet`` packs: [0:4] centre plane, [4:7]
+    virtual apex, [7:10] and [10:13] inward edge normals, [13:17] last G2 mirror plane.
+    Returns the number of pixels drawn.
+    """
+    H = grid.shape[0]
+    n = 0
+    for j in range(cols.shape[0]):
+        n += max(min(v0[j] + half[j], H - 1) - max(v0[j] - half[j], 0) + 1, 0)
+    rows = np.empty(n, np.int64)
+    cc = np.empty(n, np.int64)
+    k = 0
+    for j in range(cols.shape[0]):
+        for r in range(max(v0[j] - half[j], 0), min(v0[j] + half[j], H - 1) + 1):
+            rows[k] = r
+            cc[k] = cols[j]
+            k += 1
+    ox = np.empty(n)
+    oy = np.empty(n)
+    oz = np.empty(n)
+    dx = np.empty(n)
+    dy = np.empty(n)
+    dz = np.empty(n)
+    for i in range(n):
+        ox[i], oy[i], oz[i], dx[i], dy[i], dz[i] = _camera_ray(
+            cam, grid[rows[i], cc[i], 0], grid[rows[i], cc[i], 1])
+    tb = np.empty(n)
+    pb = np.empty(n, np.int64)
+    ab = np.empty(n, np.int64)
+    soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab)
+    # lit candidates and their shadow segments towards the last G2 mirror
+    m = 0
+    idx = np.empty(n, np.int64)
+    sx_ = np.empty(n)
+    sy_ = np.empty(n)
+    sz_ = np.empty(n)
+    ux_ = np.empty(n)
+    uy_ = np.empty(n)
+    uz_ = np.empty(n)
+    tm_ = np.empty(n)
+    val_ = np.empty(n)
+    for i in range(n):
+        p = pb[i]
+        if p < 0:
+            continue
+        t = tb[i]
+        px, py, pz = ox[i] + t * dx[i], oy[i] + t * dy[i], oz[i] + t * dz[i]
+        delta = sheet[0] * px + sheet[1] * py + sheet[2] * pz + sheet[3]
+        if abs(delta) >= 5.0 * sigma:
+            continue
+        nx, ny, nzz = _hit_normal(ptype, R, T, prm, p, ab[i], px, py, pz, dx[i], dy[i], dz[i])
+        sx, sy, sz = sheet[4] - px, sheet[5] - py, sheet[6] - pz
+        dist = math.sqrt(sx * sx + sy * sy + sz * sz)
+        cos_i = (nx * sx + ny * sy + nzz * sz) / dist
+        if cos_i <= 0.0:
+            continue
+        if sx * sheet[7] + sy * sheet[8] + sz * sheet[9] > 0.0:
+            continue
+        if sx * sheet[10] + sy * sheet[11] + sz * sheet[12] > 0.0:
+            continue
+        ux, uy, uz = sx / dist, sy / dist, sz / dist
+        den = ux * sheet[13] + uy * sheet[14] + uz * sheet[15]
+        tm = dist
+        if den != 0.0:
+            tmm = -(px * sheet[13] + py * sheet[14] + pz * sheet[15] + sheet[16]) / den
+            if 0.0 < tmm < dist:
+                tm = tmm
+        idx[m] = i
+        sx_[m], sy_[m], sz_[m] = px, py, pz
+        ux_[m], uy_[m], uz_[m] = ux, uy, uz
+        tm_[m] = tm - EPS
+        val_[m] = scale * cos_i / dist * math.exp(-0.5 * (delta / sigma) ** 2)
+        m += 1
+    blocked = np.empty(m, np.bool_)
+    soa_blocked(ptype, R, T, prm, sx_[:m], sy_[:m], sz_[:m], ux_[:m], uy_[:m], uz_[:m],
+                tm_[:m], blocked)
+    nz_ = z.shape[0]
+    kz = zoff
+    drawn = 0
+    for q in range(m):
+        if blocked[q]:
+            continue
+        i = idx[q]
+        val = val_[q]
+        if speckle > 0.0:
+            f = 1.0 + speckle * z[kz % nz_]
+            kz += 1
+            val *= f if f > 0.0 else 0.0
+        px, py, pz = sx_[q], sy_[q], sz_[q]
+        vx, vy, vz = px - cam[32], py - cam[33], pz - cam[34]
+        foot = math.sqrt(vx * vx + vy * vy + vz * vz) * foot_scale
+        band[rows[i] - b0, cc[i]] = val * albedo_at(tex, oR, oT, albedo, pobj[pb[i]], px, py,
+                                                    pz, foot)
+        drawn += 1
+    return drawn
+
+
+@njit(cache=True)
+def window_halves(X, N, col, v, WRV, center, plane, sigma, psf, intr, out):
+    """Half height [px] of the row window around each true stripe point.
+
+    The pixel rays at v - 1 and v + 1 of the column are cut with the surface's tangent
+    plane at X; the change of the distance to the sheet per pixel gives the stripe's sigma
+    in pixels, and the window covers 3.5 of those plus 2 blur sigmas (clipped to 2..40).
+    """
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    for i in range(X.shape[0]):
+        x = (col[i] - cx) / fx
+        num = (N[i, 0] * (X[i, 0] - center[0]) + N[i, 1] * (X[i, 1] - center[1])
+               + N[i, 2] * (X[i, 2] - center[2]))
+        d_sheet = 0.0
+        for sgn in (1.0, -1.0):
+            y = (v[i] + sgn - cy) / fy
+            dx = WRV[0, 0] * x + WRV[0, 1] * y + WRV[0, 2]
+            dy = WRV[1, 0] * x + WRV[1, 1] * y + WRV[1, 2]
+            dz = WRV[2, 0] * x + WRV[2, 1] * y + WRV[2, 2]
+            den = N[i, 0] * dx + N[i, 1] * dy + N[i, 2] * dz
+            t = num / den if den != 0.0 else np.inf
+            d_sheet += sgn * t * (plane[0] * dx + plane[1] * dy + plane[2] * dz)
+        slope = 0.5 * abs(d_sheet)
+        h = 40.0
+        if slope > 0.0 and math.isfinite(slope):
+            h = min(max(math.ceil(3.5 * sigma / slope + 2.0 * psf), 2.0), 40.0)
+        out[i] = int(h)

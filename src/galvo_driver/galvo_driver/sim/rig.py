@@ -29,7 +29,6 @@ from .spatial import (
     reflection_transform,
     rotation_about,
     rotation_from_vector,
-    transform_plane,
     unit,
 )
 

@@ -288,6 +288,18 @@ class Scene:
         self.albedo_table = np.array([o.albedo for o in self.objects], dtype=np.float64)
         self.textured = np.array([o.type in ('checkerboard', 'circle_board')
                                   for o in self.objects], dtype=np.bool_)
+        tex = np.zeros((len(self.objects), 8))
+        for k, o in enumerate(self.objects):
+            pr = o.params
+            if o.type == 'checkerboard':
+                tex[k, :5] = (rk.TEX_CHECKER, *pr['squares'], pr['square_size'],
+                              pr['dark_albedo'])
+            elif o.type == 'circle_board':
+                tex[k] = (rk.TEX_CIRCLES, *pr['grid'], pr['pitch'], pr['sub_pattern'],
+                          pr['small_diameter'], pr['big_diameter'], pr['circle_albedo'])
+        #: Texture table for the compiled tracer: (tex (K, 8), W_R_O (K, 3, 3), W_t_O (K, 3)).
+        self.texture_table = (tex, np.ascontiguousarray([o.W_T_O[:3, :3] for o in self.objects]),
+                              np.ascontiguousarray([o.W_T_O[:3, 3] for o in self.objects]))
         self.spheres = [(k, o.W_T_O[:3, :3] @ p.center + o.W_T_O[:3, 3], p.radius)
                         for k, o in enumerate(self.objects) for p in o.prims
                         if isinstance(p, _Sphere)]

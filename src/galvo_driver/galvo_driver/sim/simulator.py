@@ -180,15 +180,17 @@ class Simulator:
         self.coarse_step = int(coarse_step)
         self._grid = cam.normalized_grid(1)
         self._coarse = cam.normalized_grid(self.coarse_step).reshape(-1, 2)
-        g = self._grid
-        self._bounds = (float(g[..., 0].min()) - 2.0 / cam.fx, float(g[..., 0].max()) + 2.0 / cam.fx,
-                        float(g[..., 1].min()) - 2.0 / cam.fy, float(g[..., 1].max()) + 2.0 / cam.fy)
+        gx, gy = self._grid[..., 0], self._grid[..., 1]
+        mx, my = 2.0 / cam.fx, 2.0 / cam.fy  # two pixels of margin around the image
+        self._bounds = (float(gx.min()) - mx, float(gx.max()) + mx, float(gy.min()) - my,
+                        float(gy.max()) + my)
         self._pool = None
         if rig.image.noisy and not exact_noise:
             n = 1 << 22
             self._pool = np.random.default_rng([self.seed, 0x5EED]).standard_normal(
                 n, dtype=np.float32)
         self._next_index = 0
+        self._intr = self._intrinsics()
         self.W_T_V0 = rig.W_T_V0
         self.V0_T_W = invert_transform(self.W_T_V0)
 
@@ -215,7 +217,7 @@ class Simulator:
         (n1, c1), (n2, c2) = rig.g1_planes(th[0], th[1])
         geo.extra['cam'] = np.concatenate([
             rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3], n1, [c1], n2, [c2],
-            rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]])
+            rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3], geo.center])
         if laser_on:
             sh = rig.laser_sheet_G(th[2], th[3]).transformed(rig.W_T_G)
             geo.sheet = sh
@@ -287,19 +289,6 @@ class Simulator:
         return np.concatenate([[cam.fx, cam.fy, cam.cx, cam.cy], cam.distortion,
                                [cam.width, cam.height]]).astype(np.float64)
 
-    def _free_towards(self, X, target, mirror_plane):
-        """True where nothing blocks the segment from X towards ``target`` up to the mirror."""
-        d = target - X
-        dist = np.linalg.norm(d, axis=1)
-        d = d / dist[:, None]
-        with np.errstate(divide='ignore', invalid='ignore'):
-            tm = -(X @ mirror_plane[:3] + mirror_plane[3]) / (d @ mirror_plane[:3])
-        tm = np.where((tm > 0) & (tm < dist), tm, dist) - rk.EPS
-        ptype, _, R, T, prm = self.scene.packed()
-        out = np.empty(len(X), dtype=np.bool_)
-        rk.trace_blocked(ptype, R, T, prm, np.ascontiguousarray(X), d, tm, out)
-        return ~out
-
     def _stripe_crossings(self, geo: _Geometry):
         """True stripe points (see StripeTruth), sorted by column then v, or None."""
         sheet = geo.sheet
@@ -316,7 +305,7 @@ class Simulator:
         u = np.empty(cap)
         v = np.empty(cap)
         ptype, _, R, T, prm = self.scene.packed()
-        intr = self._intrinsics()
+        intr = self._intr
         psheet = geo.extra['sheet']
         VTW = np.ascontiguousarray(geo.V_T_W)
         m = 0
@@ -355,30 +344,19 @@ class Simulator:
 
     # ------------------------------------------------------------ images
     def _background(self, geo, exposure, full: bool) -> np.ndarray:
+        """Room-light signal [e-]: every pixel (full) or the coarse grid, float32."""
         rig, cam = self.rig, self.rig.camera
         im = rig.image
         step = 1 if full else self.coarse_step
         xy = self._grid.reshape(-1, 2) if full else self._coarse
         ptype, pobj, R, T, prm = self.scene.packed()
-        n = len(xy)
-        t = np.empty(n)
-        prim = np.empty(n, np.int64)
-        nrm = np.empty((n, 3))
-        P = np.empty((n, 3))
-        rk.trace_pixels_closest(ptype, R, T, prm, geo.extra['cam'], xy, t, prim, nrm, P)
-        hit = prim >= 0
-        img = np.zeros(n, np.float32)
-        if np.any(hit):
-            X = P[hit]
-            nv = nrm[hit]
-            rng_ = np.linalg.norm(X - geo.center, axis=1)
-            cos_v = np.abs(np.einsum('ij,ij->i', nv, X - geo.center)) / rng_
-            foot = rng_ / cam.fx / np.maximum(cos_v, 0.2) * step
-            alb = self.scene.albedo(X, pobj[prim[hit]], foot)
-            shade = (1.0 - im.directional_fraction) + im.directional_fraction * np.maximum(
-                nv @ im.light_direction, 0.0)
-            img[hit] = im.ambient_rate * exposure * alb * shade
-        return img.reshape(cam.height // step, cam.width // step)
+        tex, oR, oT = self.scene.texture_table
+        out = np.empty(len(xy), np.float32)
+        rk.ambient_pixels(ptype, R, T, prm, pobj, geo.extra['cam'], xy, step / cam.fx,
+                          geo.center, self.scene.albedo_table, tex, oR, oT,
+                          im.ambient_rate * exposure, im.light_direction,
+                          im.directional_fraction, out)
+        return out.reshape(cam.height // step, cam.width // step)
 
     def _laser_layer(self, geo, crossings, energy, rng):
         """The laser stripe (electrons) in windows around the true points.
@@ -391,20 +369,9 @@ class Simulator:
         rig, cam, sheet = self.rig, self.rig.camera, geo.sheet
         X, N, _, col, _, v = crossings
         sigma = rig.laser.sigma
-        # change of the distance to the sheet per pixel along the column, from the local
-        # tangent plane: sets each window's half height (3.5 sigma plus 2 blur sigma)
-        R = geo.W_T_V[:3, :3]
-        x = (col - cam.cx) / cam.fx
-        ones = np.ones_like(x)
-        dp = np.stack([x, (v + 1.0 - cam.cy) / cam.fy, ones], 1) @ R.T
-        dm = np.stack([x, (v - 1.0 - cam.cy) / cam.fy, ones], 1) @ R.T
-        num = np.einsum('ij,ij->i', N, X - geo.center)
-        with np.errstate(divide='ignore', invalid='ignore'):
-            pp = (num / np.einsum('ij,ij->i', N, dp))[:, None] * dp
-            pm = (num / np.einsum('ij,ij->i', N, dm))[:, None] * dm
-            slope = 0.5 * np.abs((pp - pm) @ sheet.plane[:3])
-            half = np.ceil(3.5 * sigma / slope + 2.0 * rig.image.psf_sigma)
-        half = np.clip(np.nan_to_num(half, nan=40.0, posinf=40.0), 2, 40).astype(np.int64)
+        half = np.empty(len(col), np.int64)
+        rk.window_halves(X, N, col, v, np.ascontiguousarray(geo.W_T_V[:3, :3]), geo.center,
+                         sheet.plane, sigma, rig.image.psf_sigma, self._intr, half)
         v0 = np.rint(v).astype(np.int64)
         psf = rig.image.psf_sigma
         pad = int(np.ceil(3 * psf)) + 1 if psf > 0 else 0
@@ -421,24 +388,28 @@ class Simulator:
         else:
             z, zoff = np.zeros(1, np.float32), 0
         ptype, pobj, Rp, Tp, prm = self.scene.packed()
-        cap = int(np.sum(2 * half + 1)) if np.any(self.scene.textured) else 1
-        tex_rc = np.empty((cap, 2), np.int64)
-        tex_p = np.empty((cap, 3))
-        tex_val = np.empty(cap)
-        tex_obj = np.empty(cap, np.int64)
+        tex, oR, oT = self.scene.texture_table
         scale = energy * rig.laser.reference_distance
-        m = rk.laser_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table,
-                             self.scene.textured, geo.extra['cam'], self._grid,
-                             col.astype(np.int64), v0, half, geo.extra['sheet'], sigma, scale,
-                             c, z, zoff, band, b0, tex_rc, tex_p, tex_val, tex_obj)
-        if m:
-            P = tex_p[:m]
-            foot = np.linalg.norm(P - geo.center, axis=1) / cam.fx
-            alb = self.scene.albedo(P, tex_obj[:m], foot)
-            band[tex_rc[:m, 0] - b0, tex_rc[:m, 1]] = tex_val[:m] * alb
+        rk.laser_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table, tex, oR, oT,
+                         geo.extra['cam'], self._grid, col, v0, half,
+                         geo.extra['sheet'], sigma, scale, c, z, zoff, band, b0, 1.0 / cam.fx)
         if psf > 0:
-            band = cv2.GaussianBlur(band, (0, 0), psf, borderType=cv2.BORDER_CONSTANT)
+            # blur each cluster of window rows on its own: the rows between clusters are
+            # empty and farther apart than the kernel, so this equals blurring the band
+            order = np.argsort(v0 - half)
+            lo = (v0 - half)[order] - pad - b0
+            hi = np.maximum.accumulate((v0 + half)[order] + 1 + pad - b0)
+            cut = np.flatnonzero(lo[1:] > hi[:-1] + pad) + 1
+            for a, b in zip(np.r_[0, cut], np.r_[cut, len(lo)], strict=True):
+                self._blur_rows(band, lo[a], hi[b - 1], psf)
         return band, b0
+
+    @staticmethod
+    def _blur_rows(band, start, end, psf):
+        start, end = max(int(start), 0), min(int(end), band.shape[0])
+        if end > start:
+            band[start:end] = cv2.GaussianBlur(band[start:end], (0, 0), psf,
+                                               borderType=cv2.BORDER_CONSTANT)
 
     def _sensor(self, bg, band, b0, rng) -> np.ndarray:
         """Background (None, coarse or full) + stripe band -> noisy 8-bit image."""
@@ -452,14 +423,14 @@ class Simulator:
                 z = rng.standard_normal(n, dtype=np.float32)
         else:
             z = np.zeros(0, np.float32)
-        empty = np.zeros((0, 0), np.float32)
-        full = bg is not None and bg.shape == (cam.height, cam.width)
-        bg_full = bg if full else empty
-        bg_coarse = bg if (bg is not None and not full) else empty
+        if bg is None:
+            bg = np.zeros((0, 0), np.float32)
+        elif bg.shape != (cam.height, cam.width):
+            bg = cv2.resize(bg, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
         out = np.empty((cam.height, cam.width), np.uint8)
-        rk.sensor(bg_full, bg_coarse, self.coarse_step, band, b0, z, float(im.full_well),
-                  bool(im.shot_noise), float(im.read_noise ** 2), 1.0 / im.electrons_per_dn,
-                  float(im.black_level), float((1 << im.bit_depth) - 1), out)
+        rk.sensor(bg, band, b0, z, float(im.full_well), bool(im.shot_noise),
+                  float(im.read_noise ** 2), 1.0 / im.electrons_per_dn, float(im.black_level),
+                  float((1 << im.bit_depth) - 1), out)
         return out
 
     def render(self, voltages, *, laser_on: bool = True, background: str = 'coarse',

@@ -1,0 +1,424 @@
+"""Board fitting through the dynamic camera: PnP per view and the joint refinement (no rclpy).
+
+:func:`pnp_view` solves one view's board pose (both planar PnP solutions are tried; the one
+with the board in front and the smaller reprojection error wins). :func:`refine` minimises
+the reprojection error of identified circles over all views with scipy ``least_squares``:
+l, d, optionally the G1 gains, ``g1_pan.theta0`` and higher-order response terms, and the
+board pose(s) ``V0_T_W``. The model predicts ellipse centres, as the detector measures them
+(:mod:`calibration_tools.board_geometry`).
+
+``V0_T_V`` depends on the tilt mirror's angle only through ``θ2 - θ2(0)`` (two reflections in
+planes through the tilt axis compose to a rotation about that axis), so ``g1_tilt.theta0``
+cannot be calibrated from views and is never refined. ``g1_pan.theta0`` is observable: it sets
+the direction of the tilt axis as seen from V0.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+
+from reconstructor.model import (
+    CameraIntrinsics,
+    RigModel,
+    rigid_inverse,
+    undistort_points,
+    v0_T_v,
+)
+
+from .board_geometry import ellipse_centres_normalised, project_circle_centres
+from .board_layout import CircleBoard
+
+
+# ------------------------------------------------------------------------------ small maths
+def rodrigues(rotvec) -> np.ndarray:
+    """Rotation matrix of a rotation vector (axis * angle, radians), shape (3, 3)."""
+    w = np.asarray(rotvec, dtype=np.float64)
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        K = _skew(w)
+        return np.eye(3) + K + 0.5 * K @ K
+    k = w / th
+    K = _skew(k)
+    return np.eye(3) + math.sin(th) * K + (1.0 - math.cos(th)) * K @ K
+
+
+def _skew(w):
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def _transform(R, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def _as_transform(T, name) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise ValueError(f"{name} must be a finite (4, 4) transform, got shape {T.shape}")
+    if not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(
+        T[3], [0, 0, 0, 1]
+    ):
+        raise ValueError(f"{name} must be a rigid transform")
+    return T
+
+
+def _rotation_angle(R) -> np.ndarray:
+    c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+
+# ------------------------------------------------------------------------------ observations
+@dataclass(frozen=True)
+class ViewObservation:
+    """Identified circles of one view.
+
+    Attributes
+    ----------
+    voltages : ndarray, shape (2,), volts
+        (U1_pan, U1_tilt).
+    index : ndarray, shape (m,), int
+        Board circle indices.
+    uv : ndarray, shape (m, 2), pixels
+        Detected ellipse centres.
+    pose_index : int
+        Board pose the view belongs to.
+    view_id : int
+        Caller's id of the view (e.g. its position in the input list).
+    """
+
+    voltages: np.ndarray
+    index: np.ndarray
+    uv: np.ndarray
+    pose_index: int = 0
+    view_id: int = -1
+
+    def __post_init__(self):
+        v = np.asarray(self.voltages, dtype=np.float64)
+        if v.shape != (2,) or not np.isfinite(v).all():
+            raise ValueError(f"voltages must be 2 finite volts, got {self.voltages!r}")
+        idx = np.asarray(self.index, dtype=np.int64)
+        uv = np.asarray(self.uv, dtype=np.float64)
+        if idx.ndim != 1 or uv.shape != (len(idx), 2):
+            raise ValueError(f"uv must have shape ({len(idx)}, 2) to match index, got {uv.shape}")
+        object.__setattr__(self, "voltages", v)
+        object.__setattr__(self, "index", idx)
+        object.__setattr__(self, "uv", uv)
+
+
+# ------------------------------------------------------------------------------ PnP
+_LM_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-15)
+
+
+def pnp_view(
+    intrinsics: CameraIntrinsics, points_w, radii, uv, *, ellipse_correction: bool = True
+) -> tuple[np.ndarray, float]:
+    """Board pose in one (virtual) camera from identified circle centres.
+
+    Parameters
+    ----------
+    intrinsics : CameraIntrinsics
+    points_w : array_like, shape (m, 3), metres
+        Circle centres in the board frame (z = 0), m >= 4.
+    radii : array_like, shape (m,), metres
+        Circle radii (for the ellipse-centre correction).
+    uv : array_like, shape (m, 2), pixels
+        Detected ellipse centres.
+    ellipse_correction : bool
+        Correct for the offset between ellipse centre and projected circle centre.
+
+    Returns
+    -------
+    V_T_W : ndarray, shape (4, 4)
+    rms_px : float
+        RMS reprojection error, pixels.
+    """
+    P = np.asarray(points_w, dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64)
+    r = np.asarray(radii, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3 or len(P) < 4:
+        raise ValueError(f"points_w must have shape (m >= 4, 3), got {P.shape}")
+    if uv.shape != (len(P), 2):
+        raise ValueError(f"uv must have shape ({len(P)}, 2), got {uv.shape}")
+    if r.shape != (len(P),):
+        raise ValueError(f"radii must have shape ({len(P)},), got {r.shape}")
+    x_obs = undistort_points(intrinsics, uv)
+    if not np.isfinite(x_obs).all():
+        raise ValueError("uv: pixels could not be undistorted")
+    K = np.eye(3)
+    zero = np.zeros(len(P))
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            P, x_obs.reshape(-1, 1, 2), K, None, flags=cv2.SOLVEPNP_IPPE
+        )
+    except cv2.error as exc:
+        raise ValueError(f"PnP failed: {exc}") from None
+    best = None
+    for rvec, tvec in zip(rvecs, tvecs, strict=True):
+        # A planar target has two PnP solutions; keep those with the board in front.
+        x = x_obs.copy()
+        for _ in range(10 if ellipse_correction else 1):
+            rvec, tvec = cv2.solvePnPRefineLM(P, x.reshape(-1, 1, 2), K, None, rvec, tvec,
+                                              criteria=_LM_CRITERIA)
+            T = _transform(cv2.Rodrigues(rvec)[0], tvec.ravel())
+            if not ellipse_correction:
+                break
+            x_new = x_obs - (ellipse_centres_normalised(T, P, r)
+                             - ellipse_centres_normalised(T, P, zero))
+            change = float(np.abs(x_new - x).max())
+            x = x_new
+            if change < 1e-12:
+                break
+        depth = P @ T[2, :3] + T[2, 3]
+        if not np.all(depth > 0.0):
+            continue
+        pred = project_circle_centres(intrinsics, T, P, r if ellipse_correction else zero)
+        rms = float(np.sqrt(np.mean(np.sum((pred - uv) ** 2, axis=1))))
+        if np.isfinite(rms) and (best is None or rms < best[1]):
+            best = (T, rms)
+    if best is None:
+        raise ValueError("PnP found no pose with the board in front of the camera")
+    return best
+
+
+# ------------------------------------------------------------------------------ refinement
+@dataclass(frozen=True)
+class RefineResult:
+    """Result of :func:`refine`.
+
+    Attributes
+    ----------
+    model : RigModel
+        Input model with the refined parameters replaced.
+    board_poses : dict of int to ndarray, shape (4, 4)
+        Refined ``V0_T_W`` per board pose.
+    residuals_px : list of ndarray, shape (m_i, 2)
+        Per view (input order), predicted minus detected ellipse centres, pixels.
+    rms_px : float
+        RMS reprojection error over all circles (norm of the 2-D residual), pixels.
+    std : dict of str to float
+        1-sigma standard errors of the refined model parameters (SI), from the Jacobian.
+    names : tuple of str
+        Refined model parameters (dotted names as in ``RigModel.to_dict()``).
+    success : bool
+    message : str
+    """
+
+    model: RigModel
+    board_poses: dict
+    residuals_px: list
+    rms_px: float
+    std: dict
+    names: tuple
+    success: bool
+    message: str
+
+
+def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly):
+    names = []
+    if refine_l_d:
+        names += ["l", "d"]
+    if refine_mirrors:
+        names += ["g1_pan.k", "g1_tilt.k"]
+    if refine_theta0:
+        names += ["g1_pan.theta0"]
+    for j in range(refine_poly):
+        names += [f"g1_pan.poly[{j}]", f"g1_tilt.poly[{j}]"]
+    return names
+
+
+def _get_param(model, name):
+    if name in ("l", "d"):
+        return getattr(model, name)
+    mirror, attr = name.split(".")
+    mp = getattr(model, mirror)
+    if attr.startswith("poly"):
+        j = int(attr[5:-1])
+        return mp.poly[j] if j < len(mp.poly) else 0.0
+    return getattr(mp, attr)
+
+
+def _set_params(model: RigModel, names, values) -> RigModel:
+    kw = {}
+    mirrors = {"g1_pan": model.g1_pan, "g1_tilt": model.g1_tilt}
+    mirror_kw = {"g1_pan": {}, "g1_tilt": {}}
+    polys = {key: list(mirrors[key].poly) for key in mirrors}
+    for name, value in zip(names, values, strict=True):
+        if name in ("l", "d"):
+            kw[name] = float(value)
+            continue
+        mirror, attr = name.split(".")
+        if attr.startswith("poly"):
+            j = int(attr[5:-1])
+            while len(polys[mirror]) <= j:
+                polys[mirror].append(0.0)
+            polys[mirror][j] = float(value)
+            mirror_kw[mirror]["poly"] = tuple(polys[mirror])
+        else:
+            mirror_kw[mirror][attr] = float(value)
+    for key, changes in mirror_kw.items():
+        if changes:
+            kw[key] = dataclasses.replace(mirrors[key], **changes)
+    return dataclasses.replace(model, **kw) if kw else model
+
+
+def refine(
+    model: RigModel,
+    observations: Sequence[ViewObservation],
+    board: CircleBoard,
+    board_poses,
+    *,
+    refine_l_d: bool = True,
+    refine_mirrors: bool = True,
+    refine_theta0: bool = True,
+    refine_poly: int = 0,
+    refine_pose: bool = True,
+    loss: str = "linear",
+    f_scale_px: float = 1.0,
+    ellipse_correction: bool = True,
+    max_nfev: int = 200,
+) -> RefineResult:
+    """Nonlinear least squares on the reprojection error of all identified circles.
+
+    Parameters
+    ----------
+    model : RigModel
+        Starting values; intrinsics and every parameter not refined stay fixed.
+    observations : sequence of ViewObservation
+    board : CircleBoard
+    board_poses : ndarray shape (4, 4), or dict of int to ndarray shape (4, 4)
+        Initial ``V0_T_W`` (metres) per ``pose_index`` (one array: pose 0).
+    refine_l_d : bool
+        Refine l and d.
+    refine_mirrors : bool
+        Refine k of both G1 mirrors.
+    refine_theta0 : bool
+        Refine ``g1_pan.theta0`` (``g1_tilt.theta0`` is unobservable, see module doc).
+    refine_poly : int
+        Number of higher-order coefficients of both G1 responses to refine (0, 1 or 2).
+    refine_pose : bool
+        Refine the board poses.
+    loss : str
+        scipy loss ('linear', 'soft_l1', 'huber', 'cauchy', ...); robust losses for
+        data that may hold outliers.
+    f_scale_px : float
+        Residual scale of robust losses, pixels.
+    ellipse_correction : bool
+        Predict ellipse centres (True) or projected circle centres.
+    max_nfev : int
+
+    Returns
+    -------
+    RefineResult
+    """
+    if not observations:
+        raise ValueError("observations must not be empty")
+    if isinstance(board_poses, dict):
+        poses = {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
+    else:
+        poses = {0: _as_transform(board_poses, "board_poses")}
+    if refine_poly not in (0, 1, 2):
+        raise ValueError(f"refine_poly must be 0, 1 or 2, got {refine_poly}")
+    obs = list(observations)
+    for i, o in enumerate(obs):
+        if not isinstance(o, ViewObservation):
+            raise ValueError(f"observations[{i}] must be a ViewObservation")
+        if o.pose_index not in poses:
+            raise ValueError(f"observations[{i}].pose_index {o.pose_index} has no board pose")
+    pose_keys = sorted({o.pose_index for o in obs})
+    names = _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly)
+    x_model0 = np.array([_get_param(model, n) for n in names], dtype=np.float64)
+    counts = np.array([len(o.index) for o in obs])
+    index = np.concatenate([o.index for o in obs])
+    uv_obs = np.concatenate([o.uv for o in obs])
+    P = board.points(index)
+    radii = board.radius(index) if ellipse_correction else np.zeros(len(index))
+    volts = np.array([o.voltages for o in obs])
+    view_of = np.repeat(np.arange(len(obs)), counts)
+    pose_of_view = np.array([pose_keys.index(o.pose_index) for o in obs])
+    R0 = [poses[k][:3, :3] for k in pose_keys]
+    t0 = [poses[k][:3, 3] for k in pose_keys]
+    n_model = len(names)
+    n_pose = 6 * len(pose_keys) if refine_pose else 0
+    # Parameter scales: lengths in mm-ish units, angles in mrad-ish units.
+    scale = []
+    for n in names:
+        if n in ("l", "d"):
+            scale.append(1e-3)
+        elif n.endswith(".k"):
+            scale.append(1e-5)
+        elif n.endswith("theta0"):
+            scale.append(1e-4)
+        else:
+            scale.append(1e-5)
+    scale = np.array(scale + [1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3] * (n_pose // 6))
+
+    def unpack(z):
+        x = z * scale
+        m = _set_params(model, names, x_model0 + x[:n_model]) if n_model else model
+        Ts = []
+        for j in range(len(pose_keys)):
+            if refine_pose:
+                w = x[n_model + 6 * j: n_model + 6 * j + 3]
+                dt = x[n_model + 6 * j + 3: n_model + 6 * j + 6]
+                Ts.append(_transform(rodrigues(w) @ R0[j], t0[j] + dt))
+            else:
+                Ts.append(_transform(R0[j], t0[j]))
+        return m, Ts
+
+    def predict(z):
+        m, Ts = unpack(z)
+        V_T_V0 = rigid_inverse(v0_T_v(m, volts[:, 0], volts[:, 1]))
+        V_T_W = V_T_V0 @ np.stack(Ts)[pose_of_view]
+        return project_circle_centres(m.intrinsics, V_T_W[view_of], P, radii)
+
+    def fun(z):
+        r = (predict(z) - uv_obs).ravel()
+        return np.where(np.isfinite(r), r, 1e6)
+
+    z0 = np.zeros(n_model + n_pose)
+    if len(z0) == 0:
+        sol_x = z0
+        success, message = True, "nothing to refine"
+        jac = np.zeros((2 * len(index), 0))
+    else:
+        if 2 * len(index) < len(z0):
+            raise ValueError(f"{2 * len(index)} residuals cannot fix {len(z0)} parameters")
+        sol = least_squares(
+            fun, z0, method="trf", loss=loss, f_scale=f_scale_px, x_scale=1.0,
+            max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+        )
+        sol_x, success, message, jac = sol.x, bool(sol.success), str(sol.message), sol.jac
+    m, Ts = unpack(sol_x)
+    res = (predict(sol_x) - uv_obs)
+    per_view = np.split(res, np.cumsum(counts)[:-1])
+    rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+    std = {}
+    if n_model:
+        dof = max(2 * len(index) - len(z0), 1)
+        s2 = float(np.sum(res**2)) / dof
+        try:
+            cov = np.linalg.pinv(jac.T @ jac) * s2
+            sd = np.sqrt(np.clip(np.diag(cov)[:n_model], 0.0, None)) * scale[:n_model]
+            std = {n: float(v) for n, v in zip(names, sd, strict=True)}
+        except np.linalg.LinAlgError:
+            std = {}
+    return RefineResult(
+        model=m,
+        board_poses={k: T for k, T in zip(pose_keys, Ts, strict=True)},
+        residuals_px=per_view,
+        rms_px=rms,
+        std=std,
+        names=tuple(names),
+        success=success,
+        message=message,
+    )

@@ -1,0 +1,343 @@
+"""Identification of the circles of many circle-board views while refining the model (no rclpy).
+
+:func:`identify_views` runs :func:`calibration_tools.circle_board.identify_view` over all
+views in rounds:
+
+0. The board orientation and plane come from per-view PnP mapped into V0 with the
+   approximate model (:func:`board_pose_from_views`); the views that show a large circle then
+   fix the board's position modulo the 7-circle sub-pattern.
+1. Each round labels every view, refines the model and the board pose(s) on the accepted
+   views (robust loss) and repeats until the accepted labels stop changing.
+2. Finally every view is verified against the refined model: all its circles must reproject
+   within a tolerance derived from the residuals (a wrong label is a whole pitch, ~240 px,
+   away), their sizes must match the board, and labels must be unique and on the board.
+   Anything else is rejected with the reason.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from reconstructor.model import RigModel, v0_T_v
+
+from .board_fit import (
+    RefineResult,
+    ViewObservation,
+    _as_transform,
+    _rotation_angle,
+    _transform,
+    pnp_view,
+    refine,
+)
+from .board_geometry import pixels_to_board
+from .board_layout import CircleBoard
+from .circle_board import CircleDetections, identify_view
+
+
+# ------------------------------------------------------------------------------ identification
+@dataclass
+class IdentificationResult:
+    """Result of :func:`identify_views`.
+
+    Attributes
+    ----------
+    views : list of ViewIdentification
+        One per input view, in input order.
+    model : RigModel
+        Model refined during identification.
+    board_poses : dict of int to ndarray, shape (4, 4)
+    refinement : RefineResult or None
+        Last refinement on the accepted views.
+    verify_px : float
+        Reprojection tolerance of the final verification, pixels.
+    rounds : int
+    """
+
+    views: list
+    model: RigModel
+    board_poses: dict
+    refinement: RefineResult | None
+    verify_px: float
+    rounds: int
+    log: list = field(default_factory=list)
+
+
+def _lattice_shift(offsets, period):
+    """Circular mean of lattice offsets modulo ``period``; shape (2,)."""
+    ang = 2.0 * np.pi * np.asarray(offsets) / period
+    mean = np.arctan2(np.sin(ang).mean(axis=0), np.cos(ang).mean(axis=0))
+    return mean * period / (2.0 * np.pi)
+
+
+def _mean_rotation(Rs) -> np.ndarray:
+    """Chordal L2 mean of rotation matrices (projection of their sum onto SO(3))."""
+    U_, _, Vt = np.linalg.svd(np.sum(Rs, axis=0))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U_ @ Vt))])
+    return U_ @ D @ Vt
+
+
+def board_pose_from_views(
+    detections: Sequence[CircleDetections],
+    voltages,
+    model: RigModel,
+    board: CircleBoard,
+    prior,
+    *,
+    min_circles: int = 4,
+    max_outlier_deg: float = 3.0,
+) -> tuple[np.ndarray, int]:
+    """Board orientation and plane from per-view PnP, keeping the prior's in-plane position.
+
+    Each view with at least ``min_circles`` circles is labelled relative to its first circle
+    (lattice steps predicted with the prior, which need only be right to ~10 degrees), its
+    board pose is solved by PnP and mapped into V0 with the approximate model. The mean
+    orientation and median plane offset of those views replace the prior's; the prior's
+    board origin is moved along its V0 ray onto the new plane. The position along the board
+    stays the prior's (it is fixed modulo the sub-pattern by the large circles later).
+
+    Parameters
+    ----------
+    detections : sequence of CircleDetections
+    voltages : array_like, shape (n, 2), volts
+    model : RigModel
+    board : CircleBoard
+    prior : array_like, shape (4, 4)
+        Approximate ``V0_T_W``, metres.
+    min_circles : int
+    max_outlier_deg : float
+        Views whose orientation differs more from the mean are left out.
+
+    Returns
+    -------
+    V0_T_W : ndarray, shape (4, 4)
+    n_views : int
+        Views used (0: the prior is returned unchanged).
+    """
+    prior = _as_transform(prior, "prior")
+    U = np.asarray(voltages, dtype=np.float64)
+    if U.shape != (len(detections), 2):
+        raise ValueError(f"voltages must have shape ({len(detections)}, 2), got {U.shape}")
+    Rs, ts = [], []
+    for det, u in zip(detections, U, strict=True):
+        if len(det) < min_circles:
+            continue
+        xy = pixels_to_board(model, det.centres, u[0], u[1], prior)
+        if not np.isfinite(xy).all():
+            continue
+        frac = board.lattice_coords(xy)
+        rel = frac - frac[0]
+        lab = np.rint(rel)
+        if np.abs(rel - lab).max() > 0.3 or len({tuple(r) for r in lab}) != len(lab):
+            continue
+        rc = lab + np.rint(frac[0])
+        P = np.column_stack([
+            (rc[:, 1] - board.centre_col) * board.pitch,
+            (rc[:, 0] - board.centre_row) * board.pitch,
+            np.zeros(len(rc)),
+        ])
+        radii = np.where(board.is_large_rc(rc[:, 0], rc[:, 1]) & det.large & det.size_known,
+                         board.large_diameter / 2.0, board.small_diameter / 2.0)
+        try:
+            V_T_W, _ = pnp_view(model.intrinsics, P, radii, det.centres)
+        except (ValueError, cv2.error):
+            continue
+        T = v0_T_v(model, u[0], u[1]) @ V_T_W
+        Rs.append(T[:3, :3])
+        ts.append(T[:3, 3])
+    if not Rs:
+        return prior.copy(), 0
+    Rs = np.array(Rs)
+    ts = np.array(ts)
+    R = _mean_rotation(Rs)
+    for _ in range(2):
+        ang = np.degrees(_rotation_angle(np.swapaxes(Rs, -1, -2) @ R))
+        keep = ang <= max_outlier_deg
+        if keep.sum() == 0:
+            return prior.copy(), 0
+        R = _mean_rotation(Rs[keep])
+    n = R[:, 2]
+    offset = float(np.median(ts[keep] @ n))  # plane: n . x = offset
+    o = prior[:3, 3]
+    denom = float(n @ o)
+    t = o * (offset / denom) if abs(denom) > 1e-9 else o
+    return _transform(R, t), int(keep.sum())
+
+
+def identify_views(
+    detections: Sequence[CircleDetections],
+    voltages,
+    model: RigModel,
+    board: CircleBoard,
+    board_poses,
+    *,
+    pose_index=None,
+    refine_mirrors: bool = True,
+    refine_theta0: bool = True,
+    refine_poly: int = 0,
+    max_offset_pitch: float = 0.25,
+    verify_sigma: float = 8.0,
+    verify_floor_px: float = 2.0,
+    verify_max_pitch: float = 0.2,
+    max_rounds: int = 8,
+    progress: Callable | None = None,
+) -> IdentificationResult:
+    """Identify the circles of many views of the board while refining the model.
+
+    Round 0 fixes the board position modulo the sub-pattern period with the views that show
+    a large circle; each later round labels every view with :func:`identify_view`, refines
+    the model and board poses on the accepted views (robust loss), and repeats until the
+    accepted labels stop changing. Finally every view is verified against the refined model:
+    its circles must reproject within ``verify_px`` (``verify_sigma`` robust sigmas, at least
+    ``verify_floor_px``, at most ``verify_max_pitch`` pitches) or the view is rejected.
+
+    Parameters
+    ----------
+    detections : sequence of CircleDetections
+    voltages : array_like, shape (n, 2), volts
+        (U1_pan, U1_tilt) per view.
+    model : RigModel
+        Approximate model (nominal rig data).
+    board : CircleBoard
+    board_poses : ndarray shape (4, 4), or dict of int to ndarray shape (4, 4)
+        Approximate ``V0_T_W`` per board pose (metres); its position on the board needs to
+        be right to within 3 pitches for absolute labels (large circles fix the rest).
+    pose_index : array_like of int, shape (n,), optional
+        Board pose of each view (default all 0).
+    refine_mirrors, refine_theta0, refine_poly
+        As :func:`refine`.
+    max_offset_pitch : float
+        Largest prediction error accepted when labelling a view without a large circle.
+    verify_sigma, verify_floor_px, verify_max_pitch : float
+        Final reprojection tolerance (see above).
+    max_rounds : int
+    progress : callable, optional
+        ``progress(done, total, message)`` after each round.
+
+    Returns
+    -------
+    IdentificationResult
+    """
+    n = len(detections)
+    U = np.asarray(voltages, dtype=np.float64)
+    if U.shape != (n, 2) or not np.isfinite(U).all():
+        raise ValueError(f"voltages must have shape ({n}, 2) and be finite, got {U.shape}")
+    pidx = np.zeros(n, dtype=np.int64) if pose_index is None else np.asarray(pose_index)
+    if pidx.shape != (n,):
+        raise ValueError(f"pose_index must have shape ({n},), got {pidx.shape}")
+    if isinstance(board_poses, dict):
+        poses = {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
+    else:
+        poses = {0: _as_transform(board_poses, "board_poses")}
+    for p in set(pidx.tolist()):
+        if p not in poses:
+            raise ValueError(f"pose_index {p} has no entry in board_poses")
+    log: list[str] = []
+    period = board.sub_pattern
+
+    def label_all(m, ps, **kw):
+        return [
+            identify_view(det, U[i, 0], U[i, 1], m, ps[int(pidx[i])], board, **kw)
+            if len(det) else identify_view(det, 0.0, 0.0, m, ps[int(pidx[i])], board)
+            for i, det in enumerate(detections)
+        ]
+
+    # Round 0: board orientation and plane from per-view PnP, then the lattice position
+    # of each board pose from the large-circle views.
+    for p in sorted(poses):
+        sel = np.flatnonzero(pidx == p)
+        poses[p], used = board_pose_from_views(
+            [detections[i] for i in sel], U[sel], model, board, poses[p]
+        )
+        log.append(f"pose {p}: orientation from {used} PnP views")
+    ids = label_all(model, poses, max_offset_pitch=0.49, max_spread_pitch=0.25)
+    for p in sorted(poses):
+        offs = [
+            ids[i].offset_pitch for i in range(n)
+            if pidx[i] == p and ids[i].mode == "large" and np.isfinite(ids[i].offset_pitch).all()
+        ]
+        if not offs:
+            log.append(f"pose {p}: no view shows a large circle; relying on the pose prior")
+            continue
+        shift = _lattice_shift(offs, period)
+        delta = np.array([shift[1], shift[0], 0.0]) * board.pitch  # (row, col) -> (x, y)
+        poses[p] = poses[p] @ _transform(np.eye(3), -delta)
+        log.append(f"pose {p}: {len(offs)} large-circle views; board prior shifted by "
+                   f"({shift[0]:+.2f}, {shift[1]:+.2f}) pitch (row, col)")
+    m = model
+    prev = None
+    rounds = 0
+    ref = None
+    for rounds in range(1, max_rounds + 1):
+        ids = label_all(m, poses, max_offset_pitch=max_offset_pitch)
+        accepted = [i for i in range(n) if ids[i].accepted]
+        key = tuple((i, tuple(ids[i].index)) for i in accepted)
+        if progress is not None:
+            progress(rounds, max_rounds, f"identification round {rounds}: "
+                     f"{len(accepted)}/{n} views labelled")
+        if key == prev:
+            break
+        prev = key
+        obs = _observations(ids, detections, U, pidx, accepted)
+        n_pts = sum(len(o.index) for o in obs)
+        if n_pts < 12:
+            log.append(f"round {rounds}: only {n_pts} labelled circles, cannot refine")
+            break
+        spread = np.ptp(U[accepted], axis=0) if accepted else np.zeros(2)
+        enough = len(accepted) >= 6 and spread.min() > 1.0
+        ref = refine(
+            m, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
+            refine_l_d=enough and rounds >= 2,
+            refine_mirrors=refine_mirrors and enough,
+            refine_theta0=refine_theta0 and enough and rounds >= 2,
+            refine_poly=refine_poly if (enough and rounds >= 3) else 0,
+            loss="soft_l1", f_scale_px=2.0,
+        )
+        m = ref.model
+        poses.update(ref.board_poses)
+        log.append(f"round {rounds}: {len(accepted)} views labelled, robust fit rms "
+                   f"{ref.rms_px:.3f} px")
+    # Final verification against the refined model.
+    pitch_px = _pitch_px(m, board, poses)
+    ids = label_all(m, poses, max_offset_pitch=max_offset_pitch)
+    verify_px = verify_floor_px
+    for _ in range(3):
+        accepted = [i for i in range(n) if ids[i].accepted]
+        if not accepted:
+            break
+        obs = _observations(ids, detections, U, pidx, accepted)
+        ref = refine(
+            m, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
+            refine_l_d=len(accepted) >= 6, refine_mirrors=refine_mirrors and len(accepted) >= 6,
+            refine_theta0=refine_theta0 and len(accepted) >= 6,
+            refine_poly=refine_poly if len(accepted) >= 6 else 0,
+            loss="soft_l1", f_scale_px=max(verify_px / 4.0, 0.5),
+        )
+        m = ref.model
+        poses.update(ref.board_poses)
+        res = np.concatenate(ref.residuals_px)
+        sigma = 1.4826 * float(np.median(np.abs(res - np.median(res, axis=0))))
+        verify_px = float(np.clip(verify_sigma * sigma, verify_floor_px,
+                                  verify_max_pitch * pitch_px))
+        ids = label_all(m, poses, max_offset_pitch=max_offset_pitch, max_residual_px=verify_px)
+        if [i for i in range(n) if ids[i].accepted] == accepted:
+            break
+    log.append(f"verification: tolerance {verify_px:.2f} px, "
+               f"{sum(v.accepted for v in ids)}/{n} views accepted")
+    return IdentificationResult(ids, m, poses, ref, verify_px, rounds, log)
+
+
+def _observations(ids, detections, U, pidx, accepted):
+    return [
+        ViewObservation(U[i], ids[i].index, detections[i].centres, int(pidx[i]), i)
+        for i in accepted
+    ]
+
+
+def _pitch_px(model: RigModel, board: CircleBoard, poses) -> float:
+    """Board pitch in pixels at the V0 view of the nearest board pose."""
+    z = min(float(T[2, 3]) for T in poses.values())
+    return model.intrinsics.fx * board.pitch / max(z, 1e-3)
