@@ -35,7 +35,7 @@ from .board_fit import (
 )
 from .board_geometry import pixels_to_board
 from .board_layout import CircleBoard
-from .circle_board import CircleDetections, identify_view
+from .circle_board import CircleDetections, ViewIdentification, identify_view
 
 
 # ------------------------------------------------------------------------------ identification
@@ -66,11 +66,20 @@ class IdentificationResult:
     log: list = field(default_factory=list)
 
 
-def _lattice_shift(offsets, period):
-    """Circular mean of lattice offsets modulo ``period``; shape (2,)."""
-    ang = 2.0 * np.pi * np.asarray(offsets) / period
-    mean = np.arctan2(np.sin(ang).mean(axis=0), np.cos(ang).mean(axis=0))
-    return mean * period / (2.0 * np.pi)
+def _lattice_shift(offsets, period, tol: float = 0.35):
+    """Consensus of lattice offsets modulo ``period``: (shift shape (2,), supporting views).
+
+    The offset agreed on by most views (within ``tol`` pitches, wrapped by the period) is
+    averaged over its supporters; a view with a misjudged large circle does not move it.
+    """
+    offs = np.asarray(offsets, dtype=np.float64)
+    best = None
+    for o in offs:
+        d = (offs - o + period / 2.0) % period - period / 2.0
+        inl = np.all(np.abs(d) < tol, axis=1)
+        if best is None or inl.sum() > best[0]:
+            best = (int(inl.sum()), o + d[inl].mean(axis=0))
+    return best[1], best[0]
 
 
 def _mean_rotation(Rs) -> np.ndarray:
@@ -183,6 +192,7 @@ def identify_views(
     verify_floor_px: float = 2.0,
     verify_max_pitch: float = 0.2,
     max_rounds: int = 8,
+    min_anchors: int = 2,
     progress: Callable | None = None,
 ) -> IdentificationResult:
     """Identify the circles of many views of the board while refining the model.
@@ -214,6 +224,11 @@ def identify_views(
     verify_sigma, verify_floor_px, verify_max_pitch : float
         Final reprojection tolerance (see above).
     max_rounds : int
+    min_anchors : int
+        Views showing a large circle that must agree on a board pose's lattice position.
+        Without them, labels could be consistently off by whole pitches (harmless for the
+        fit, but not the board's true circles), so every view of that pose is rejected.
+        0 accepts labels that rest on the prior alone (the log says so).
     progress : callable, optional
         ``progress(done, total, message)`` after each round.
 
@@ -235,15 +250,24 @@ def identify_views(
     for p in set(pidx.tolist()):
         if p not in poses:
             raise ValueError(f"pose_index {p} has no entry in board_poses")
+    if min_anchors < 0:
+        raise ValueError(f"min_anchors must be >= 0, got {min_anchors}")
     log: list[str] = []
     period = board.sub_pattern
+    unverified: dict[int, str] = {}
 
     def label_all(m, ps, **kw):
-        return [
-            identify_view(det, U[i, 0], U[i, 1], m, ps[int(pidx[i])], board, **kw)
-            if len(det) else identify_view(det, 0.0, 0.0, m, ps[int(pidx[i])], board)
-            for i, det in enumerate(detections)
-        ]
+        out = []
+        for i, det in enumerate(detections):
+            p = int(pidx[i])
+            if p in unverified:
+                out.append(ViewIdentification(False, np.full(len(det), -1, np.int64),
+                                              unverified[p]))
+            elif len(det):
+                out.append(identify_view(det, U[i, 0], U[i, 1], m, ps[p], board, **kw))
+            else:
+                out.append(identify_view(det, 0.0, 0.0, m, ps[p], board))
+        return out
 
     # Round 0: board orientation and plane from per-view PnP, then the lattice position
     # of each board pose from the large-circle views.
@@ -255,18 +279,24 @@ def identify_views(
         log.append(f"pose {p}: orientation from {used} PnP views")
     ids = label_all(model, poses, max_offset_pitch=0.49, max_spread_pitch=0.25)
     for p in sorted(poses):
-        offs = [
-            ids[i].offset_pitch for i in range(n)
-            if pidx[i] == p and ids[i].mode == "large" and np.isfinite(ids[i].offset_pitch).all()
-        ]
-        if not offs:
-            log.append(f"pose {p}: no view shows a large circle; relying on the pose prior")
-            continue
-        shift = _lattice_shift(offs, period)
+        offs = [ids[i].offset_pitch for i in range(n)
+                if pidx[i] == p and ids[i].accepted and ids[i].mode == "large"]
+        shift, support = _lattice_shift(offs, period) if offs else (np.zeros(2), 0)
+        if support < min_anchors:
+            what = (f"{support} agreeing view(s) with a large circle" if offs
+                    else "no view with a large circle")
+            if min_anchors > 0:
+                unverified[p] = (f"board pose {p}: {what}, need {min_anchors}; circle "
+                                 "identities cannot be verified")
+                log.append(unverified[p])
+                continue
+            log.append(f"pose {p}: {what}; relying on the pose prior")
+            if not offs:
+                continue
         delta = np.array([shift[1], shift[0], 0.0]) * board.pitch  # (row, col) -> (x, y)
         poses[p] = poses[p] @ _transform(np.eye(3), -delta)
-        log.append(f"pose {p}: {len(offs)} large-circle views; board prior shifted by "
-                   f"({shift[0]:+.2f}, {shift[1]:+.2f}) pitch (row, col)")
+        log.append(f"pose {p}: {support} of {len(offs)} large-circle views agree; board "
+                   f"prior shifted by ({shift[0]:+.2f}, {shift[1]:+.2f}) pitch (row, col)")
     m = model
     prev = None
     rounds = 0

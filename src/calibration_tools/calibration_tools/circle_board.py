@@ -16,8 +16,8 @@ the prediction error. A visible large circle pins the labels modulo the 7-circle
 view without one is labelled by rounding, accepted only when the offset is well inside half
 a pitch. Every view is then verified: labels unique and on the board, large flags matching
 the board, and the reprojection of the labelled circles within a pixel tolerance. Anything
-else is rejected with a reason. :func:`dynamic_camera.identify_views` runs this over all
-views while refining the model, so the final check uses an accurate model.
+else is rejected with a reason. :func:`calibration_tools.board_identify.identify_views` runs
+this over all views while refining the model, so the final check uses an accurate model.
 """
 
 from __future__ import annotations

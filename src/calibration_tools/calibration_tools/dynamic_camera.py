@@ -302,6 +302,7 @@ def run_dynamic_camera(
     dark_circles: bool = True,
     max_offset_pitch: float = 0.25,
     verify_floor_px: float = 2.0,
+    min_anchors: int = 2,
     progress: Callable | None = None,
 ) -> StageResult:
     """Calibrate the dynamic camera (l, d and optionally the G1 gains) from circle-board views.
@@ -324,8 +325,9 @@ def run_dynamic_camera(
         Views with fewer complete circles are rejected.
     dark_circles : bool
         Circles darker than the board.
-    max_offset_pitch, verify_floor_px
-        As :func:`identify_views`.
+    max_offset_pitch, verify_floor_px, min_anchors
+        As :func:`identify_views` (capture at least ``min_anchors`` views showing a 15 mm
+        circle for every board pose).
     progress : callable, optional
         ``progress(done, total, message)``.
 
@@ -396,7 +398,7 @@ def run_dynamic_camera(
     ident = identify_views(
         dets, U, model0, board, poses, pose_index=pidx, refine_mirrors=refine_mirrors,
         refine_theta0=refine_theta0, refine_poly=refine_poly, max_offset_pitch=max_offset_pitch,
-        verify_floor_px=verify_floor_px, progress=progress,
+        verify_floor_px=verify_floor_px, min_anchors=min_anchors, progress=progress,
     )
     accepted = [j for j, vid in enumerate(ident.views) if vid.accepted]
     for j, vid in enumerate(ident.views):

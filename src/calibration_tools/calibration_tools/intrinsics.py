@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
+
 from reconstructor.model import CameraIntrinsics
 
 from .board_layout import Checkerboard, CircleGrid

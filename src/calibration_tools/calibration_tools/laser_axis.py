@@ -14,7 +14,16 @@ The laser planes ``pi_i`` measured at G2 tilt voltages ``U_i`` all contain the G
   nearest U = 0, with a free constant) gives ``k2`` and, with enough data, higher terms.
 
 Every plane's residual to the common axis is reported: the angle between the axis and the
-plane and the distance of ``P`` from the plane. No rclpy.
+plane and the distance of ``P`` from the plane.
+
+Laser mounting error (DESIGN.md §5 source 6): a fan that is rolled about its beam or offset
+from the mirror axis is still turned rigidly about the axis by the mirror, but its planes no
+longer contain the axis: their normals lie on a cone about n (``n . n_i = cos`` of a constant
+angle) and they are tangent to a cylinder about it. ``method='cone'`` fits that general case:
+n is the eigenvector with the smallest eigenvalue of the covariance of the normals about their
+mean (``sum (n_i - mean)(n_i - mean)^T``), and P comes with the common offset rho. It needs a
+wider sweep than the paper's method (the cone's opening is told apart from a tilt of n only
+by the curvature of the arc the normals trace). No rclpy.
 """
 
 from __future__ import annotations
@@ -47,10 +56,14 @@ class AxisFit:
         Axis point P (pinned along the axis by the anchor).
     offset : float, metres
         Common signed plane-to-axis offset rho (0 unless ``fit_offset``).
+    cone_angle : float, radians
+        Mean angle between the planes and the axis, ``asin(mean(n . n_i))`` (the fan's roll
+        for ``method='cone'``; about 0 for the paper's method).
     eigenvalues : ndarray, shape (3,)
-        Of ``sum n_i n_i^T``, ascending; the smallest is ``sum (n . n_i)^2``.
+        Of ``sum w_i n_i n_i^T`` (centred for the cone), ascending.
     plane_angle_rad : ndarray, shape (m,)
-        Angle between the axis and each plane, ``asin |n . n_i|``.
+        Angle between the axis and each plane, ``asin |n . n_i|`` (paper), or its deviation
+        from the cone angle (cone).
     plane_distance_m : ndarray, shape (m,)
         ``n_i . P + e_i - rho`` for each plane (signed).
     rotation_rad : ndarray, shape (m,)
@@ -67,6 +80,7 @@ class AxisFit:
     direction: np.ndarray
     point: np.ndarray
     offset: float
+    cone_angle: float
     eigenvalues: np.ndarray
     plane_angle_rad: np.ndarray
     plane_distance_m: np.ndarray
@@ -120,8 +134,12 @@ def plane_rotation_angles(planes, direction, reference: int = 0) -> np.ndarray:
     return np.arctan2(np.cross(ref, normals) @ n, normals @ ref)
 
 
+METHODS = ('paper', 'cone')
+
+
 def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
-             reference_dir=None, fit_offset: bool = False, poly_degree: int = 1) -> AxisFit:
+             reference_dir=None, fit_offset: bool = False, poly_degree: int = 1,
+             method: str = 'paper') -> AxisFit:
     """Fit the common rotation axis of laser planes, and the angle per volt.
 
     Parameters
@@ -146,6 +164,10 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
         Degree of the mirror angle polynomial in U (1 = linear gain only). Fitted only when
         there are at least ``poly_degree + 2`` distinct voltages; otherwise the degree is
         lowered (and a warning logged).
+    method : {'paper', 'cone'}
+        ``'paper'``: n minimises ``sum (n . n_i)^2`` (planes contain the axis). ``'cone'``:
+        n minimises ``sum (n . n_i - c)^2`` over n and c (a fan rolled about its beam), i.e.
+        the eigenvector of the centred normals' covariance; needs >= 3 planes.
 
     Returns
     -------
@@ -172,10 +194,20 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
             raise ValueError(f'weights must be finite, >= 0, not all 0, shape ({m},)')
         w = w / w.max()
     sw = np.sqrt(w)
+    if method not in METHODS:
+        raise ValueError(f'method must be one of {METHODS}, got {method!r}')
     evals, evecs = np.linalg.eigh((N * w[:, None]).T @ N)
     if evals[1] < 1e-14 * max(evals[2], 1e-300):
         raise ValueError('the planes are all parallel: their normals do not span a plane, so '
                          'they define no axis (sweep the laser over a wider range)')
+    if method == 'cone':
+        if m < 3:
+            raise ValueError("method='cone' needs at least 3 planes")
+        Nc = N - (w @ N) / w.sum()
+        evals, evecs = np.linalg.eigh((Nc * w[:, None]).T @ Nc)
+        if evals[1] < 1e-14 * max(evals[2], 1e-300):
+            raise ValueError('the plane normals trace no arc: the cone axis is undetermined '
+                             '(sweep the laser over a wider range)')
     n = evecs[:, 0]
     if reference_dir is not None:
         r = np.asarray(reference_dir, dtype=np.float64)
@@ -197,7 +229,12 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
     P = a + B @ sol[:2]
     rho = float(sol[2]) if fit_offset else 0.0
     dist = N @ P + e - rho
-    angle = np.arcsin(np.clip(np.abs(N @ n), 0.0, 1.0))
+    cosines = N @ n
+    cone = float(np.arcsin(np.clip((w @ cosines) / w.sum(), -1.0, 1.0)))
+    if method == 'cone':
+        angle = np.abs(np.arcsin(np.clip(cosines, -1.0, 1.0)) - cone)
+    else:
+        angle = np.arcsin(np.clip(np.abs(cosines), 0.0, 1.0))
 
     ref = 0
     u = None
@@ -221,7 +258,8 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
             fit_rms = float(np.sqrt(np.mean((V @ coef - rot) ** 2)))
             k = float(coef[1] / 2.0)
             poly = tuple(float(c / 2.0) for c in coef[2:])
-    return AxisFit(direction=n, point=P, offset=rho, eigenvalues=evals, plane_angle_rad=angle,
+    return AxisFit(direction=n, point=P, offset=rho, cone_angle=cone, eigenvalues=evals,
+                   plane_angle_rad=angle,
                    plane_distance_m=dist, rotation_rad=rot, k=k, poly=poly,
                    angle_fit_rms_rad=fit_rms)
 
@@ -242,7 +280,8 @@ def line_distance(p1, d1, p2, d2) -> float:
 def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma: float = 4.0,
                    max_pnp_rms_px: float = 0.5, min_stripe_points: int = 20,
                    min_poses: int = 2, min_spread: float = 1e-3, fit_offset: bool = False,
-                   poly_degree: int = 1, anchor=(0.0, 0.0, 0.0)) -> StageResult:
+                   poly_degree: int = 1, anchor=(0.0, 0.0, 0.0),
+                   method: str = 'paper') -> StageResult:
     """Calibrate the G2 tilt axis (n, P) and the G2 tilt angle per volt.
 
     Parameters
@@ -258,8 +297,9 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         the sign of n (and so of k).
     board : board_layout.Checkerboard or board_layout.CircleGrid
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
-    fit_offset, poly_degree, anchor
-        See :func:`fit_axis`. Planes are weighted by the squared spread of their points
+    fit_offset, poly_degree, anchor, method
+        See :func:`fit_axis` (``method='cone', fit_offset=True`` for a laser whose fan does
+        not contain the mirror axis). Planes are weighted by the squared spread of their points
         across the stripe (a plane from nearby board poses has a poorly known tilt).
     k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread
         See :func:`laser_plane.board_stripe_points` and :func:`laser_plane.plane_from_stripes`.
@@ -270,7 +310,8 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         ``updates``: ``laser_axis_dir``, ``laser_axis_point`` and, when the voltages span
         enough, ``g2_tilt: {'k': ..., 'poly': [...]}``. Residuals: ``axis_angle_rms_rad``,
         ``axis_angle_max_rad``, ``axis_distance_rms_m``, ``axis_distance_max_m``,
-        ``axis_offset_m``, ``plane_rms_max_m``, ``angle_fit_rms_rad``, ``planes_used``.
+        ``axis_offset_m``, ``axis_cone_angle_rad``, ``plane_rms_max_m``, ``angle_fit_rms_rad``,
+        ``planes_used``.
 
     Raises
     ------
@@ -310,7 +351,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
                          f'needed; rejected: {rejected}')
     fit = fit_axis(np.array(planes), np.array(volts), weights=np.array(weights), anchor=anchor,
                    reference_dir=model.laser_axis_dir, fit_offset=fit_offset,
-                   poly_degree=poly_degree)
+                   poly_degree=poly_degree, method=method)
     updates = {'laser_axis_dir': [float(v) for v in fit.direction],
                'laser_axis_point': [float(v) for v in fit.point]}
     if fit.k is not None:
@@ -321,6 +362,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         'axis_distance_rms_m': float(np.sqrt(np.mean(fit.plane_distance_m ** 2))),
         'axis_distance_max_m': float(np.abs(fit.plane_distance_m).max()),
         'axis_offset_m': fit.offset,
+        'axis_cone_angle_rad': fit.cone_angle,
         'plane_rms_max_m': float(max(rms)),
         'planes_used': float(len(planes)),
     }

@@ -219,13 +219,14 @@ def sphere_scene_yaml(centre, radius: float, wall_z: float | None = None,
 
 
 def sphere_g1_grid(sim, model, u2_tilt: float, radius: float, pans, tilts, *,
-                   depth: float = 0.65, wall_gap: float | None = 0.0, occluder=None,
-                   occluded_nodes=(), pose_index: int = 0):
+                   depth: float = 0.65, lateral: float = 0.0, absolute: bool = False,
+                   wall_gap: float | None = 0.0, occluder=None, occluded_nodes=(),
+                   pose_index: int = 0):
     """Laser-on frames of a sphere with G2 fixed and G1 stepped over a grid.
 
-    The sphere is placed where ``model``'s laser plane at ``u2_tilt`` crosses the V0 optical
-    axis at ``depth`` (its front surface there); G1 is aimed at its centre, then offset by
-    every (pan, tilt) of the grid.
+    The sphere is placed with its front on ``model``'s laser plane at ``u2_tilt``, at depth
+    ``depth`` and ``lateral`` along V0's x; G1 is aimed at its centre, then offset by every
+    (pan, tilt) of the grid (or set to them, with ``absolute``).
 
     Parameters
     ----------
@@ -236,8 +237,11 @@ def sphere_g1_grid(sim, model, u2_tilt: float, radius: float, pans, tilts, *,
     u2_tilt : float, volts
     radius : float, metres
     pans, tilts : sequence of float, volts
-        G1 offsets from the aimed voltages (the grid).
+        G1 offsets from the aimed voltages (the grid), or the grid's voltages themselves
+        with ``absolute``.
     depth : float, metres
+    lateral : float, metres
+    absolute : bool
     wall_gap : float or None, metres
         Wall this far behind the sphere's back (None: no wall).
     occluder : (offset, size), optional
@@ -261,7 +265,7 @@ def sphere_g1_grid(sim, model, u2_tilt: float, radius: float, pans, tilts, *,
 
     u2 = float(_quantize(sim, u2_tilt))
     pi = laser_plane_v0(model, u2)
-    front = np.array([0.0, -(pi[2] * depth + pi[3]) / pi[1], depth])
+    front = np.array([lateral, -(pi[0] * lateral + pi[2] * depth + pi[3]) / pi[1], depth])
     centre = front + np.array([0.0, 0.0, radius])
     wall = None if wall_gap is None else centre[2] + radius + wall_gap
     plain = load_scene_text(sphere_scene_yaml(centre, radius, wall))
@@ -270,11 +274,12 @@ def sphere_g1_grid(sim, model, u2_tilt: float, radius: float, pans, tilts, *,
         box = (centre + np.asarray(occluder[0], dtype=np.float64), occluder[1])
         blocked = load_scene_text(sphere_scene_yaml(centre, radius, wall, box))
     aim = aim_g1(model, centre)
+    origin = np.zeros(2) if absolute else aim
     views, truths = [], []
     for a, dp in enumerate(pans):
         for b, dt in enumerate(tilts):
             sim.set_scene(blocked if (a, b) in set(map(tuple, occluded_nodes)) else plain)
-            volts = _quantize(sim, [aim[0] + dp, aim[1] + dt, 0.0, u2])
+            volts = _quantize(sim, [origin[0] + dp, origin[1] + dt, 0.0, u2])
             frame = sim.render(volts)
             views.append(CaptureView(frame.image, volts, True, pose_index))
             truths.append(frame.truth)

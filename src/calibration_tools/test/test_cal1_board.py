@@ -8,12 +8,8 @@ import math
 
 import numpy as np
 import pytest
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from reconstructor.model import CameraIntrinsics, nominal_example_rig, project_points
 from scipy.spatial.transform import Rotation
 
 from calibration_tools.board_geometry import (
@@ -25,6 +21,10 @@ from calibration_tools.board_geometry import (
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD, Checkerboard, CircleBoard
 from calibration_tools.board_render import render_circle_board
 from calibration_tools.circle_board import detect_circles, fit_ellipse, identify_view
+from galvo_driver.sim.rig import load_rig
+from galvo_driver.sim.scene import load_scene
+from galvo_driver.sim.simulator import Simulator
+from reconstructor.model import CameraIntrinsics, nominal_example_rig, project_points
 
 B = PAPER_CIRCLE_BOARD
 

@@ -9,21 +9,8 @@ import math
 
 import numpy as np
 import pytest
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from reconstructor import calibration_file
-from reconstructor.model import (
-    CameraIntrinsics,
-    MirrorParams,
-    RigModel,
-    g_T_v,
-    nominal_example_rig,
-    rigid_inverse,
-    v0_T_v,
-)
 from scipy.spatial.transform import Rotation
 
 from calibration_tools.board_geometry import project_circle_centres, view_T_board
@@ -38,6 +25,19 @@ from calibration_tools.dynamic_camera import (
     transfer_matrix_error,
 )
 from calibration_tools.stages import CaptureView, apply_result
+from galvo_driver.sim.rig import load_rig
+from galvo_driver.sim.scene import load_scene
+from galvo_driver.sim.simulator import Simulator
+from reconstructor import calibration_file
+from reconstructor.model import (
+    CameraIntrinsics,
+    MirrorParams,
+    RigModel,
+    g_T_v,
+    nominal_example_rig,
+    rigid_inverse,
+    v0_T_v,
+)
 
 B = PAPER_CIRCLE_BOARD
 K_NOMINAL = math.radians(20.0) / 10.0

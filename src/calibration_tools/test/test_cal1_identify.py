@@ -14,16 +14,16 @@ import math
 
 import numpy as np
 import pytest
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
-from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 from scipy.spatial.transform import Rotation
 
 from calibration_tools.board_geometry import project_circle_centres
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD
 from calibration_tools.circle_board import CircleDetections
 from calibration_tools.dynamic_camera import identify_views
+from galvo_driver.sim.rig import load_rig
+from galvo_driver.sim.scene import load_scene
+from galvo_driver.sim.simulator import Simulator
+from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 
 B = PAPER_CIRCLE_BOARD
 K_NOMINAL = math.radians(20.0) / 10.0
@@ -167,21 +167,50 @@ def test_identification_refines_the_rough_model_on_the_way(scenario):
     assert result.refinement is not None and result.refinement.rms_px < result.verify_px
 
 
-def test_identification_without_large_circles_relies_on_the_prior_and_says_so():
+def test_a_board_pose_without_large_circles_is_refused_unless_asked_for():
     views, tp, V0_T_O = synthetic_views(25, seed=5, u_max=2.5)
     dets = [dataclasses.replace(d, large=np.zeros(len(d), bool)) for _, d, _ in views]
     U = np.array([u for u, _, _ in views])
     approx = model_from_truth(tp, l=tp.l + 0.002)
-    # A prior off by 2 pitches: without large circles every label is 2 columns off. The
-    # labels are self-consistent, so they are accepted, and the log says the position
-    # rests on the prior. (With a large circle in view this is corrected: see above.)
+    # A prior off by 2 pitches and no large circle in any view: the labels would be
+    # consistently 2 columns off, and nothing in the data can tell. Refused by default.
     prior = _perturbed_pose(V0_T_O, [0, 0, 0], [2 * B.pitch, 0.0, 0.0])
     result = identify_views(dets, U, approx, B, prior)
-    assert any("no view shows a large circle" in line for line in result.log)
+    assert not any(v.accepted for v in result.views)
+    assert all("cannot be verified" in v.reason for v in result.views)
+    # With min_anchors=0 the labels rest on the prior, and the log says so.
+    result = identify_views(dets, U, approx, B, prior, min_anchors=0)
+    assert any("relying on the pose prior" in line for line in result.log)
     assert sum(v.accepted for v in result.views) >= 20
     for (_, _, truth), v in zip(views, result.views, strict=True):
         if v.accepted:
             np.testing.assert_array_equal(v.index, truth - 2)
+
+
+def test_one_misjudged_large_circle_cannot_relabel_a_board_pose():
+    views, tp, V0_T_O = synthetic_views(40, seed=6, u_max=3.0)
+    U = np.array([u for u, _, _ in views])
+    dets, truth = [], []
+    n_true_anchor = 0
+    for _, d, c in views:
+        if d.large.any():  # keep one true anchor only
+            n_true_anchor += 1
+            if n_true_anchor > 1:
+                d = dataclasses.replace(d, large=np.zeros(len(d), bool))
+        dets.append(d)
+        truth.append(c)
+    assert n_true_anchor >= 1
+    # A different view claims a small circle is large: two anchors that disagree.
+    k = next(i for i, d in enumerate(dets) if not d.large.any() and len(d) >= 3)
+    large = np.zeros(len(dets[k]), bool)
+    large[0] = True
+    dets[k] = dataclasses.replace(dets[k], large=large)
+    approx = model_from_truth(tp)
+    prior = _perturbed_pose(V0_T_O, [0, 0, 0], [0.03, 0.02, 0.0])
+    result = identify_views(dets, U, approx, B, prior)
+    wrong = [i for i, v in enumerate(result.views)
+             if v.accepted and not np.array_equal(v.index, truth[i])]
+    assert wrong == []
 
 
 def test_identify_views_input_checks():

@@ -5,17 +5,13 @@ perspective of strongly tilted boards; the captures here tilt the simulator's 4 
 checkerboard by ~34 degrees in directions all around, as a bench procedure should.
 """
 
+import dataclasses
 import math
 
 import cv2
 import numpy as np
 import pytest
 import yaml
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import SCENE_DIR, load_scene, load_scene_text
-from galvo_driver.sim.simulator import Simulator
-from reconstructor import calibration_file
-from reconstructor.model import CameraIntrinsics, nominal_example_rig
 from scipy.spatial.transform import Rotation
 
 from calibration_tools.board_layout import Checkerboard, CircleGrid
@@ -27,6 +23,11 @@ from calibration_tools.intrinsics import (
     run_intrinsics,
 )
 from calibration_tools.stages import CaptureView, apply_result
+from galvo_driver.sim.rig import load_rig
+from galvo_driver.sim.scene import SCENE_DIR, load_scene, load_scene_text
+from galvo_driver.sim.simulator import Simulator
+from reconstructor import calibration_file
+from reconstructor.model import CameraIntrinsics, nominal_example_rig
 
 BOARD = Checkerboard(11, 8, 0.004)  # the simulator's checkerboard: 12 x 9 squares of 4 mm
 
@@ -65,8 +66,6 @@ def _nominal_calibration():
     # Nominal lens data only: 54 mm / 6.9 um, centred principal point, no distortion.
     model = nominal_example_rig()
     intr = CameraIntrinsics(7800.0, 7800.0, 360.0, 270.0, (0.0,) * 5, 720, 540)
-    import dataclasses
-
     return calibration_file.Calibration(model=dataclasses.replace(model, intrinsics=intr))
 
 
@@ -126,26 +125,38 @@ def test_outlier_views_are_rejected():
         calibrate_intrinsics(pts, obj, (720, 540), dist_model="k9")
 
 
-def test_symmetric_corner_refinement_against_rendered_truth():
-    intr = CameraIntrinsics(7801.38, 7798.24, 359.51, 269.54, (-0.5, 3.0, 2e-4, -1e-4, 0),
-                            720, 540)
-    errors = []
-    for k, rot in enumerate([[0.6, 0.0, 0.1], [0.4, 0.4, -0.2], [0.0, -0.6, 0.05]]):
-        T = _pose(rot, [-0.02, -0.014, 0.68])
-        view = render_target(intr, BOARD, T, rng=k)
-        corners = detect_target(view.image, BOARD)
-        assert corners is not None
-        # OpenCV may order a symmetric-looking board either way round.
-        if np.linalg.norm(corners[0] - view.uv[0]) > np.linalg.norm(corners[0] - view.uv[-1]):
-            corners = corners[::-1]
-        errors.append(corners - view.uv)
+def test_symmetric_corner_refinement_against_simulator_truth():
+    from calibration_tools.small_board import detect_board
+
+    rig = load_rig("ideal")
+    base = yaml.safe_load((SCENE_DIR / "checkerboard.yaml").read_text())
+    sim = Simulator(rig, load_scene("checkerboard"), seed=1)
+    raw_err, ref_err = [], []
+    for k, rot in enumerate([[0.6, 0.0, 0.1], [0.42, 0.42, -0.2], [0.0, -0.6, 0.05]]):
+        obj = dict(base["objects"][0], pose={"translation": [0.0, 0.0, 0.68],
+                                            "rotation_vector": rot})
+        scene = load_scene_text(yaml.safe_dump(dict(base, objects=[obj])))
+        sim.set_scene(scene)
+        f = sim.calibration_frame([0.0, 0.0, 0.0, 0.0], frame_index=k)
+        truth = sim.project_points(scene.objects[0].feature_points()["world_points"],
+                                   f.truth.angles)
+        raw = detect_board(BOARD, f.image)
+        corners = detect_target(f.image, BOARD)
+        assert raw is not None and corners is not None
+        j = np.linalg.norm(corners[:, None] - truth[None], axis=2).argmin(axis=1)
+        assert len(set(j)) == len(j)
+        raw_err.append(raw - truth[j])
+        ref_err.append(corners - truth[j])
         # Same window as detect_target: a fixed point, reached again from 0.4 px away.
         side = np.median(np.linalg.norm(np.diff(corners.reshape(8, 11, 2), axis=1), axis=2))
         start = corners + np.random.default_rng(k).uniform(-0.4, 0.4, corners.shape)
-        again = refine_corners_symmetric(view.image, start, max(2.0, 0.4 * side))
+        again = refine_corners_symmetric(f.image, start, max(2.0, 0.4 * side))
         np.testing.assert_allclose(again, corners, atol=2e-3)
-    e = np.concatenate(errors)
-    assert np.abs(e).max() < 0.05 and np.sqrt(np.mean(e**2)) < 0.015
+    raw_e, ref_e = np.concatenate(raw_err), np.concatenate(ref_err)
+    rms = np.sqrt(np.mean(ref_e**2))
+    assert rms < 0.02 and np.abs(ref_e).max() < 0.08
+    assert rms <= np.sqrt(np.mean(raw_e**2))  # no worse than OpenCV's corners
+    assert np.abs(ref_e.mean(axis=0)).max() < 0.005  # and unbiased
 
 
 def test_circle_grid_target_is_found_in_order_with_ellipse_centres():

@@ -358,3 +358,27 @@ def test_sphere_centre_registration_and_densify():
     assert len(dense) == 4 + 2 * 3  # the 4.8 mm gap is not bridged
     assert np.isclose(np.sort(dense[:, 0])[1], 2.5e-5)
     np.testing.assert_allclose(np.abs(tangents[:, 0]), 1.0)
+
+
+def test_cone_method_handles_a_fan_rolled_about_its_beam(axis_truth):
+    n, P, pi0 = axis_truth
+    # The fan rolled by 0.2 deg about the beam (the direction from the axis to the target)
+    # and 0.3 mm off the axis: its planes no longer contain the axis.
+    beam = np.array([0.0, 0.0, 0.65]) - P
+    beam -= (beam @ n) * n
+    beam /= np.linalg.norm(beam)
+    roll = Rotation.from_rotvec(math.radians(0.2) * beam).as_matrix()
+    normal = roll @ pi0[:3]
+    rolled = np.append(normal, -normal @ P - 3e-4)
+    volts = np.linspace(-4, 4, 17)
+    planes = _axis_planes(n, P, rolled, 0.0349, volts)
+    paper = fit_axis(planes, volts, reference_dir=n)
+    cone = fit_axis(planes, volts, reference_dir=n, method='cone', fit_offset=True)
+    assert _angle_deg(paper.direction, n) > 0.15  # biased by about the roll
+    assert _angle_deg(cone.direction, n) < 1e-6
+    assert abs(abs(math.degrees(cone.cone_angle)) - 0.2) < 1e-6
+    assert line_distance(cone.point, cone.direction, P, n) < 1e-9
+    assert abs(abs(cone.offset) - 3e-4) < 1e-9
+    assert abs(cone.k - 0.0349) < 1e-9
+    with pytest.raises(ValueError, match='method must be one of'):
+        fit_axis(planes, volts, method='magic')

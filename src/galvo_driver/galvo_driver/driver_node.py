@@ -70,7 +70,7 @@ class GalvoDriverNode(LifecycleNode):
         d = self._declare
         d('backend', 'sim', f"frame source: {', '.join(BACKENDS)}")
         d('rig', 'reference', 'sim: rig description (name of a shipped rig or a YAML path)')
-        d('scene', 'stair', 'sim: scene (name of a shipped scene or a YAML path)')
+        d('scene', 'stair_block', 'sim: scene (name of a shipped scene or a YAML path)')
         d('seed', 0, 'sim: random seed for noise and jitter', ints=(0, 2 ** 31 - 1))
         d('serial_port', '', 'serial: pyserial port or URL of the DAC board')
         d('replay_bag', '', 'replay: rosbag2 directory to publish')

@@ -2,6 +2,8 @@
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from galvo_driver.sim import Simulator, load_rig, load_scene, load_scene_text, patterns
 from galvo_driver.sim import raykernels as rk
@@ -342,3 +344,32 @@ def test_compiled_mirror_tracing_matches_numpy():
     W = rig.W_T_G
     assert np.allclose(o, o_G @ W[:3, :3].T + W[:3, 3], atol=1e-14)
     assert np.allclose(d, d_G @ W[:3, :3].T, atol=1e-14)
+
+
+STAIR_REF = Simulator(REFERENCE, load_scene('stair_block'), seed=11)
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.floats(-0.4, 0.4), st.floats(-0.4, 0.4), st.floats(-2.0, 2.0), st.floats(-0.3, 0.3))
+def test_truth_is_consistent_for_any_voltages(u1p, u1t, u2p, du2):
+    """Property: wherever the stripe falls, its truth is on the sheet and the surface and
+    projects onto its pixel (reference rig, every imperfection on)."""
+    u2t = patterns.aim_laser(REFERENCE, u1p, u1t, 0.66, u2p) + du2
+    frame = STAIR_REF.render([u1p, u1t, u2p, u2t])
+    if len(frame.truth.stripe):
+        check_truth(STAIR_REF, frame)
+
+
+def test_scan_is_lazy_and_checks_its_input():
+    sim = Simulator(IDEAL, load_scene('plane'), seed=0)
+    volts = patterns.g2_sweep([0.0, 0.1, 0.2])
+    it = sim.scan(volts)
+    first = next(it)
+    assert first.truth.index == 0 and first.image.shape == (540, 720)
+    assert [f.truth.index for f in it] == [1, 2]
+    with pytest.raises(ValueError, match='shape'):
+        next(sim.scan(np.zeros((3, 3))))
+    with pytest.raises(ValueError, match='range'):
+        next(sim.scan(np.array([[0.0, 0.0, 0.0, 12.0]])))
+    with pytest.raises(ValueError, match='voltages'):
+        sim.render([0.0, 0.0])

@@ -526,8 +526,8 @@ def ambient_pixels(ptype, R, T, prm, pobj, cam, xy, foot_scale, center, albedo, 
     dx = np.empty(n)
     dy = np.empty(n)
     dz = np.empty(n)
-    for i in range(n):
-        ox[i], oy[i], oz[i], dx[i], dy[i], dz[i] = _camera_ray(cam, xy[i, 0], xy[i, 1])
+    soa_camera_rays(cam, np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), ox,
+                    oy, oz, dx, dy, dz)
     tb = np.empty(n)
     pb = np.empty(n, np.int64)
     ab = np.empty(n, np.int64)
@@ -552,6 +552,41 @@ def ambient_pixels(ptype, R, T, prm, pobj, cam, xy, foot_scale, center, albedo, 
 # Structure-of-arrays passes: one primitive at a time over all rays (vectorisable loops).
 # IEEE inf/NaN semantics are kept (no 'nnan'/'ninf' fast-math flags).
 _FM = {'nsz', 'arcp', 'contract', 'afn', 'reassoc'}
+
+
+@njit(cache=True, fastmath=_FM)
+def soa_camera_rays(cam, xs, ys, ox, oy, oz, dx, dy, dz):
+    """Pixel rays (x, y, 1) in C traced off the two G1 mirrors, into arrays (see
+    :func:`_camera_ray` for ``cam``)."""
+    g00, g01, g02, g10, g11, g12, g20, g21, g22 = (cam[0], cam[1], cam[2], cam[3], cam[4],
+                                                   cam[5], cam[6], cam[7], cam[8])
+    cx, cy, cz = cam[9], cam[10], cam[11]
+    m1x, m1y, m1z, c1 = cam[12], cam[13], cam[14], cam[15]
+    m2x, m2y, m2z, c2 = cam[16], cam[17], cam[18], cam[19]
+    w00, w01, w02, w10, w11, w12, w20, w21, w22 = (cam[20], cam[21], cam[22], cam[23],
+                                                   cam[24], cam[25], cam[26], cam[27], cam[28])
+    wx, wy, wz = cam[29], cam[30], cam[31]
+    o1 = cx * m1x + cy * m1y + cz * m1z
+    for i in range(xs.shape[0]):
+        x, y = xs[i], ys[i]
+        inv = 1.0 / math.sqrt(x * x + y * y + 1.0)
+        ax = (g00 * x + g01 * y + g02) * inv
+        ay = (g10 * x + g11 * y + g12) * inv
+        az = (g20 * x + g21 * y + g22) * inv
+        dn = ax * m1x + ay * m1y + az * m1z
+        t = (c1 - o1) / dn
+        px, py, pz = cx + t * ax, cy + t * ay, cz + t * az
+        ax, ay, az = ax - 2.0 * dn * m1x, ay - 2.0 * dn * m1y, az - 2.0 * dn * m1z
+        dn = ax * m2x + ay * m2y + az * m2z
+        t = (c2 - (px * m2x + py * m2y + pz * m2z)) / dn
+        px, py, pz = px + t * ax, py + t * ay, pz + t * az
+        ax, ay, az = ax - 2.0 * dn * m2x, ay - 2.0 * dn * m2y, az - 2.0 * dn * m2z
+        ox[i] = w00 * px + w01 * py + w02 * pz + wx
+        oy[i] = w10 * px + w11 * py + w12 * pz + wy
+        oz[i] = w20 * px + w21 * py + w22 * pz + wz
+        dx[i] = w00 * ax + w01 * ay + w02 * az
+        dy[i] = w10 * ax + w11 * ay + w12 * az
+        dz[i] = w20 * ax + w21 * ay + w22 * az
 
 
 @njit(cache=True, fastmath=_FM)
@@ -717,15 +752,18 @@ def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, 
             rows[k] = r
             cc[k] = cols[j]
             k += 1
+    xs = np.empty(n)
+    ys = np.empty(n)
+    for i in range(n):
+        xs[i] = grid[rows[i], cc[i], 0]
+        ys[i] = grid[rows[i], cc[i], 1]
     ox = np.empty(n)
     oy = np.empty(n)
     oz = np.empty(n)
     dx = np.empty(n)
     dy = np.empty(n)
     dz = np.empty(n)
-    for i in range(n):
-        ox[i], oy[i], oz[i], dx[i], dy[i], dz[i] = _camera_ray(
-            cam, grid[rows[i], cc[i], 0], grid[rows[i], cc[i], 1])
+    soa_camera_rays(cam, xs, ys, ox, oy, oz, dx, dy, dz)
     tb = np.empty(n)
     pb = np.empty(n, np.int64)
     ab = np.empty(n, np.int64)

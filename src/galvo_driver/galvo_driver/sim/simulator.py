@@ -36,11 +36,19 @@ import cv2
 import numpy as np
 
 from . import raykernels as rk
-from .rig import LaserSheet, Rig
+from .rig import LaserSheet, ModelParameters, Rig
 from .scene import Hits, Scene
 from .spatial import invert_transform, normalize_plane, transform_plane
 
 _NEAR = 0.01  # [m] nearest depth considered in front of the virtual camera
+
+
+def _reflection(n, c):
+    """4x4 reflection through the plane n . x = c (n unit; no checks, hot path)."""
+    T = np.eye(4)
+    T[:3, :3] -= 2.0 * np.outer(n, n)
+    T[:3, 3] = 2.0 * c * n
+    return T
 
 
 @dataclass
@@ -104,6 +112,9 @@ class FrameTruth:
         [s]
     stripe : StripeTruth
     rig_name, scene_name : str
+    model_parameters : ModelParameters or None
+        The rig's true model-equivalent parameters (``Rig.true_model_parameters()`` at
+        U2_pan = 0), shared by all frames of a simulator.
     """
 
     index: int
@@ -121,11 +132,15 @@ class FrameTruth:
     stripe: StripeTruth
     rig_name: str = ''
     scene_name: str = ''
+    model_parameters: ModelParameters | None = None
 
     def as_dict(self) -> dict:
         """Plain dict (arrays kept as numpy arrays), e.g. for a driver Frame's truth."""
-        out = {k: v for k, v in self.__dict__.items() if k != 'stripe'}
+        out = {k: v for k, v in self.__dict__.items()
+               if k not in ('stripe', 'model_parameters')}
         out['stripe'] = dict(self.stripe.__dict__)
+        if self.model_parameters is not None:
+            out['model_parameters'] = self.model_parameters.as_dict()
         return out
 
 
@@ -191,6 +206,10 @@ class Simulator:
                 n, dtype=np.float32)
         self._next_index = 0
         self._intr = self._intrinsics()
+        self._cam_const = np.concatenate((rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3],
+                                          rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]))
+        #: The rig's true model-equivalent parameters (see Rig.true_model_parameters).
+        self.model_parameters = rig.true_model_parameters()
         self.W_T_V0 = rig.W_T_V0
         self.V0_T_W = invert_transform(self.W_T_V0)
 
@@ -208,21 +227,25 @@ class Simulator:
         th = np.asarray(angles, dtype=np.float64)
         if th.shape != (4,):
             raise ValueError(f'angles: expected shape (4,), got {th.shape}')
-        G_T_V = rig.G_T_V(th[0], th[1])
-        W_T_V = rig.W_T_G @ G_T_V
-        n_t, c_t = rig.g1.tilt.plane(th[1])
-        cam_mirror = normalize_plane(transform_plane(rig.W_T_G, np.append(n_t, -c_t)))
-        geo = _Geometry(th, W_T_V, invert_transform(W_T_V), rig.W_T_G, W_T_V[:3, 3].copy(),
-                        cam_mirror)
         (n1, c1), (n2, c2) = rig.g1_planes(th[0], th[1])
-        geo.extra['cam'] = np.concatenate([
-            rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3], n1, [c1], n2, [c2],
-            rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3], geo.center])
+        G_T_V = _reflection(n2, c2) @ (_reflection(n1, c1) @ rig.G_T_C)
+        W_T_G = rig.W_T_G
+        W_T_V = W_T_G @ G_T_V
+        V_T_W = np.eye(4)
+        V_T_W[:3, :3] = W_T_V[:3, :3].T
+        V_T_W[:3, 3] = -W_T_V[:3, :3].T @ W_T_V[:3, 3]
+        # the G1 tilt mirror n2 . x = c2 in W (W_T_G is rigid)
+        nW = W_T_G[:3, :3] @ n2
+        cam_mirror = np.array([nW[0], nW[1], nW[2], float(nW @ W_T_G[:3, 3]) - c2])
+        center = W_T_V[:3, 3].copy()
+        geo = _Geometry(th, W_T_V, V_T_W, W_T_G, center, cam_mirror)
+        geo.extra['cam'] = np.concatenate((self._cam_const[:12], n1, (c1,), n2, (c2,),
+                                           self._cam_const[12:], center))
         if laser_on:
-            sh = rig.laser_sheet_G(th[2], th[3]).transformed(rig.W_T_G)
+            sh = rig.laser_sheet_G(th[2], th[3]).transformed(W_T_G)
             geo.sheet = sh
-            geo.extra['sheet'] = np.concatenate([sh.plane, sh.source, sh.edge_normals.ravel(),
-                                                 sh.mirror_plane])
+            geo.extra['sheet'] = np.concatenate((sh.plane, sh.source, sh.edge_normals.ravel(),
+                                                 sh.mirror_plane))
         return geo
 
     def project_points(self, points_W, angles) -> np.ndarray:
@@ -500,7 +523,7 @@ class Simulator:
             self.V0_T_W @ geo.W_T_V, self.W_T_V0.copy(), laser_on, plane_W,
             normalize_plane(transform_plane(self.V0_T_W, plane_W)) if laser_on else nan4,
             geo.sheet.source if laser_on else np.full(3, np.nan), exposure, stripe,
-            rig.name, self.scene.name)
+            rig.name, self.scene.name, self.model_parameters)
         return SimFrame(image, truth)
 
     def calibration_frame(self, voltages, *, laser_on: bool = False,
