@@ -37,15 +37,12 @@ import time
 
 import numpy as np
 import yaml
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import SCENE_DIR, load_scene, load_scene_text
-from galvo_driver.sim.simulator import Simulator
-from reconstructor.calibration_file import Calibration
-from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel, rigid_inverse
 
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD, Checkerboard
 from calibration_tools.circle_board import detect_circles, identify_view
 from calibration_tools.dynamic_camera import (
+    aim_voltages,
+    anchor_voltages,
     paper_grid,
     pnp_view,
     run_dynamic_camera,
@@ -53,6 +50,11 @@ from calibration_tools.dynamic_camera import (
 )
 from calibration_tools.intrinsics import run_intrinsics
 from calibration_tools.stages import CaptureView, apply_result
+from galvo_driver.sim.rig import load_rig
+from galvo_driver.sim.scene import SCENE_DIR, load_scene, load_scene_text
+from galvo_driver.sim.simulator import Simulator
+from reconstructor.calibration_file import Calibration
+from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel, rigid_inverse
 
 B = PAPER_CIRCLE_BOARD
 K_NOMINAL = math.radians(20.0) / 10.0
@@ -121,13 +123,20 @@ def board_scene(offset_xy):
 
 
 def board_views(rig, placements, seed):
-    """Frames of the circle board at several placements; returns views, priors, truths."""
+    """Frames of the circle board at several placements; returns views, priors, truths.
+
+    Each placement's views are planned as a user would, with the nominal model and the
+    nominal placement: three aimed at large circles (identification anchors), the rest at
+    random points of the board; all on the DAC grid within +-10 V.
+    """
     sim = Simulator(rig, load_scene("circle_board"), seed=seed)
-    W_T_V0 = rig.true_model_parameters().W_T_V0
+    tp = rig.true_model_parameters()
+    W_T_V0 = tp.W_T_V0
+    plan_model = nominal_model(tp)
     rng = np.random.default_rng(seed)
     views, priors, truths = [], {}, []
     frame = 0
-    for p, (offset, n, centre_u, half_u) in enumerate(placements):
+    for p, (offset, n) in enumerate(placements):
         scene = board_scene(offset)
         sim.set_scene(scene)
         W_T_O = scene.objects[0].W_T_O
@@ -137,9 +146,15 @@ def board_views(rig, placements, seed):
         D[:3, :3] = _rot([0.02, -0.025, 0.015])
         D[:3, 3] = [0.02, -0.015, 0.01]
         priors[p] = V0_T_O @ D
-        for _ in range(n):
-            U = rig.dac.quantize(np.clip(np.asarray(centre_u) + rng.uniform(-half_u, half_u, 2),
-                                         -10.0, 10.0))
+        nominal_placement = load_scene_text(yaml.safe_dump(yaml.safe_load(
+            (SCENE_DIR / "circle_board.yaml").read_text()))).objects[0].W_T_O.copy()
+        nominal_placement[:2, 3] += offset
+        plan_pose = np.linalg.inv(W_T_V0) @ nominal_placement
+        aims = anchor_voltages(plan_model, B, plan_pose)[:3]
+        pts = np.column_stack([rng.uniform(-0.33, 0.33, (4 * n, 2)), np.zeros(4 * n)])
+        more = aim_voltages(plan_model, pts @ plan_pose[:3, :3].T + plan_pose[:3, 3])
+        more = more[np.isfinite(more).all(axis=1)][: n - len(aims)]
+        for U in rig.dac.quantize(np.vstack([aims, more])):
             f = sim.calibration_frame([U[0], U[1], 0.0, 0.0], frame_index=frame)
             frame += 1
             views.append(CaptureView(f.image, np.r_[U, 0.0, 0.0], pose_index=p))
@@ -265,13 +280,12 @@ def main():
               flush=True)
         results[rig_name] = {"intrinsics": intr}
         n_central = (40 if q else 120) if rig_name == "reference" else (30 if q else 40)
-        runs = [("central", [((0.0, 0.0), n_central, (0.0, 0.0), 7.0)])]
+        runs = [("central", [((0.0, 0.0), n_central)])]
         if rig_name == "reference":
-            side = 0.42
-            n_side = 10 if q else 25
-            runs.append(("wide", [((0.0, 0.0), n_central // 2, (0.0, 0.0), 7.0)] + [
-                ((sx * side, sy * side), n_side, (8.0 * sx if sx else 0.0, 8.0 * sy if sy
-                                                  else 0.0), 3.0)
+            side = 0.42  # m: four more placements to the sides reach the paper's +-10 V
+            n_side = 12 if q else 25
+            runs.append(("wide", [((0.0, 0.0), n_central // 2)] + [
+                ((sx * side, sy * side), n_side)
                 for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1))]))
         for label, placements in runs:
             r = dynamic_stage(rig, cal, placements, seed=7, label=label)

@@ -104,8 +104,29 @@ def axis_stage(rig, cal, seed):
     out = []
     for opts in ({}, {'method': 'cone', 'fit_offset': True}):
         res = run_laser_axis(views, cal, board=BOARD, **opts)
-        out.append((apply_result(cal, res), _axis_figures(rig, res)))
+        new = apply_result(cal, res)
+        figs = _axis_figures(rig, res)
+        figs['plane_prediction_error_mm_max'] = plane_prediction_error(rig, new.model) * 1e3
+        out.append((new, figs))
     return out
+
+
+def plane_prediction_error(rig, model, volts=np.linspace(-4.0, 4.0, 17)):
+    """Largest distance (m) between the model's laser plane and the simulator's actual one
+    at U2 in +-4 V, over points of the actual plane at x in +-100 mm and 600..700 mm depth."""
+    from reconstructor.model import laser_plane_v0
+
+    sim = Simulator(rig, load_scene('sphere'), seed=0)
+    worst = 0.0
+    for u in volts:
+        u = float(rig.dac.quantize(u))
+        true = sim.render([0.0, 0.0, 0.0, u]).truth.laser_plane_V0
+        pred = laser_plane_v0(model, u)
+        for x in (-0.1, 0.0, 0.1):
+            for z in (0.6, 0.65, 0.7):
+                p = np.array([x, -(true[0] * x + true[2] * z + true[3]) / true[1], z])
+                worst = max(worst, abs(pred[:3] @ p + pred[3]) / np.linalg.norm(pred[:3]))
+    return worst
 
 
 def _axis_figures(rig, res):
@@ -176,7 +197,7 @@ def joint_local(rig, cal, seed):
     return figs
 
 
-def joint_wide(rig, cal, seed, laterals, u2s, step=0.1, reach=0.3):
+def joint_wide(rig, cal, seed, laterals, u2s, step=0.1, reach=(0.3, 0.3), held_per_position=3):
     """Sphere at several positions, chained. G1 nodes on one global grid of ``step`` V."""
     from calibration_tools.sim_captures import aim_g1
     from reconstructor.model import laser_plane_v0
@@ -190,15 +211,14 @@ def joint_wide(rig, cal, seed, laterals, u2s, step=0.1, reach=0.3):
             pi = laser_plane_v0(cal.model, u2)
             centre = np.array([x, -(pi[0] * x + pi[2] * 0.65 + pi[3]) / pi[1], 0.65 + RADIUS])
             aim = aim_g1(cal.model, centre)
-            pans = np.arange(np.ceil((aim[0] - reach) / step), np.floor((aim[0] + reach) / step)
-                             + 1) * step
-            tilts = np.arange(np.ceil((aim[1] - reach) / step),
-                              np.floor((aim[1] + reach) / step) + 1) * step
+            pans, tilts = (np.round(np.arange(np.ceil((a - r) / step - 1e-9),
+                                              np.floor((a + r) / step + 1e-9) + 1)) * step
+                           for a, r in zip(aim, reach, strict=True))
             v, t, _, _ = sphere_g1_grid(sim, cal.model, u2, RADIUS, pans, tilts, lateral=x,
                                         absolute=True, pose_index=pose)
             views += v
             truths += t
-            hp = rng.uniform(pans[0], pans[-1], 3)
+            hp = rng.uniform(pans[0], pans[-1], held_per_position)
             ht = rng.uniform(tilts[0], tilts[-1], 1)
             v, t, _, _ = sphere_g1_grid(sim, cal.model, u2, RADIUS, hp, ht, lateral=x,
                                         absolute=True, pose_index=pose)
@@ -245,8 +265,8 @@ def main(argv=None):
             print(f'{rig_name} seed {seed}: laser plane: {fmt(fp)}')
             print(f'{rig_name} seed {seed}: laser axis (paper): {fmt(fa)}')
             print(f'{rig_name} seed {seed}: laser axis (cone + offset): {fmt(fc)}')
-            if cal is None:  # the joint correction uses the general axis fit
-                cal = cal_c
+            if cal is None:  # the joint correction uses the paper's axis fit
+                cal = cal_a
         entry = {
             'plane_normal_error_deg_max': max(p['normal_error_deg'] for p in planes),
             'plane_offset_error_mm_max': max(p['offset_error_mm'] for p in planes),
@@ -257,14 +277,18 @@ def main(argv=None):
             'axis_cone_direction_error_deg_max': max(a['direction_error_deg'] for a in cones),
             'axis_cone_distance_mm_max': max(a['distance_mm'] for a in cones),
             'axis_cone_k_rel_error_max': max(abs(a['k_rel_error']) for a in cones),
+            'plane_prediction_error_mm_max': max(a['plane_prediction_error_mm_max']
+                                                 for a in axes),
+            'plane_prediction_error_cone_mm_max': max(a['plane_prediction_error_mm_max']
+                                                      for a in cones),
             'seeds': len(planes),
         }
         local = joint_local(rig, cal, 0)
         print(f'{rig_name}: joint correction (local 5 x 5): {fmt(local)}')
         entry['joint_local'] = local
         if not args.quick:
-            wide = joint_wide(rig, cal, 0, laterals=np.linspace(-0.04, 0.04, 5),
-                              u2s=(-0.45, 0.0, 0.45))
+            wide = joint_wide(rig, cal, 0, laterals=np.arange(-0.02, 0.2201, 0.02), u2s=(0.0,),
+                              reach=(0.3, 0.1))
             print(f'{rig_name}: joint correction (wide, chained): {fmt(wide)}')
             entry['joint_wide'] = wide
         out[rig_name] = entry

@@ -223,8 +223,11 @@ class RefineResult:
     message: str
 
 
-def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly):
-    names = []
+_INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
+
+
+def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics=()):
+    names = [f"intrinsics.{n}" for n in refine_intrinsics]
     if refine_l_d:
         names += ["l", "d"]
     if refine_mirrors:
@@ -240,6 +243,8 @@ def _get_param(model, name):
     if name in ("l", "d"):
         return getattr(model, name)
     mirror, attr = name.split(".")
+    if mirror == "intrinsics":
+        return getattr(model.intrinsics, attr)
     mp = getattr(model, mirror)
     if attr.startswith("poly"):
         j = int(attr[5:-1])
@@ -252,11 +257,15 @@ def _set_params(model: RigModel, names, values) -> RigModel:
     mirrors = {"g1_pan": model.g1_pan, "g1_tilt": model.g1_tilt}
     mirror_kw = {"g1_pan": {}, "g1_tilt": {}}
     polys = {key: list(mirrors[key].poly) for key in mirrors}
+    intr_kw = {}
     for name, value in zip(names, values, strict=True):
         if name in ("l", "d"):
             kw[name] = float(value)
             continue
         mirror, attr = name.split(".")
+        if mirror == "intrinsics":
+            intr_kw[attr] = float(value)
+            continue
         if attr.startswith("poly"):
             j = int(attr[5:-1])
             while len(polys[mirror]) <= j:
@@ -268,6 +277,8 @@ def _set_params(model: RigModel, names, values) -> RigModel:
     for key, changes in mirror_kw.items():
         if changes:
             kw[key] = dataclasses.replace(mirrors[key], **changes)
+    if intr_kw:
+        kw["intrinsics"] = dataclasses.replace(model.intrinsics, **intr_kw)
     return dataclasses.replace(model, **kw) if kw else model
 
 
@@ -282,6 +293,7 @@ def refine(
     refine_theta0: bool = True,
     refine_poly: int = 0,
     refine_pose: bool = True,
+    refine_intrinsics: Sequence[str] = (),
     loss: str = "linear",
     f_scale_px: float = 1.0,
     ellipse_correction: bool = True,
@@ -307,6 +319,10 @@ def refine(
         Number of higher-order coefficients of both G1 responses to refine (0, 1 or 2).
     refine_pose : bool
         Refine the board poses.
+    refine_intrinsics : sequence of str
+        Intrinsics to refine jointly, any of ``('fx', 'fy', 'cx', 'cy')`` (distortion stays).
+        The large board spans ~60 degrees of view directions, so it constrains the focal
+        lengths far better than a 5-degree view of a small target does.
     loss : str
         scipy loss ('linear', 'soft_l1', 'huber', 'cauchy', ...); robust losses for
         data that may hold outliers.
@@ -335,7 +351,11 @@ def refine(
         if o.pose_index not in poses:
             raise ValueError(f"observations[{i}].pose_index {o.pose_index} has no board pose")
     pose_keys = sorted({o.pose_index for o in obs})
-    names = _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly)
+    bad = [n for n in refine_intrinsics if n not in _INTRINSIC_NAMES]
+    if bad:
+        raise ValueError(f"refine_intrinsics must name {_INTRINSIC_NAMES}, got {bad}")
+    names = _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly,
+                         tuple(dict.fromkeys(refine_intrinsics)))
     x_model0 = np.array([_get_param(model, n) for n in names], dtype=np.float64)
     counts = np.array([len(o.index) for o in obs])
     index = np.concatenate([o.index for o in obs])
@@ -352,7 +372,9 @@ def refine(
     # Parameter scales: lengths in mm-ish units, angles in mrad-ish units.
     scale = []
     for n in names:
-        if n in ("l", "d"):
+        if n.startswith("intrinsics."):
+            scale.append(1.0)
+        elif n in ("l", "d"):
             scale.append(1e-3)
         elif n.endswith(".k"):
             scale.append(1e-5)

@@ -282,17 +282,16 @@ def identify_views(
         offs = [ids[i].offset_pitch for i in range(n)
                 if pidx[i] == p and ids[i].accepted and ids[i].mode == "large"]
         shift, support = _lattice_shift(offs, period) if offs else (np.zeros(2), 0)
-        if support < min_anchors:
+        if support < max(min_anchors, 1):
             what = (f"{support} agreeing view(s) with a large circle" if offs
                     else "no view with a large circle")
             if min_anchors > 0:
                 unverified[p] = (f"board pose {p}: {what}, need {min_anchors}; circle "
                                  "identities cannot be verified")
                 log.append(unverified[p])
-                continue
-            log.append(f"pose {p}: {what}; relying on the pose prior")
-            if not offs:
-                continue
+            else:
+                log.append(f"pose {p}: {what}; relying on the pose prior")
+            continue
         delta = np.array([shift[1], shift[0], 0.0]) * board.pitch  # (row, col) -> (x, y)
         poses[p] = poses[p] @ _transform(np.eye(3), -delta)
         log.append(f"pose {p}: {support} of {len(offs)} large-circle views agree; board "

@@ -22,7 +22,7 @@ DELEGATED = {
     'replay': 'galvo_driver.bag.replay_node:main',
     'bag-recover': 'galvo_driver.bag.recover:main',
     'calibrate': 'calibration_tools.offline:main',
-    'evaluate': 'calibration_tools.evaluate:main',
+    'evaluate': 'calibration_tools.evaluate_node:main',
 }
 
 

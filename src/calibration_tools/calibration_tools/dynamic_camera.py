@@ -235,6 +235,79 @@ def default_board_pose(distance: float) -> np.ndarray:
     return _transform(np.eye(3), [0.0, 0.0, float(distance)])
 
 
+def aim_voltages(model: RigModel, points_v0, *, max_abs_u: float = 10.0) -> np.ndarray:
+    """G1 voltages that put V0 points on the virtual camera's optical axis (capture planning).
+
+    Parameters
+    ----------
+    model : RigModel
+        Nominal or calibrated model.
+    points_v0 : array_like, shape (n, 3), metres
+        Targets in V0.
+    max_abs_u : float, volts
+        Voltage range; targets out of reach get NaN.
+
+    Returns
+    -------
+    ndarray, shape (n, 2), volts
+        (U1_pan, U1_tilt); NaN where no voltage within range reaches the target.
+    """
+    P = np.asarray(points_v0, dtype=np.float64)
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f"points_v0 must have shape (n, 3), got {P.shape}")
+    out = np.full((len(P), 2), np.nan)
+
+    def off_axis(u, p):
+        q = rigid_inverse(v0_T_v(model, u[0], u[1])) @ np.append(p, 1.0)
+        return q[:2] / q[2] if q[2] > 0 else np.array([1e3, 1e3])
+
+    for i, p in enumerate(P):
+        u = np.zeros(2)
+        for _ in range(30):  # Newton with a numerical Jacobian
+            f = off_axis(u, p)
+            J = np.column_stack([(off_axis(u + h, p) - f) / 1e-4
+                                 for h in (np.array([1e-4, 0]), np.array([0, 1e-4]))])
+            try:
+                step = np.linalg.solve(J, -f)
+            except np.linalg.LinAlgError:
+                break
+            u = u + np.clip(step, -2.0, 2.0)
+            if np.abs(step).max() < 1e-9:
+                break
+        if np.abs(off_axis(u, p)).max() < 1e-6 and np.abs(u).max() <= max_abs_u:
+            out[i] = u
+    return out
+
+
+def anchor_voltages(model: RigModel, board: CircleBoard, V0_T_W, *,
+                    max_abs_u: float = 10.0) -> np.ndarray:
+    """Voltages that centre each reachable large (15 mm) circle of a board placement.
+
+    Capture a few of these per board pose: identification needs ``min_anchors`` views with
+    a large circle. With nominal values the aim is good to a few millimetres, well inside a
+    view (~60 x 45 mm).
+
+    Parameters
+    ----------
+    model : RigModel
+    board : CircleBoard
+    V0_T_W : array_like, shape (4, 4)
+        Nominal board placement in V0, metres.
+    max_abs_u : float, volts
+
+    Returns
+    -------
+    ndarray, shape (m, 2), volts
+        Reachable targets only, nearest to U1 = 0 first.
+    """
+    T = _as_transform(V0_T_W, "V0_T_W")
+    big = np.flatnonzero(board.is_large(np.arange(board.n_circles)))
+    pts = board.points(big) @ T[:3, :3].T + T[:3, 3]
+    u = aim_voltages(model, pts, max_abs_u=max_abs_u)
+    u = u[np.isfinite(u).all(axis=1)]
+    return u[np.argsort(np.abs(u).sum(axis=1))]
+
+
 def _estimate_distance(model, board, dets, U) -> float | None:
     """Board distance along the V0 axis from the apparent pitch of the view nearest U = 0."""
     order = np.argsort(np.abs(U).sum(axis=1))
@@ -298,6 +371,7 @@ def run_dynamic_camera(
     refine_mirrors: bool = True,
     refine_theta0: bool = True,
     refine_poly: int = 0,
+    refine_intrinsics: Sequence[str] = ("fx", "fy", "cx", "cy"),
     min_circles: int = 2,
     dark_circles: bool = True,
     max_offset_pitch: float = 0.25,
@@ -321,6 +395,12 @@ def run_dynamic_camera(
         Absolute circle labels need the position right to within ~3 pitches (60 mm).
     refine_mirrors, refine_theta0, refine_poly
         As :func:`refine`.
+    refine_intrinsics : sequence of str
+        Pinhole intrinsics refined jointly in the final fit (distortion stays as the
+        intrinsics stage found it). The large board spans ~60 degrees of view directions, so
+        it pins fx, fy and the principal point far better than Zhang's 5-degree views (a
+        0.03 % focal error or 4 px of principal point otherwise bias l by ~0.2 mm); the
+        principal point also absorbs a small camera mounting rotation. Empty: keep them.
     min_circles : int
         Views with fewer complete circles are rejected.
     dark_circles : bool
@@ -335,7 +415,7 @@ def run_dynamic_camera(
     -------
     StageResult
         ``updates``: l, d, and (when refined) ``g1_pan.k``, ``g1_pan.theta0``,
-        ``g1_tilt.k`` (and poly). ``residuals``: ``reprojection_rms_px``,
+        ``g1_tilt.k`` (and poly), ``intrinsics`` fx, fy, cx, cy. ``residuals``: ``reprojection_rms_px``,
         ``reprojection_max_px``, ``linear_translation_rms_m`` (Eq. 16),
         ``transfer_translation_rms_m`` / ``transfer_rotation_rms_rad`` (model vs PnP-measured
         transfer matrices). ``extra['dynamic_camera']``: Eq. 16 (l, d), standard errors, board
@@ -429,17 +509,21 @@ def run_dynamic_camera(
     fin = refine(
         start, obs, board, {p: ident.board_poses[p] for p in sorted({o.pose_index for o in obs})},
         refine_mirrors=refine_mirrors, refine_theta0=refine_theta0, refine_poly=refine_poly,
+        refine_intrinsics=refine_intrinsics,
     )
     # If the Eq. 16 start led elsewhere than the identification's model, keep the better fit.
     alt = refine(
         m_id, obs, board, {p: ident.board_poses[p] for p in sorted({o.pose_index for o in obs})},
         refine_mirrors=refine_mirrors, refine_theta0=refine_theta0, refine_poly=refine_poly,
+        refine_intrinsics=refine_intrinsics,
     ) if start is not m_id else fin
     if alt.rms_px < fin.rms_px - 1e-9:
         fin = alt
     m = fin.model
     res = np.concatenate(fin.residuals_px)
     updates: dict = {"l": m.l, "d": m.d}
+    if refine_intrinsics:
+        updates["intrinsics"] = {k: getattr(m.intrinsics, k) for k in refine_intrinsics}
     if refine_mirrors or refine_poly:
         updates["g1_pan"] = {"k": m.g1_pan.k}
         updates["g1_tilt"] = {"k": m.g1_tilt.k}
@@ -467,6 +551,14 @@ def run_dynamic_camera(
         extra["linear_d_m"] = lin.d
     # Model vs measured transfer matrices (paper's verification): measured Vn_T_V0 from PnP,
     # V0 from the view at U1 = 0 of the pose when there is one, else the refined board pose.
+    if refine_intrinsics:  # PnP again with the final intrinsics
+        for o in obs:
+            if o.view_id in pnp:
+                try:
+                    pnp[o.view_id], _ = pnp_view(m.intrinsics, board.points(o.index),
+                                                 board.radius(o.index), o.uv)
+                except ValueError:
+                    del pnp[o.view_id]
     meas, vv = [], []
     for o in obs:
         if o.view_id not in pnp:
@@ -496,6 +588,8 @@ def run_dynamic_camera(
 
 __all__ = [
     "PAPER_GRID_VOLTAGES",
+    "aim_voltages",
+    "anchor_voltages",
     "IdentificationResult",
     "LinearLD",
     "RefineResult",

@@ -247,7 +247,7 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
                              max_sphere_rms: float = 1e-4, max_off_sphere: float = 0.5,
                              coverage_tol: float = 3e-4, min_coverage: float = 0.9,
                              icp_max_distance: float = 2e-4, icp_max_iterations: int = 100,
-                             min_fitness: float = 0.6, icp_tolerance: float = 1e-8,
+                             min_fitness: float = 0.6, icp_tolerance: float = 1e-7,
                              viewpoint=(0.0, 0.0, 0.0)) -> JointCorrectionResult:
     """Register every node to its position's reference node and build the correction table.
 

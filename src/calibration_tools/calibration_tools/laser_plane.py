@@ -3,9 +3,10 @@ SVD plane fit with outlier rejection. No rclpy.
 
 Building blocks
 ---------------
-- :func:`fit_plane_svd`: least-squares plane (SVD of the centred points) with a robust start
-  (least median of squares over random triples) and iterative rejection of points farther
-  than ``k_sigma`` robust standard deviations (1.4826 MAD) from the plane.
+- :func:`fit_plane_svd`: (weighted) least-squares plane (SVD of the centred points) with
+  iterative rejection of points farther than ``k_sigma`` robust standard deviations
+  (1.4826 MAD) from the plane; optionally a robust start (least median of squares).
+- :func:`fit_line_trimmed`: the same for a 3-D line (one stripe on one board).
 - :func:`board_plane_from_pnp`: board pose and plane in the camera frame from detected
   features (OpenCV IPPE, then Levenberg-Marquardt refinement).
 - :func:`backproject_to_plane`: intersect the (undistorted) pixel rays with a plane.
@@ -13,7 +14,11 @@ Building blocks
   laser-on view it finds the board plane from a laser-off view of the same board pose and
   G1 voltages (or, failing that, from the laser-on view itself), extracts the stripe with
   :mod:`stripe_extractor`, keeps the stripe pixels inside the detected board, back-projects
-  them onto the board plane in V and maps them to V0 with the current model.
+  them onto the board plane in V, drops those near the pattern's albedo edges (where the
+  stripe's profile is skewed) and off the stripe's line, and maps them to V0 with the
+  current model.
+- :func:`plane_from_stripes`: one plane from the stripes of several board poses, every pose
+  weighted the same (its error is mostly a shift of its whole line).
 
 Stage
 -----
@@ -202,9 +207,9 @@ def fit_line_trimmed(points, *, k_sigma: float = 4.0, min_threshold: float = 1e-
         d = np.linalg.svd(p[inliers] - c, full_matrices=False)[2][0]
         q = p - c
         r = np.linalg.norm(q - np.outer(q @ d, d), axis=1)
-        # Distances are >= 0: their median estimates 0.6745 sigma... of a 2-D normal the
-        # median radius is 1.1774 sigma; use it for the robust sigma.
-        sigma = np.median(r[inliers]) / 1.1774
+        # Stripe points back-projected onto a board lie in its plane, so their offsets from
+        # the line are one-dimensional: median |offset| = 0.6745 sigma.
+        sigma = 1.4826 * np.median(r[inliers])
         new = r <= max(k_sigma * sigma, min_threshold)
         if new.sum() < 2 or np.array_equal(new, inliers):
             break
@@ -226,8 +231,8 @@ class BoardPose:
     V_T_B : ndarray, shape (4, 4)
         Board frame to camera (virtual camera) frame, metres.
     plane : ndarray, shape (4,)
-        The board plane in the camera frame (unit normal towards the camera side... see
-        ``V_T_B``: it is ``B_T_V.T @ (0, 0, 1, 0)``), e in metres.
+        The board plane z_B = 0 in the camera frame, ``B_T_V.T @ (0, 0, 1, 0)``: unit normal
+        along the board's z axis (pointing into the board, away from the camera), e in m.
     reprojection_rms_px : float
     n_points : int
     """

@@ -12,12 +12,19 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from galvo_driver.sim import load_rig
+from galvo_driver.sim import Simulator, load_rig, load_scene
 from galvo_driver.sim.rig import trace_off_planes
 from galvo_driver.sim.spatial import reflection_transform, rotation_about
 
 IDEAL = load_rig('ideal')
 REFERENCE = load_rig('reference')
+_SIM = []
+
+
+def _plane_sim():
+    if not _SIM:
+        _SIM.append(Simulator(REFERENCE, load_scene('plane'), seed=0))
+    return _SIM[0]
 angles = st.floats(math.radians(25.0), math.radians(65.0))
 volts = st.floats(-10.0, 10.0)
 
@@ -233,3 +240,17 @@ def test_jitter_moves_angles_only_with_draws():
     a1 = REFERENCE.mirror_angles(np.zeros(4), z)
     assert np.allclose(a1 - a0, 8e-6 * z)
     assert np.array_equal(IDEAL.mirror_angles(np.zeros(4), z), IDEAL.mirror_angles(np.zeros(4)))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.floats(-10.0, 10.0), st.floats(-10.0, 10.0))
+def test_compiled_laser_sheet_matches_the_reference(u_pan, u_tilt):
+    sim = _plane_sim()
+    th = REFERENCE.mirror_angles(np.array([0.0, 0.0, u_pan, u_tilt]))
+    ref = REFERENCE.laser_sheet_G(th[2], th[3]).transformed(REFERENCE.W_T_G)
+    sheet = sim.geometry(th).sheet
+    assert np.allclose(sheet.plane, ref.plane, atol=1e-13)
+    assert np.allclose(sheet.source, ref.source, atol=1e-13)
+    assert np.allclose(sheet.central, ref.central, atol=1e-13)
+    assert np.allclose(sheet.edge_normals, ref.edge_normals, atol=1e-13)
+    assert np.allclose(sheet.mirror_plane, ref.mirror_plane, atol=1e-13)

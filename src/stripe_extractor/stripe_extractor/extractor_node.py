@@ -72,6 +72,10 @@ def _float32_field(values) -> array.array:
     return out
 
 
+#: frames the image subscription holds while the extractor is busy (about 12 MB at 720x540)
+IMAGE_QUEUE_DEPTH = 30
+
+
 class StripeExtractorNode(Node):
     """Thin adapter around :func:`stripe_extractor.extractor.extract` (see module docstring)."""
 
@@ -136,8 +140,12 @@ class StripeExtractorNode(Node):
             QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
                        history=HistoryPolicy.KEEP_LAST))
         self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        self.create_subscription(Image, 'camera/image_raw', self._on_image,
-                                 qos_profile_sensor_data)
+        # sensor-data QoS (best effort, volatile) with room for a burst of frames
+        image_qos = QoSProfile(depth=IMAGE_QUEUE_DEPTH,
+                               reliability=qos_profile_sensor_data.reliability,
+                               durability=qos_profile_sensor_data.durability,
+                               history=HistoryPolicy.KEEP_LAST)
+        self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos)
         self.create_subscription(
             GalvoState, 'galvo/state', self._on_state,
             QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,

@@ -38,6 +38,16 @@ class CameraModel:
     cy: float
     distortion: np.ndarray
 
+    def _key(self):
+        return (self.width, self.height, self.pixel_size, self.fx, self.fy, self.cx, self.cy,
+                tuple(float(v) for v in self.distortion))
+
+    def __hash__(self):
+        return hash(self._key())
+
+    def __eq__(self, other):
+        return isinstance(other, CameraModel) and self._key() == other._key()
+
     @property
     def K(self) -> np.ndarray:
         """3x3 camera matrix [px]."""

@@ -1,6 +1,7 @@
 """Write the example images of docs/ (``python -m galvo_driver.sim.examples [out_dir]``).
 
-- ``sim_stair.png``: the 30 mm stair block, stripe on both faces, room light on;
+- ``sim_stair.png``: the 30 mm stair block (turned to show its riser), stripe on both
+  faces and the riser, room light on;
 - ``sim_stair_laser_frame.png``: the same as a real 500 us laser frame (dark image);
 - ``sim_sphere.png``: the calibration sphere with the stripe;
 - ``sim_circle_board.png``: one G1 view of the 740 mm circle board with the stripe.
@@ -28,8 +29,8 @@ def save_examples(out_dir) -> list[Path]:
     rig = load_rig('reference')
     lit = dict(background='full', exposure=0.004, laser_power=0.125)
     jobs = [
-        ('sim_stair.png', 'stair_block', [0.0, 0.0, 0.0, 0.0], lit),
-        ('sim_stair_laser_frame.png', 'stair_block', [0.0, 0.0, 0.0, 0.0], {}),
+        ('sim_stair.png', 'stair_block_turned', [0.0, 0.0, 0.0, 0.0], lit),
+        ('sim_stair_laser_frame.png', 'stair_block_turned', [0.0, 0.0, 0.0, 0.0], {}),
         ('sim_sphere.png', 'sphere', [0.0, -0.2, 0.0, -0.1], lit),
         ('sim_circle_board.png', 'circle_board', [0.3, -0.2, 0.0, 0.05],
          dict(background='full', exposure=0.006, laser_power=0.1)),

@@ -862,3 +862,68 @@ def window_halves(X, N, col, v, WRV, center, plane, sigma, psf, intr, out):
         if slope > 0.0 and math.isfinite(slope):
             h = min(max(math.ceil(3.5 * sigma / slope + 2.0 * psf), 2.0), 40.0)
         out[i] = int(h)
+
+
+@njit(cache=True)
+def _mirror_plane(mir, theta):
+    """Mirror packed as [axis point (3), reference normal (3), binormal (3), offset]:
+    (n, c) of its surface n . x = c at angle theta (see galvo.Mirror.plane)."""
+    c, s = math.cos(theta), math.sin(theta)
+    nx = mir[3] * c + mir[6] * s
+    ny = mir[4] * c + mir[7] * s
+    nz = mir[5] * c + mir[8] * s
+    return nx, ny, nz, nx * mir[0] + ny * mir[1] + nz * mir[2] - mir[9]
+
+
+@njit(cache=True)
+def laser_sheet(pan, tilt, laser, half_angle, W_T_G2, theta_pan, theta_tilt, out):
+    """Packed laser sheet in W (layout of ``sheet`` in :func:`laser_windows`) for G2 mirror
+    angles: the fan's apex, central and edge rays reflected off the two mirror planes.
+
+    ``laser`` packs [apex (3), central direction (3), fan normal (3), spread (3)] in G2.
+    Same maths as ``Rig.laser_sheet_G`` (the tests compare them).
+    """
+    sx, sy, sz = laser[0], laser[1], laser[2]
+    ch, sh = math.cos(half_angle), math.sin(half_angle)
+    dirs = np.empty((4, 3))
+    for k in range(3):
+        dirs[0, k] = laser[3 + k]
+        dirs[1, k] = ch * laser[3 + k] + sh * laser[9 + k]
+        dirs[2, k] = ch * laser[3 + k] - sh * laser[9 + k]
+        dirs[3, k] = laser[6 + k]
+    ok = True
+    for mir, th in ((pan, theta_pan), (tilt, theta_tilt)):
+        nx, ny, nz, c = _mirror_plane(mir, th)
+        dn0 = dirs[0, 0] * nx + dirs[0, 1] * ny + dirs[0, 2] * nz
+        t = (c - (sx * nx + sy * ny + sz * nz)) / dn0
+        ok = ok and t > 0.0
+        f = 2.0 * (sx * nx + sy * ny + sz * nz - c)
+        sx, sy, sz = sx - f * nx, sy - f * ny, sz - f * nz
+        for r in range(4):
+            dn = dirs[r, 0] * nx + dirs[r, 1] * ny + dirs[r, 2] * nz
+            dirs[r, 0] -= 2.0 * dn * nx
+            dirs[r, 1] -= 2.0 * dn * ny
+            dirs[r, 2] -= 2.0 * dn * nz
+    tnx, tny, tnz, tc = _mirror_plane(tilt, theta_tilt)
+    R = W_T_G2[:3, :3]
+    t = W_T_G2[:3, 3]
+    src = R @ np.array([sx, sy, sz]) + t
+    normal = R @ dirs[3]
+    normal /= math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+    central = R @ dirs[0]
+    out[0:3] = normal
+    out[3] = -(normal[0] * src[0] + normal[1] * src[1] + normal[2] * src[2])
+    out[4:7] = src
+    for k in range(2):
+        e = R @ dirs[1 + k]
+        en = np.array([normal[1] * e[2] - normal[2] * e[1], normal[2] * e[0] - normal[0] * e[2],
+                       normal[0] * e[1] - normal[1] * e[0]])
+        en /= math.sqrt(en[0] ** 2 + en[1] ** 2 + en[2] ** 2)
+        if en[0] * central[0] + en[1] * central[1] + en[2] * central[2] < 0.0:
+            en = -en
+        out[7 + 3 * k:10 + 3 * k] = en
+    mn = R @ np.array([tnx, tny, tnz])
+    out[13:16] = mn
+    out[16] = -(tc + mn[0] * t[0] + mn[1] * t[1] + mn[2] * t[2])
+    out[17:20] = central
+    return ok

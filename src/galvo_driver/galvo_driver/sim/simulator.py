@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -41,6 +42,22 @@ from .scene import Hits, Scene
 from .spatial import invert_transform, normalize_plane, transform_plane
 
 _NEAR = 0.01  # [m] nearest depth considered in front of the virtual camera
+
+
+@lru_cache(maxsize=4)
+def _pixel_grid(camera, step: int) -> np.ndarray:
+    """Undistorted normalised coordinates of the pixel grid (read-only, cached)."""
+    grid = camera.normalized_grid(step)
+    grid.flags.writeable = False
+    return grid
+
+
+@lru_cache(maxsize=2)
+def _noise_pool(seed: int) -> np.ndarray:
+    """2**22 standard normal draws for a seed (read-only, cached)."""
+    pool = np.random.default_rng([seed, 0x5EED]).standard_normal(1 << 22, dtype=np.float32)
+    pool.flags.writeable = False
+    return pool
 
 
 def _reflection(n, c):
@@ -193,19 +210,26 @@ class Simulator:
         self.exact_noise = exact_noise
         cam = rig.camera
         self.coarse_step = int(coarse_step)
-        self._grid = cam.normalized_grid(1)
-        self._coarse = cam.normalized_grid(self.coarse_step).reshape(-1, 2)
+        self._grid = _pixel_grid(cam, 1)
+        self._coarse = _pixel_grid(cam, self.coarse_step).reshape(-1, 2)
         gx, gy = self._grid[..., 0], self._grid[..., 1]
         mx, my = 2.0 / cam.fx, 2.0 / cam.fy  # two pixels of margin around the image
         self._bounds = (float(gx.min()) - mx, float(gx.max()) + mx, float(gy.min()) - my,
                         float(gy.max()) + my)
         self._pool = None
         if rig.image.noisy and not exact_noise:
-            n = 1 << 22
-            self._pool = np.random.default_rng([self.seed, 0x5EED]).standard_normal(
-                n, dtype=np.float32)
+            self._pool = _noise_pool(self.seed)
         self._next_index = 0
         self._intr = self._intrinsics()
+        def mirror(m):
+            return np.concatenate((m.axis_point, m.reference_normal, m._binormal,
+                                   (m.surface_offset,)))
+
+        L = rig.laser
+        self._g2_pack = (mirror(rig.g2.pan), mirror(rig.g2.tilt),
+                         np.concatenate((L.position, L.direction, L.fan_normal,
+                                         L.spread_direction)),
+                         np.ascontiguousarray(rig.W_T_G @ rig.G_T_G2))
         self._cam_const = np.concatenate((rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3],
                                           rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]))
         #: The rig's true model-equivalent parameters (see Rig.true_model_parameters).
@@ -242,10 +266,15 @@ class Simulator:
         geo.extra['cam'] = np.concatenate((self._cam_const[:12], n1, (c1,), n2, (c2,),
                                            self._cam_const[12:], center))
         if laser_on:
-            sh = rig.laser_sheet_G(th[2], th[3]).transformed(W_T_G)
-            geo.sheet = sh
-            geo.extra['sheet'] = np.concatenate((sh.plane, sh.source, sh.edge_normals.ravel(),
-                                                 sh.mirror_plane))
+            pack = np.empty(20)
+            pan, tilt, laser, W_T_G2 = self._g2_pack
+            if not rk.laser_sheet(pan, tilt, laser, 0.5 * rig.laser.fan_angle, W_T_G2,
+                                  float(th[2]), float(th[3]), pack):
+                raise ValueError(f'rig {rig.name}: the laser beam misses a G2 mirror at '
+                                 f'angles {th[2:]}')
+            geo.sheet = LaserSheet(pack[0:4], pack[4:7], pack[17:20], pack[7:13].reshape(2, 3),
+                                   pack[13:17], 0.5 * rig.laser.fan_angle)
+            geo.extra['sheet'] = pack[:17]
         return geo
 
     def project_points(self, points_W, angles) -> np.ndarray:

@@ -1,0 +1,182 @@
+"""The evaluation report: a comparison table with the paper, plots and rendered clouds.
+
+No rclpy. Plots are written with matplotlib's Agg backend as PNG beside ``report.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from reconstructor.cloud import xyz
+
+_ROWS = [  # (metrics key, label, paper key)
+    ('stair_step_error_rmse_mm', 'stair block, 30 mm step, RMSE over positions at 650 mm [mm]',
+     'stair_step_error_rmse_mm'),
+    ('plate_flatness_rmse_mm', '740 x 740 mm plate, RANSAC plane, RMSE [mm]',
+     'plate_flatness_rmse_mm'),
+    ('sphere_radius_error_mm', 'calibration sphere, radius error [mm]', None),
+    ('transfer_matrix_error_rmse_mm', 'dynamic camera transfer-matrix error, RMSE [mm]',
+     'transfer_matrix_error_rmse_mm'),
+    ('joint_error_before_mm', 'joint correction: error before [mm]', 'joint_error_before_mm'),
+    ('joint_error_after_mm', 'joint correction: error after [mm]', 'joint_error_after_mm'),
+    ('range_x_mm', 'range covered at 650 mm, x [mm]', 'range_x_mm'),
+    ('range_y_mm', 'range covered at 650 mm, y [mm]', 'range_y_mm'),
+]
+
+
+def calibrated_vs_true(model, rig) -> dict:
+    """Each calibrated parameter next to the simulator's value (SI units)."""
+    p = rig.true_model_parameters()
+    i = model.intrinsics
+    pairs = {
+        'fx_px': (i.fx, p.fx), 'fy_px': (i.fy, p.fy), 'cx_px': (i.cx, p.cx),
+        'cy_px': (i.cy, p.cy), 'l_m': (model.l, p.l), 'd_m': (model.d, p.d),
+        'g1_pan_theta0_rad': (model.g1_pan.theta0, p.theta0_pan),
+        'g1_pan_k_rad_per_V': (model.g1_pan.k, p.k_pan),
+        'g1_tilt_theta0_rad': (model.g1_tilt.theta0, p.theta0_tilt),
+        'g1_tilt_k_rad_per_V': (model.g1_tilt.k, p.k_tilt),
+        'g2_tilt_k_rad_per_V': (model.g2_tilt.k, p.k2),
+    }
+    out = {k: {'calibrated': float(a), 'true': float(b)} for k, (a, b) in pairs.items()}
+    for j, name in enumerate(('k1', 'k2', 'p1', 'p2', 'k3')):
+        out[f'dist_{name}'] = {'calibrated': float(i.dist[j]), 'true': float(p.distortion[j])}
+    n_cal, n_true = np.asarray(model.laser_plane_v0[:3]), np.asarray(p.pi0[:3])
+    out['laser_plane_normal_angle_deg'] = {
+        'calibrated': 0.0,
+        'true': math.degrees(math.acos(min(1.0, abs(float(n_cal @ n_true)))))}
+    out['laser_plane_offset_m'] = {'calibrated': float(model.laser_plane_v0[3]),
+                                   'true': float(p.pi0[3] * np.sign(n_cal @ n_true))}
+    a_cal, a_true = np.asarray(model.laser_axis_dir), np.asarray(p.n)
+    out['laser_axis_angle_deg'] = {
+        'calibrated': 0.0,
+        'true': math.degrees(math.acos(min(1.0, abs(float(a_cal @ a_true)))))}
+    P = np.asarray(model.laser_axis_point)
+    # distance of the calibrated axis point from the true axis line
+    d = (P - p.P) - ((P - p.P) @ a_true) * a_true
+    out['laser_axis_point_offset_m'] = {'calibrated': float(np.linalg.norm(d)), 'true': 0.0}
+    return out
+
+
+def _fmt(v):
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return 'n/a'
+    return f'{v:.3f}'
+
+
+def _plot_stair_errors(details, path):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in details['stair'] if r.get('error_mm') is not None]
+    if not rows:
+        return False
+    p = np.array([r['position_m'] for r in rows])
+    e = np.array([r['error_mm'] for r in rows])
+    ang_x = np.degrees(np.arctan2(p[:, 0], p[:, 2]))
+    ang_y = np.degrees(np.arctan2(p[:, 1], p[:, 2]))
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.5))
+    ax[0].scatter(ang_x, e)
+    ax[0].set_xlabel('viewing angle, pan direction [deg]')
+    ax[1].scatter(ang_y, e)
+    ax[1].set_xlabel('viewing angle, tilt direction [deg]')
+    for a in ax:
+        a.axhline(0, color='k', lw=0.5)
+        a.set_ylabel('stair step error [mm]')
+        a.grid(alpha=0.3)
+    fig.suptitle('Stair-block step error against viewing direction (cf. paper Fig. 12b)')
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def _plot_joint(details, path):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    jc = (details.get('stages') or {}).get('joint_correction_curves')
+    if not jc:
+        return False
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    for name, values in jc.items():
+        ax.plot(np.asarray(values, float), marker='o', label=name)
+    ax.set_xlabel('view')
+    ax.set_ylabel('registration error [mm]')
+    ax.legend()
+    ax.grid(alpha=0.3)
+    ax.set_title('Joint correction: error per view before and after (cf. paper Fig. 6c)')
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def _render_cloud(cloud, path, title):
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    p = xyz(cloud) * 1e3
+    if p.shape[0] == 0:
+        return False
+    if p.shape[0] > 60000:
+        p = p[np.random.default_rng(0).choice(p.shape[0], 60000, replace=False)]
+    fig = plt.figure(figsize=(5, 4))
+    ax = fig.add_subplot(projection='3d')
+    ax.scatter(p[:, 0], p[:, 1], p[:, 2], c=p[:, 2], s=0.2, cmap='viridis')
+    ax.set_xlabel('x [mm]')
+    ax.set_ylabel('y [mm]')
+    ax.set_zlabel('z [mm]')
+    ax.invert_yaxis()
+    ax.view_init(elev=-60, azim=-90)
+    ax.set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def write_report(out, result, details, paper, clouds):
+    out = Path(out)
+    lines = ['# galvoscan evaluation on the simulated rig', '',
+             f"Calibration source: **{result.get('calibration_source')}**. Every figure below "
+             'was computed in this run from reconstructed clouds against the simulator\'s '
+             'ground truth; the paper column is the published figure, for comparison.', '',
+             '| quantity | ours | paper | within 1.5x |', '|---|---|---|---|']
+    for key, label, pkey in _ROWS:
+        ours = result.get(key)
+        ref = paper.get(pkey) if pkey else None
+        verdict = ''
+        if ours is not None and ref is not None and math.isfinite(ours):
+            if key.startswith('range'):
+                verdict = 'yes' if ours >= ref / 1.5 else 'no'
+            else:
+                verdict = 'yes' if abs(ours) <= 1.5 * ref else 'no'
+        lines.append(f'| {label} | {_fmt(ours)} | {_fmt(ref)} | {verdict} |')
+    lines += ['', '## Stair block at other working distances', '',
+              '| distance [mm] | step error [mm] |', '|---|---|']
+    for k, v in result['stair_step_error_rmse_mm_by_distance'].items():
+        reason = details['stair_by_distance'].get(k, {}).get('reason', '')
+        lines.append(f'| {k} | {_fmt(v)} {reason} |')
+    lines += ['', f"Run time: {result['runtime_s']:.0f} s; frames lost in the graph: "
+              f"{result['frames_lost']}.", '']
+    if _plot_stair_errors(details, out / 'stair_error_vs_angle.png'):
+        lines += ['![stair error](stair_error_vs_angle.png)', '']
+    if _plot_joint(details, out / 'joint_correction.png'):
+        lines += ['![joint correction](joint_correction.png)', '']
+    if clouds.get('stair') and _render_cloud(clouds['stair'][0], out / 'stair_cloud.png',
+                                             'stair block (one position)'):
+        lines += ['![stair cloud](stair_cloud.png)', '']
+    if clouds.get('plate') and _render_cloud(np.concatenate(clouds['plate'][:1]),
+                                             out / 'plate_cloud.png', 'flat plate (pose 0)'):
+        lines += ['![plate cloud](plate_cloud.png)', '']
+    lines += ['## Calibrated against true parameters', '', '| parameter | calibrated | true |',
+              '|---|---|---|']
+    for k, v in result['calibrated_vs_true'].items():
+        lines.append(f"| {k} | {v['calibrated']:.9g} | {v['true']:.9g} |")
+    (out / 'report.md').write_text('\n'.join(lines) + '\n')
