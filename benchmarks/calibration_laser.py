@@ -111,7 +111,10 @@ def axis_stage(rig, cal, seed):
     return out
 
 
-def plane_prediction_error(rig, model, volts=np.linspace(-4.0, 4.0, 17)):
+PREDICTION_VOLTS = tuple(np.linspace(-4.0, 4.0, 17))
+
+
+def plane_prediction_error(rig, model, volts=PREDICTION_VOLTS):
     """Largest distance (m) between the model's laser plane and the simulator's actual one
     at U2 in +-4 V, over points of the actual plane at x in +-100 mm and 600..700 mm depth."""
     from reconstructor.model import laser_plane_v0

@@ -12,7 +12,9 @@ Registration, per node:
 
 1. sphere-centre fitting (closed form, no correspondences; the calibration sphere's radius is
    known, so one planar stripe arc fixes the centre) gives the translation;
-2. point-to-point ICP (open3d), started from that translation, gives the full rigid transform
+2. point-to-point ICP (open3d), started from that translation, then refined point-to-line
+   against the reference stripe densified along the curve (Gauss-Newton; point-to-point ICP
+   barely moves along a curve's weak directions), gives the full rigid transform
    (``registration='icp'``, default). ``registration='sphere'`` keeps the translation only.
 
 A stripe that also crosses the background next to the sphere (the sphere stands on a plate or

@@ -155,8 +155,10 @@ def fit_plane_svd(points, *, weights=None, k_sigma: float = 4.0,
     inliers = np.ones(n, dtype=bool)
     for _ in range(max_iter):
         r = p @ plane[:3] + plane[3]
-        sigma = 1.4826 * np.median(np.abs(r - np.median(r)))
-        new = np.abs(r) <= max(k_sigma * sigma, min_threshold)
+        # Centred on the median: a start pulled aside by outliers still keeps the bulk.
+        centre = np.median(r)
+        sigma = 1.4826 * np.median(np.abs(r - centre))
+        new = np.abs(r - centre) <= max(k_sigma * sigma, min_threshold)
         if new.sum() < 3 or (w is not None and not w[new].sum() > 0):
             break
         plane, s = _svd_plane(p[new], None if w is None else w[new])

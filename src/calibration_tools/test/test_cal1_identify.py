@@ -227,3 +227,65 @@ def test_identify_views_input_checks():
         identify_views(dets, np.zeros((3, 2)), approx, B, np.eye(3))
     with pytest.raises(ValueError, match="pose_index"):
         identify_views(dets, np.zeros((3, 2)), approx, B, {0: V0_T_O}, pose_index=[0, 0, 1])
+
+
+def test_200_rendered_reference_rig_views_through_the_whole_stage():
+    """End to end on simulator frames: detection, identification, fit; labels vs truth."""
+    import cv2
+    from reconstructor import calibration_file
+
+    from calibration_tools.dynamic_camera import run_dynamic_camera
+    from calibration_tools.stages import CaptureView
+
+    rig = load_rig("reference")
+    scene = load_scene("circle_board")
+    sim = Simulator(rig, scene, seed=17)
+    cam = rig.camera
+    intr = CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, tuple(cam.distortion),
+                            cam.width, cam.height)
+    W_T_O = scene.objects[0].W_T_O
+    rng = np.random.default_rng(17)
+    idx = np.arange(B.n_circles)
+    views, truth_uv = [], []
+    for i in range(200):
+        U = rig.dac.quantize(rng.uniform(-7.5, 7.5, 2))
+        f = sim.calibration_frame([U[0], U[1], 0.0, 0.0], frame_index=i)
+        views.append(CaptureView(f.image, np.r_[U, 0.0, 0.0]))
+        truth_uv.append(project_circle_centres(intr, np.linalg.inv(f.truth.W_T_V) @ W_T_O,
+                                               B.points(idx), B.radius(idx)))
+    order = rng.permutation(200)
+    corrupt_volt, corrupt_blob = set(order[:10].tolist()), set(order[10:20].tolist())
+    for i in corrupt_volt:  # logged voltage 0.3-0.7 pitch off
+        views[i].voltages[rng.integers(2)] += rng.choice([-1, 1]) * rng.uniform(0.13, 0.31)
+    for i in corrupt_blob:  # a dark blob painted on the board
+        img = views[i].image.copy()
+        while True:
+            p = rng.uniform([80, 80], [640, 460])
+            if np.nanmin(np.linalg.norm(truth_uv[i] - p, axis=1)) > 130:
+                break
+        cv2.circle(img, (int(p[0]), int(p[1])), 55, 20, -1, lineType=cv2.LINE_AA)
+        views[i] = CaptureView(img, views[i].voltages)
+    tp = rig.true_model_parameters()
+    nominal = model_from_truth(
+        tp, l=tp.l + 0.002, d=tp.d - 0.0015,
+        g1_pan=MirrorParams(math.pi / 4 + math.radians(0.1), K_NOMINAL * 1.01),
+        g1_tilt=MirrorParams(math.pi / 4, K_NOMINAL * 0.99),
+        intrinsics=CameraIntrinsics(cam.fx * 1.0004, cam.fy * 1.0003, cam.cx - 4.0, cam.cy + 5.0,
+                                    (-0.5, 0.0, 0.0, 0.0, 0.0), cam.width, cam.height),
+    )
+    result = run_dynamic_camera(views, calibration_file.Calibration(model=nominal))
+    labels = result.extra["dynamic_camera"]["labels"]
+    centres = result.extra["dynamic_camera"]["centres_px"]
+    wrong = 0
+    for i, lab in labels.items():
+        c = np.array(centres[i])
+        d = np.linalg.norm(truth_uv[i][None, :, :] - c[:, None, :], axis=2)
+        nearest = np.nanargmin(d, axis=1)
+        wrong += int(np.sum((nearest != np.array(lab)) | (np.nanmin(d, axis=1) > 1.0)))
+    print(f"\n200 rendered views: {len(labels)} accepted, {wrong} wrong labels")
+    assert wrong == 0
+    assert not (set(labels) & (corrupt_volt | corrupt_blob))
+    clean = set(range(200)) - corrupt_volt - corrupt_blob
+    with_circles = {i for i in clean if "complete circle" not in " ".join(
+        r for r in result.rejected if r.startswith(f"view {i} "))}
+    assert len(set(labels) & clean) >= 0.95 * len(with_circles)

@@ -540,11 +540,14 @@ def ambient_pixels(ptype, R, T, prm, pobj, cam, xy, foot_scale, center, albedo, 
         t = tb[i]
         px, py, pz = ox[i] + t * dx[i], oy[i] + t * dy[i], oz[i] + t * dz[i]
         nx, ny, nz = _hit_normal(ptype, R, T, prm, p, ab[i], px, py, pz, dx[i], dy[i], dz[i])
-        vx, vy, vz = px - center[0], py - center[1], pz - center[2]
-        rng = math.sqrt(vx * vx + vy * vy + vz * vz)
-        cos_v = abs(nx * vx + ny * vy + nz * vz) / rng
-        foot = rng * foot_scale / max(cos_v, 0.2)
-        a = albedo_at(tex, oR, oT, albedo, pobj[p], px, py, pz, foot)
+        o = pobj[p]
+        a = albedo[o]
+        if tex[o, 0] != TEX_NONE:
+            vx, vy, vz = px - center[0], py - center[1], pz - center[2]
+            rng = math.sqrt(vx * vx + vy * vy + vz * vz)
+            cos_v = abs(nx * vx + ny * vy + nz * vz) / rng
+            foot = rng * foot_scale / max(cos_v, 0.2)
+            a = albedo_at(tex, oR, oT, albedo, o, px, py, pz, foot)
         lam = nx * light[0] + ny * light[1] + nz * light[2]
         out[i] = scale * a * ((1.0 - directional) + directional * max(lam, 0.0))
 
@@ -826,11 +829,14 @@ def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, 
             f = 1.0 + speckle * z[kz % nz_]
             kz += 1
             val *= f if f > 0.0 else 0.0
-        px, py, pz = sx_[q], sy_[q], sz_[q]
-        vx, vy, vz = px - cam[32], py - cam[33], pz - cam[34]
-        foot = math.sqrt(vx * vx + vy * vy + vz * vz) * foot_scale
-        band[rows[i] - b0, cc[i]] = val * albedo_at(tex, oR, oT, albedo, pobj[pb[i]], px, py,
-                                                    pz, foot)
+        o = pobj[pb[i]]
+        a = albedo[o]
+        if tex[o, 0] != TEX_NONE:
+            px, py, pz = sx_[q], sy_[q], sz_[q]
+            vx, vy, vz = px - cam[32], py - cam[33], pz - cam[34]
+            foot = math.sqrt(vx * vx + vy * vy + vz * vz) * foot_scale
+            a = albedo_at(tex, oR, oT, albedo, o, px, py, pz, foot)
+        band[rows[i] - b0, cc[i]] = val * a
         drawn += 1
     return drawn
 
@@ -841,7 +847,9 @@ def window_halves(X, N, col, v, WRV, center, plane, sigma, psf, intr, out):
 
     The pixel rays at v - 1 and v + 1 of the column are cut with the surface's tangent
     plane at X; the change of the distance to the sheet per pixel gives the stripe's sigma
-    in pixels, and the window covers 3.5 of those plus 2 blur sigmas (clipped to 2..40).
+    in pixels, and the window covers 3.5 of those, plus half a pixel for rounding v
+    (clipped to 2..40). The blur is applied to the drawn band afterwards, so it needs no
+    margin here (``psf`` is unused, kept for the signature).
     """
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     for i in range(X.shape[0]):
@@ -860,7 +868,7 @@ def window_halves(X, N, col, v, WRV, center, plane, sigma, psf, intr, out):
         slope = 0.5 * abs(d_sheet)
         h = 40.0
         if slope > 0.0 and math.isfinite(slope):
-            h = min(max(math.ceil(3.5 * sigma / slope + 2.0 * psf), 2.0), 40.0)
+            h = min(max(math.ceil(3.5 * sigma / slope + 0.5), 2.0), 40.0)
         out[i] = int(h)
 
 
@@ -905,8 +913,8 @@ def laser_sheet(pan, tilt, laser, half_angle, W_T_G2, theta_pan, theta_tilt, out
             dirs[r, 1] -= 2.0 * dn * ny
             dirs[r, 2] -= 2.0 * dn * nz
     tnx, tny, tnz, tc = _mirror_plane(tilt, theta_tilt)
-    R = W_T_G2[:3, :3]
-    t = W_T_G2[:3, 3]
+    R = W_T_G2[:3, :3].copy()
+    t = W_T_G2[:3, 3].copy()
     src = R @ np.array([sx, sy, sz]) + t
     normal = R @ dirs[3]
     normal /= math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
