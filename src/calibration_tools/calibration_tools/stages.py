@@ -111,7 +111,12 @@ def apply_result(calibration, result: StageResult, sources=()):
         'residuals': {k: float(v) for k, v in result.residuals.items()},
         'updated': sorted(_flat_keys(result.updates)),
     }
-    jc = result.extra.get('joint_correction', calibration.joint_correction)
+    if 'joint_correction' in result.extra:
+        jc = result.extra['joint_correction']
+    elif result.updates:
+        jc = None  # a table measured with the old model would be stale
+    else:
+        jc = calibration.joint_correction
     return calibration_file.Calibration(model=model, source='calibrated', stages=stages,
                                         joint_correction=jc)
 

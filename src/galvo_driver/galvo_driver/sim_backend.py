@@ -1,5 +1,10 @@
 """The ``sim`` backend: the physical rig simulator behind the driver interface (no rclpy).
 
+Laser-on frames are stripe frames (the rig's laser exposure); laser-off frames are fully
+textured calibration frames under room light (the rig's calibration exposure), which is
+what the calibration stages image boards with. The voltages reported with a frame are the
+DAC-quantised ones the board outputs.
+
 Frames are stamped on a virtual clock: frame ``i`` of a scan has the stamp
 ``t_start + i / frame_rate + exposure / 2`` (the middle of its exposure), where
 ``t_start`` is the wall time the scan started. Frames are handed out as they fall due at
@@ -60,7 +65,8 @@ class SimBackend(GalvoBackend):
         volts = check_voltages(voltages)
         if not frame_rate > 0:
             raise ValueError(f'frame_rate: must be > 0 Hz, got {frame_rate}')
-        self._volts, self._index, self._laser = volts, 0, bool(laser_on)
+        self._volts = self.sim.rig.dac.quantize(volts)
+        self._index, self._laser = 0, bool(laser_on)
         self._period = 1.0 / float(frame_rate)
         self._t_wall, self._t_mono = time.time(), time.monotonic()
         return volts.shape[0]
@@ -77,7 +83,8 @@ class SimBackend(GalvoBackend):
         exposure = self.sim.rig.image.exposure
         while self.running and self._index < due and len(out) < self.max_frames_per_poll:
             i = self._index
-            frame = self.sim.render(self._volts[i], laser_on=self._laser)
+            frame = (self.sim.render(self._volts[i]) if self._laser
+                     else self.sim.calibration_frame(self._volts[i]))
             out.append(Frame(seq=self._seq, stamp=self._t_wall + i * self._period + exposure / 2,
                              voltages=self._volts[i].copy(), laser_on=self._laser,
                              status=STATUS_SETTLED, image=frame.image,

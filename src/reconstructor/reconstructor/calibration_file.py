@@ -23,6 +23,7 @@ The reconstructor loads this file; the calibration node writes it. No rclpy here
 from __future__ import annotations
 
 import copy
+import dataclasses
 import datetime as _dt
 import hashlib
 import math
@@ -33,6 +34,7 @@ from pathlib import Path
 
 import yaml
 
+from reconstructor.correction import CorrectionTable
 from reconstructor.model import RigModel
 
 FORMAT_VERSION = 1
@@ -139,8 +141,14 @@ def validate(data, origin='calibration') -> Calibration:
     if not isinstance(stages, dict):
         raise ValueError(f"{origin}: 'stages' must be a mapping of stage name to metadata")
     jc = data.get('joint_correction')
-    if jc is not None and not isinstance(jc, dict):
-        raise ValueError(f"{origin}: 'joint_correction' must be a mapping")
+    if jc is not None:
+        if not isinstance(jc, dict):
+            raise ValueError(f"{origin}: 'joint_correction' must be a mapping")
+        try:
+            table = CorrectionTable.from_dict(jc)
+        except ValueError as exc:
+            raise ValueError(f'{origin}: in joint_correction: {exc}') from None
+        model = dataclasses.replace(model, correction=table)
     return Calibration(model=model, source=source, stages=stages, joint_correction=jc,
                        created=str(data.get('created', '')))
 
