@@ -25,8 +25,15 @@ from pathlib import Path
 import numpy as np
 import rclpy
 from galvoscan_msgs.msg import GalvoState
-from galvoscan_msgs.srv import (CaptureCalibration, ComputeCalibration, GetScanProgress,
-                                LoadCalibration, SaveCalibration, SetScene, StartScan)
+from galvoscan_msgs.srv import (
+    CaptureCalibration,
+    ComputeCalibration,
+    GetScanProgress,
+    LoadCalibration,
+    SaveCalibration,
+    SetScene,
+    StartScan,
+)
 from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node

@@ -1,6 +1,7 @@
 """The ``galvoscan`` command: bring-up, bags, calibration and the main job.
 
     galvoscan run [--params FILE] [--one-process] [--nodes a,b,c] [--duration S]
+    galvoscan scan ...          (start a scan pattern on the running driver and follow it)
     galvoscan record ...        (see galvoscan record --help)
     galvoscan replay ...
     galvoscan bag-recover ...
@@ -22,6 +23,7 @@ DELEGATED = {
     'replay': 'galvo_driver.bag.replay_node:main',
     'bag-recover': 'galvo_driver.bag.recover:main',
     'calibrate': 'calibration_tools.offline:main',
+    'scan': 'calibration_tools.scan_node:main',
     'evaluate': 'calibration_tools.evaluate_node:main',
 }
 

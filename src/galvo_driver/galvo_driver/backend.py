@@ -54,6 +54,9 @@ class Frame:
         The camera image; None for a backend without a camera (serial trigger events).
     truth : dict
         Backend-specific ground truth (the simulator fills it); empty otherwise.
+    stamp_ns : int or None
+        The stamp in integer nanoseconds where it is known exactly (replayed frames);
+        a float of seconds since the epoch cannot hold every nanosecond.
     """
 
     seq: int
@@ -63,6 +66,7 @@ class Frame:
     status: int = STATUS_SETTLED
     image: np.ndarray | None = None
     truth: dict = field(default_factory=dict)
+    stamp_ns: int | None = None
 
 
 def check_voltages(voltages, name: str = 'voltages') -> np.ndarray:

@@ -56,10 +56,9 @@ def make_backend(name: str, params: dict):
     raise ValueError(f"backend: unknown '{name}'; known: {', '.join(BACKENDS)}")
 
 
-def _stamp(msg_stamp, t: float):
-    sec = int(np.floor(t))
-    msg_stamp.sec = sec
-    msg_stamp.nanosec = min(int(round((t - sec) * 1e9)), 999_999_999)
+def _stamp(msg_stamp, frame):
+    ns = frame.stamp_ns if frame.stamp_ns is not None else int(round(frame.stamp * 1e9))
+    msg_stamp.sec, msg_stamp.nanosec = divmod(ns, 1_000_000_000)
 
 
 class GalvoDriverNode(LifecycleNode):
@@ -237,7 +236,7 @@ class GalvoDriverNode(LifecycleNode):
         scan['last_seq'] = frame.seq
         scan['done'] += 1
         state = GalvoState()
-        _stamp(state.header.stamp, frame.stamp)
+        _stamp(state.header.stamp, frame)
         state.header.frame_id = self.get_parameter('output_frame_id').value
         state.seq = int(frame.seq)
         (state.g1_pan_voltage, state.g1_tilt_voltage,

@@ -47,7 +47,8 @@ def image_array(msg) -> np.ndarray:
 
 
 def _frame(state, image) -> Frame:
-    return Frame(seq=int(state.seq), stamp=_stamp_ns(state.header) * 1e-9,
+    stamp_ns = _stamp_ns(state.header)
+    return Frame(seq=int(state.seq), stamp=stamp_ns * 1e-9, stamp_ns=stamp_ns,
                  voltages=np.array([state.g1_pan_voltage, state.g1_tilt_voltage,
                                     state.g2_pan_voltage, state.g2_tilt_voltage]),
                  laser_on=bool(state.laser_on), status=int(state.status),

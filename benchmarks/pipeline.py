@@ -1,0 +1,236 @@
+"""Pipeline benchmark: recorded frames replayed through stripe_extractor and reconstructor.
+
+Frames of the stair block are rendered by the simulator, recorded into a rosbag2 directory
+and read back; a player publishes them (cycling, re-stamped with the publish time) at a
+fixed rate and a sink receives the PointCloud2 on ``points``.
+
+Arrangements:
+  one process, 500 fps   player, extractor, reconstructor and sink on one EventsExecutor
+  one process, 1000 fps
+  separate processes, 500 fps   extractor and reconstructor each in its own process
+
+Figures: dropped frames [%] (frames published whose cloud never arrived) and the p99
+frame-to-cloud latency [ms] (cloud receipt time minus the image's publish time). The last
+stdout line is one JSON object.
+
+    .venv/bin/python benchmarks/pipeline.py [--frames 10000] [--distinct 100]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def make_bag(path, n, seed=0):
+    """Render n stair-block frames and record image + state messages into a bag."""
+    from galvoscan_msgs.msg import GalvoState
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import Image
+
+    from galvo_driver.bag.writer import BagWriter
+    from galvo_driver.sim import Simulator, load_rig, load_scene, patterns
+
+    rig = load_rig('reference')
+    sim = Simulator(rig, load_scene('stair_block'), seed=seed)
+    volts = patterns.synchronised(rig, [0.0], -0.3, steps=n, tilt_step=0.6 / n)
+    writer = BagWriter(path)
+    writer.open()
+    writer.add_topic('/camera/image_raw', 'sensor_msgs/msg/Image')
+    writer.add_topic('/galvo/state', 'galvoscan_msgs/msg/GalvoState')
+    for i, frame in enumerate(sim.scan(volts)):
+        t_ns = 1_000_000_000 + i * 2_000_000
+        img = Image(height=frame.image.shape[0], width=frame.image.shape[1],
+                    encoding='mono8', step=frame.image.shape[1])
+        img.header.stamp.sec, img.header.stamp.nanosec = divmod(t_ns, 1_000_000_000)
+        img.header.frame_id = 'camera_optical'
+        img.data = frame.image.tobytes()
+        st = GalvoState(seq=i, laser_on=True)
+        st.header = img.header
+        (st.g1_pan_voltage, st.g1_tilt_voltage, st.g2_pan_voltage,
+         st.g2_tilt_voltage) = (float(v) for v in volts[i])
+        writer.write('/camera/image_raw', serialize_message(img), t_ns)
+        writer.write('/galvo/state', serialize_message(st), t_ns)
+    writer.close()
+    return rig
+
+
+def load_frames(path):
+    """(image CDR, state CDR) pairs from the bag, in order."""
+    from galvo_driver.bag.reader import read_messages
+
+    images, states = [], []
+    for m in read_messages(path):
+        (images if m.topic == '/camera/image_raw' else states).append(bytearray(m.data))
+    return list(zip(images, states, strict=True))
+
+
+class Bench:
+    """Player + sink node: publishes re-stamped CDR frames, measures clouds."""
+
+    def __init__(self, node, frames, rate, total):
+        from galvoscan_msgs.msg import GalvoState
+        from rclpy.qos import QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image, PointCloud2
+
+        self.node, self.frames, self.rate, self.total = node, frames, rate, total
+        qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub_img = node.create_publisher(Image, 'camera/image_raw', qos)
+        self.pub_state = node.create_publisher(GalvoState, 'galvo/state', qos)
+        node.create_subscription(PointCloud2, 'points', self._on_cloud,
+                                 QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        self.sent = 0
+        self.latency = []
+        self.received = 0
+        self.t0 = None
+
+    def _on_cloud(self, msg):
+        now = time.time()
+        self.latency.append(now - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9))
+        self.received += 1
+
+    def publish_due(self):
+        if self.t0 is None:
+            self.t0 = time.monotonic()
+        due = min(int((time.monotonic() - self.t0) * self.rate) + 1, self.total)
+        while self.sent < due:
+            img, state = self.frames[self.sent % len(self.frames)]
+            sec, nsec = divmod(time.time_ns(), 1_000_000_000)
+            struct.pack_into('<iI', img, 4, sec, nsec)
+            struct.pack_into('<iI', state, 4, sec, nsec)
+            self.pub_state.publish(bytes(state))
+            self.pub_img.publish(bytes(img))
+            self.sent += 1
+
+
+def run(frames, rate, total, one_process, cal_path, warmup=50):
+    import rclpy
+    from rclpy.experimental import EventsExecutor
+    from rclpy.node import Node
+
+    domain = random.randint(101, 230)
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = Node('pipeline_bench', context=ctx)
+    ex = EventsExecutor(context=ctx)
+    ex.add_node(node)
+    procs, nodes = [], []
+    try:
+        if one_process:
+            from reconstructor.reconstructor_node import ReconstructorNode
+            from stripe_extractor.extractor_node import StripeExtractorNode
+
+            ext = StripeExtractorNode(context=ctx)
+            rec = ReconstructorNode(context=ctx, parameter_overrides=[
+                rclpy.parameter.Parameter('calibration_file', value=str(cal_path)),
+                rclpy.parameter.Parameter('marker_period', value=0.0)])
+            nodes = [ext, rec]
+            for n in nodes:
+                ex.add_node(n)
+        else:
+            bin_dir = Path(sys.executable).parent
+            env = dict(os.environ)
+            procs.append(subprocess.Popen([bin_dir / 'stripe_extractor'], env=env,
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            procs.append(subprocess.Popen(
+                [bin_dir / 'reconstructor', '--ros-args', '-p',
+                 f'calibration_file:={cal_path}', '-p', 'marker_period:=0.0'], env=env,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        # warm-up: until clouds come back (discovery, JIT)
+        bench = Bench(node, frames, 50.0, 10 ** 9)
+        t_end = time.monotonic() + 60
+        while bench.received < warmup and time.monotonic() < t_end:
+            bench.publish_due()
+            ex.spin_once(timeout_sec=0.005)
+        if bench.received < warmup:
+            raise RuntimeError('warm-up failed: no clouds from the pipeline')
+        bench.rate, bench.total = rate, total + bench.sent
+        bench.t0 = None
+        bench.latency.clear()
+        start_sent, bench.received = bench.sent, 0
+        # drain clouds of the warm-up still in flight
+        t_end = time.monotonic() + 0.5
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.01)
+        bench.received = 0
+        bench.latency.clear()
+        bench.t0 = None
+        while bench.sent < bench.total:
+            bench.publish_due()
+            ex.spin_once(timeout_sec=0.0005)
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end and bench.received < total:
+            ex.spin_once(timeout_sec=0.01)
+        sent = bench.sent - start_sent
+        lat = np.array(bench.latency) * 1e3
+        return {'sent': sent, 'received': bench.received,
+                'drop_pct': 100.0 * max(sent - bench.received, 0) / sent,
+                'p50_ms': float(np.percentile(lat, 50)) if lat.size else float('nan'),
+                'p99_ms': float(np.percentile(lat, 99)) if lat.size else float('nan')}
+    finally:
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for n in nodes:
+            n.destroy_node()
+        node.destroy_node()
+        ex.shutdown()
+        rclpy.try_shutdown(context=ctx)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--frames', type=int, default=10000, help='frames per arrangement')
+    parser.add_argument('--distinct', type=int, default=100, help='distinct recorded frames')
+    args = parser.parse_args()
+    from calibration_tools.truth import truth_calibration
+    from reconstructor import calibration_file
+
+    with tempfile.TemporaryDirectory() as tmp:
+        bag = Path(tmp) / 'frames'
+        rig = make_bag(bag, args.distinct)
+        frames = load_frames(bag)
+        cal = Path(tmp) / 'simulator_truth_for_benchmark.yaml'
+        calibration_file.save(truth_calibration(rig), cal)
+        print(f'{len(frames)} recorded frames in {bag}; {args.frames} per arrangement',
+              flush=True)
+        results = {}
+        for key, rate, one in (('one_process_500', 500.0, True),
+                               ('one_process_1000', 1000.0, True),
+                               ('separate_500', 500.0, False)):
+            r = run(frames, rate, args.frames, one, cal)
+            results[key] = r
+            print(f'{key}: {r}', flush=True)
+        load = os.getloadavg()[0]
+    out = {
+        'one_process_500_drop_pct': results['one_process_500']['drop_pct'],
+        'one_process_500_p99_ms': results['one_process_500']['p99_ms'],
+        'one_process_1000_drop_pct': results['one_process_1000']['drop_pct'],
+        'separate_500_drop_pct': results['separate_500']['drop_pct'],
+        'one_process_500_p50_ms': results['one_process_500']['p50_ms'],
+        'separate_500_p99_ms': results['separate_500']['p99_ms'],
+        'frames_per_arrangement': args.frames,
+        'load_average_1min': load,
+    }
+    print(json.dumps(out))
+
+
+if __name__ == '__main__':
+    main()

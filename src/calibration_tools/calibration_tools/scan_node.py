@@ -1,0 +1,120 @@
+"""``galvoscan scan``: start a named scan pattern on a running driver and follow it.
+
+    galvoscan scan --pattern raster --g1-pan -1 1 --g1-tilt -0.5 0.5 --g2-tilt -0.5 0.5 \\
+                   --steps-pan 3 --steps-tilt 20 [--rate 500] [--scene FILE] [--laser-off]
+    galvoscan scan --pattern custom --voltages scan.csv  # rows U1_pan,U1_tilt,U2_pan,U2_tilt [V]
+
+Prints the progress (frames done, dropped, remaining time) until the scan ends; Ctrl-C
+stops the scan (galvos to 0 V, laser off). Exit code 0 when the scan completed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog='galvoscan scan', description=__doc__.split('\n')[0])
+    p.add_argument('--pattern', default='raster', choices=('raster', 'g1_grid', 'g2_sweep',
+                                                             'custom'))
+    for name in ('g1-pan', 'g1-tilt', 'g2-tilt'):
+        p.add_argument(f'--{name}', nargs=2, type=float, default=(0.0, 0.0),
+                       metavar=('MIN', 'MAX'), help=f'{name} range [V]')
+    p.add_argument('--steps-pan', type=int, default=1)
+    p.add_argument('--steps-tilt', type=int, default=10)
+    p.add_argument('--voltages', help='custom: CSV file of rows U1_pan,U1_tilt,U2_pan,U2_tilt [V]')
+    p.add_argument('--rate', type=float, default=0.0, help='frame rate [Hz] (0: driver default)')
+    p.add_argument('--laser-off', action='store_true')
+    p.add_argument('--scene', help='sim backend: scene YAML to set first')
+    p.add_argument('--scan-id', default='')
+    p.add_argument('--timeout', type=float, default=600.0, help='give up after [s]')
+    return p
+
+
+def main(argv=None):
+    args = build_parser().parse_args(argv)
+    voltages = []
+    if args.pattern == 'custom':
+        if not args.voltages:
+            print('galvoscan scan: --pattern custom needs --voltages FILE', file=sys.stderr)
+            return 2
+        try:
+            arr = np.loadtxt(args.voltages, delimiter=',', ndmin=2)
+        except (OSError, ValueError) as exc:
+            print(f'galvoscan scan: {args.voltages}: {exc}', file=sys.stderr)
+            return 2
+        voltages = arr.ravel().tolist()
+
+    import rclpy
+    from galvoscan_msgs.srv import GetScanProgress, SetScene, StartScan, StopScan
+    from rclpy.node import Node
+    from rclpy.signals import SignalHandlerOptions
+
+    # Ctrl-C stays a plain KeyboardInterrupt so that the context can still stop the scan
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    node = Node('galvoscan_scan')
+
+    def call(srv, name, req, timeout=30.0):
+        client = node.create_client(srv, name)
+        if not client.wait_for_service(timeout_sec=timeout):
+            raise RuntimeError(f'{name} not available: is the driver running?')
+        fut = client.call_async(req)
+        rclpy.spin_until_future_complete(node, fut, timeout_sec=timeout)
+        if fut.result() is None:
+            raise RuntimeError(f'{name} did not answer')
+        return fut.result()
+
+    started = False
+    try:
+        if args.scene:
+            resp = call(SetScene, 'sim/set_scene', SetScene.Request(
+                scene_yaml=Path(args.scene).read_text()))
+            print(resp.message)
+            if not resp.success:
+                return 1
+        req = StartScan.Request(
+            pattern=args.pattern, scan_id=args.scan_id, g1_pan_min=args.g1_pan[0],
+            g1_pan_max=args.g1_pan[1], g1_tilt_min=args.g1_tilt[0],
+            g1_tilt_max=args.g1_tilt[1], g2_tilt_min=args.g2_tilt[0],
+            g2_tilt_max=args.g2_tilt[1], steps_pan=args.steps_pan,
+            steps_tilt=args.steps_tilt, voltages=voltages, frame_rate=args.rate,
+            laser_on=not args.laser_off)
+        resp = call(StartScan, 'scan/start', req)
+        print(resp.message)
+        if not resp.success:
+            return 1
+        started = True
+        t_end = time.monotonic() + args.timeout
+        while time.monotonic() < t_end:
+            p = call(GetScanProgress, 'scan/progress', GetScanProgress.Request())
+            print(f'\r{p.scan_id}: {p.state}, {p.frames_done}/{p.frames_total} frames, '
+                  f'{p.frames_dropped} dropped, {p.remaining:.1f} s left ', end='', flush=True)
+            if p.state != 'running':
+                print()
+                started = False
+                return 0 if p.state == 'done' else 1
+            time.sleep(0.2)
+        print('\ntimed out')
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    except (RuntimeError, OSError) as exc:
+        print(f'galvoscan scan: {exc}', file=sys.stderr)
+        return 1
+    finally:
+        if started and rclpy.ok():
+            try:
+                call(StopScan, 'scan/stop', StopScan.Request(), timeout=5.0)
+            except RuntimeError:
+                pass
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    sys.exit(main())
