@@ -11,20 +11,22 @@ design values at first, then what earlier stages calibrated), to place the targe
 G1 at them; never the simulator's true parameters. The scene frame W of every scene is
 taken to be the model's V0, as an operator measuring from the scanner would.
 
-========================  ======================================  =========  ==============
-stage                     targets (scene per step)                full plan  quick plan
-========================  ======================================  =========  ==============
-intrinsics                4 mm checkerboard at U1 = 0, tilted      24 views   8 views
-                          ~34 deg in directions all around
-dynamic_camera            740 mm circle board at 650 mm, centred   88 views   20 views
-                          and at 4 placements 420 mm to the sides  (5 poses)  (1 pose)
-laser_plane               rows of small circle grids on the        8 boards   4 boards
-                          U2 = 0 laser plane, near and far
-laser_axis                rows of boards on the planes of 9 G2     36 boards  6 boards
-                          voltages over +-4 V, lit at +-0.05 V     18 planes  3 planes
-joint_correction          10 mm sphere at 9 positions along x,     189        9
-                          G1 stepped on a 0.1 V grid (chained)     frames     frames
-========================  ======================================  =========  ==============
+========================  ======================================  ===========  ============
+stage                     targets (scene per step)                full plan    quick plan
+========================  ======================================  ===========  ============
+intrinsics                4 mm checkerboard at U1 = 0, tilted      30 views     8 views
+                          ~34 deg in directions all around         30 steps     8 steps
+dynamic_camera            740 mm circle board at 650 mm, centred   88 views     20 views
+                          and at 4 placements 420 mm to the sides  5 steps      1 step
+laser_plane               small circle grids on the U2 = 0 laser   8 boards,    4 boards,
+                          plane, near and far (4 per scene)        16 frames    8 frames
+laser_axis                rows of boards on the planes of 9 G2     36 boards,   6 boards,
+                          voltages over +-4 V, lit at +-0.05 V     18 planes,   3 planes,
+                          (rows 2 V apart share a scene)           108 frames   12 frames
+joint_correction          10 mm sphere at 9 positions along x,     ~120-170     9 frames
+                          G1 on a 0.1 V grid around each           frames,      (3 x 3)
+                          (chained through shared nodes)           9 steps      1 step
+========================  ======================================  ===========  ============
 
 Several small boards share a scene: each is seen (and lit) at its own G1 voltages, with no
 other board in that view, so a laser stage treats every (step pose, G1 voltages) pair as
@@ -103,10 +105,15 @@ class CaptureStep:
             raise ValueError(f'voltages must have shape (n >= 1, 4), got {v.shape}')
         if not np.all(np.isfinite(v)) or np.abs(v).max() > 10.0:
             raise ValueError('voltages must be finite and within +-10 V')
-        if isinstance(self.pose_index, bool) or int(self.pose_index) != self.pose_index \
-                or self.pose_index < 0:
+        try:
+            ok = not isinstance(self.pose_index, bool) and int(self.pose_index) == \
+                self.pose_index and self.pose_index >= 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
             raise ValueError(f'pose_index must be an integer >= 0, got {self.pose_index!r}')
-        if not (math.isfinite(self.frame_rate) and self.frame_rate > 0):
+        if isinstance(self.frame_rate, bool) or not isinstance(self.frame_rate, (int, float)) \
+                or not (math.isfinite(self.frame_rate) and self.frame_rate > 0):
             raise ValueError(f'frame_rate must be > 0 Hz, got {self.frame_rate!r}')
         if self.scene_yaml is not None and not isinstance(self.scene_yaml, str):
             raise ValueError('scene_yaml must be a string or None')
@@ -200,7 +207,7 @@ def circle_board_scene_yaml(V0_T_W, board=CIRCLE_BOARD) -> str:
             f'    albedo: 0.85\n    circle_albedo: 0.05\n')
 
 
-def circle_board_pose(pose_index: int, model=None) -> np.ndarray:
+def circle_board_pose(pose_index: int) -> np.ndarray:
     """Where the plan places the large circle board for ``pose_index``: ``V0_T_W``, metres.
 
     The placement is the operator's fixed bench setup (:data:`CIRCLE_BOARD_OFFSETS` at the
@@ -221,9 +228,8 @@ def intrinsics_steps(model, n_views: int, *, tilt: float = 0.6, seed: int = 0):
     moved back until its pattern projects inside the image (model intrinsics) with 12 px to
     spare.
     """
-    from reconstructor.model import project_points
-
     from calibration_tools.sim_captures import board_scene_yaml
+    from reconstructor.model import project_points
 
     rng = np.random.default_rng(seed)
     intr = model.intrinsics
@@ -308,13 +314,12 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
     mirror_x : bool
         Use -x for every board.
     """
-    from reconstructor.model import laser_plane_v0
-
     from calibration_tools.sim_captures import (
         aim_g1,
         board_rotation_on_laser,
         boards_scene_yaml,
     )
+    from reconstructor.model import laser_plane_v0
 
     rng = np.random.default_rng(seed)
     z0 = laser_crossing_depth(model)
@@ -335,7 +340,7 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
                 raise ValueError(f'a board at U2 = {u} V is out of G1 reach under the model')
             off_volts.append([g1[0], g1[1], 0.0, 0.0])
             on_volts += [[g1[0], g1[1], 0.0, float(u) + o] for o in offsets]
-    text = boards_scene_yaml(placements, name=f'cal_{label}_boards')
+    text = boards_scene_yaml(placements, name=f"cal_{label.replace(' ', '_')}_boards")
     n = len(placements)
     return [
         CaptureStep(pose_index, text, np.array(off_volts), False,

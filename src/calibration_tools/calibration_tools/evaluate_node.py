@@ -295,8 +295,11 @@ class Evaluation:
         return rng, views
 
 
-def _write_params(path, args, cal_path, log_dir):
+def _write_params(path, args, cal_path, data_dir):
     params = {
+        'calibration': {'ros__parameters': {
+            'calibration_file': str(cal_path), 'rig': args.rig, 'quick': bool(args.quick),
+            'data_dir': str(data_dir)}},
         'galvo_driver': {'ros__parameters': {
             'backend': 'sim', 'rig': args.rig, 'scene': 'stair_block', 'seed': args.seed}},
         'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
@@ -323,6 +326,7 @@ def build_parser():
 def main(argv=None):
     args = build_parser().parse_args(argv)
     from calibration_tools import bringup, report
+    from calibration_tools.calibrate_client import calibrate_all, true_transfer_error_mm
     from calibration_tools.truth import truth_calibration
     from galvo_driver.sim import load_rig
     from reconstructor import calibration_file
@@ -339,7 +343,7 @@ def main(argv=None):
     env = {**os.environ, 'ROS_DOMAIN_ID': domain,
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     params = out / 'params.yaml'
-    _write_params(params, args, cal_path, out / 'logs')
+    _write_params(params, args, cal_path, out / 'calibration_data')
     nodes = list(bringup.DEFAULT_NODES) + ([] if args.truth_calibration else ['calibration'])
     sup = bringup.Supervisor(nodes, params, env=env, log_dir=out / 'logs')
     progress.log(f'starting the graph ({", ".join(nodes)}), logs in {out / "logs"}')
@@ -354,7 +358,6 @@ def main(argv=None):
             stage_info = {}
             progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a result)')
         else:
-            from calibration_tools.calibrate_client import calibrate_all
             stage_info = calibrate_all(client, cal_path, progress, quick=args.quick)
             cal = calibration_file.load(cal_path)
         from galvoscan_msgs.srv import LoadCalibration
@@ -380,7 +383,7 @@ def main(argv=None):
             'plate_flatness_rmse_mm': plate_rmse,
             'sphere_radius_error_mm': sphere_res['radius_error_mm'],
             'sphere_fit_rms_mm': sphere_res['fit_rms_mm'],
-            'transfer_matrix_error_rmse_mm': stage_info.get('transfer_matrix_error_rmse_mm'),
+            'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model, rig),
             'joint_error_before_mm': stage_info.get('joint_error_before_mm'),
             'joint_error_after_mm': stage_info.get('joint_error_after_mm'),
             'range_x_mm': rng['x'], 'range_y_mm': rng['y'],

@@ -49,9 +49,8 @@ def pointing_error_m(model, rig, voltages=None) -> float:
     """RMS distance, in V0, between the model's and the true position of points seen at
     650 mm (view centre and corners) over G1 voltages (default: the paper's 36 positions
     from -10 to 10 V in 4 V steps). Intrinsics play no part."""
-    from reconstructor.model import v0_T_v
-
     from calibration_tools.dynamic_camera import paper_grid
+    from reconstructor.model import v0_T_v
 
     U = paper_grid() if voltages is None else np.asarray(voltages, dtype=np.float64)
     hx, hy = HALF_VIEW
@@ -105,7 +104,11 @@ def _plane_gap(pred, true) -> float:
     return worst
 
 
-def laser_sweep_error_m(model, rig, volts=tuple(np.linspace(-4.0, 4.0, 17))) -> float:
+#: G2 tilt voltages of :func:`laser_sweep_error_m` [V].
+SWEEP_VOLTS = tuple(float(u) for u in np.linspace(-4.0, 4.0, 17))
+
+
+def laser_sweep_error_m(model, rig, volts=SWEEP_VOLTS) -> float:
     """Largest distance between the model's laser plane and the true one at G2 tilt voltages
     (default +-4 V), over points of the true plane at x in +-100 mm, depth 600..700 mm."""
     from reconstructor.model import laser_plane_v0

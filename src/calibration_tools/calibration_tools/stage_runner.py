@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import logging
 import re
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -22,6 +23,8 @@ import numpy as np
 
 from calibration_tools import capture_plans as cp
 from calibration_tools.stages import STAGES, CaptureView, StageResult
+
+log = logging.getLogger('galvoscan.calibration.stage_runner')
 
 #: Directory names written by the calibration node: one bag per capture step.
 BAG_NAME = re.compile(r'^pose(\d+)_step(\d+)$')
@@ -102,9 +105,8 @@ def nominal_calibration(rig):
     reconstructor.calibration_file.Calibration
         ``source: calibrated`` with a ``stages.nominal`` entry saying what it is.
     """
-    from reconstructor.calibration_file import Calibration, now_iso
-
     from calibration_tools.truth import truth_model
+    from reconstructor.calibration_file import Calibration, now_iso
 
     design = nominal_rig(rig)
     return Calibration(model=truth_model(design), source='calibrated',
@@ -171,13 +173,14 @@ def views_from_bags(bag_dirs) -> list[CaptureView]:
     Raises
     ------
     ValueError
-        A missing or unreadable bag, or one without camera frames.
+        A missing or unreadable bag, or no camera frame in any bag (a bag without frames
+        is skipped with a logged warning).
     """
     from galvo_driver.bag.frames import read_frames
     from galvo_driver.bag.reader import BagReadError
 
     bags = expand_bag_dirs(bag_dirs)
-    views = []
+    views, empty = [], []
     for i, bag in enumerate(bags):
         m = BAG_NAME.match(bag.name)
         pose = int(m.group(1)) if m else i
@@ -192,7 +195,10 @@ def views_from_bags(bag_dirs) -> list[CaptureView]:
         except (BagReadError, FileNotFoundError) as exc:
             raise ValueError(str(exc)) from None
         if n == 0:
-            raise ValueError(f'bag {bag} holds no camera frames paired with galvo states')
+            log.warning('bag %s holds no camera frame paired with a galvo state', bag)
+            empty.append(str(bag))
+    if not views:
+        raise ValueError(f'no camera frames paired with galvo states in {", ".join(empty)}')
     return views
 
 
@@ -285,6 +291,11 @@ def stage_options(stage: str) -> dict:
 def compute(stage: str, views: Sequence[CaptureView], calibration,
             progress: Callable | None = None) -> StageResult:
     """Run one calibration stage on captured views.
+
+    Targets and options are those of :func:`stage_options`. The dynamic-camera stage gets
+    the plan's board placements (:func:`capture_plans.circle_board_pose`) as its board
+    priors; the laser stages see every (pose_index, G1 voltages) pair as its own board pose
+    (:func:`board_views`), since the plans show several boards per scene.
 
     Parameters
     ----------

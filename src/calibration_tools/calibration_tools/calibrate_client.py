@@ -1,0 +1,61 @@
+"""Run every calibration stage through the calibration node's services (capture, compute).
+
+Used by ``galvoscan evaluate``; ``client`` is its GraphClient (``call(srv, name, req)``).
+The figures returned are read back from the calibration file the node wrote.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from calibration_tools.stages import STAGES
+from reconstructor import calibration_file
+
+
+def calibrate_all(client, cal_path, progress, quick=False) -> dict:
+    """Capture and compute each stage in order; return the stage figures for the report."""
+    from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration
+
+    progress.stage('calibration (capture + compute)', len(STAGES), 'stages')
+    info = {}
+    for stage in STAGES:
+        cap = client.call(CaptureCalibration, 'calibration/capture',
+                          CaptureCalibration.Request(stage=stage), timeout=900.0)
+        if not cap.success:
+            raise RuntimeError(f'capture {stage}: {cap.message}')
+        comp = client.call(ComputeCalibration, 'calibration/compute',
+                           ComputeCalibration.Request(stage=stage), timeout=900.0)
+        if not comp.success:
+            raise RuntimeError(f'compute {stage}: {comp.message}')
+        info[stage] = {'frames': cap.frames_recorded, 'capture_s': cap.duration,
+                       'samples_used': comp.samples_used,
+                       'samples_rejected': comp.samples_rejected}
+        progress.advance(note=f'{stage}: {cap.frames_recorded} frames, '
+                              f'{comp.samples_used} used, {comp.samples_rejected} rejected')
+    cal = calibration_file.load(cal_path)
+    for stage in STAGES:
+        info[stage]['residuals'] = cal.stages.get(stage, {}).get('residuals', {})
+    jc = info['joint_correction']['residuals']
+    for key, name in (('joint_error_before_mm', 'error1_rms_m'),
+                      ('joint_error_before_error3_mm', 'error3_rms_m'),
+                      ('joint_error_after_mm', 'error2_rms_m')):
+        if name in jc:
+            info[key] = jc[name] * 1e3
+    return info
+
+
+def true_transfer_error_mm(model, rig) -> float:
+    """The paper's transfer-matrix error (Eq. 18-1, 36 G1 positions, -10..10 V in 4 V steps)
+    of ``model`` against the simulator's exact virtual-camera poses."""
+    from calibration_tools.dynamic_camera import transfer_matrix_error
+
+    G0_inv = np.linalg.inv(rig.G_T_V0)
+
+    def exact(up, ut):
+        out = []
+        for a, b in zip(up, ut, strict=True):
+            th = rig.mirror_angles(rig.applied_voltages(np.array([a, b, 0.0, 0.0])))
+            out.append(G0_inv @ rig.G_T_V(th[0], th[1]))
+        return np.stack(out)
+
+    return transfer_matrix_error(model, exact).rmse_mm
