@@ -167,6 +167,31 @@ def node_class(name):
     return getattr(importlib.import_module(module), cls)
 
 
+#: nodes whose service callbacks block while they call other nodes' services
+BLOCKING_NODES = ('calibration',)
+
+
+def _spin_in_thread(node):
+    import threading
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    ex = SingleThreadedExecutor()
+    ex.add_node(node)
+
+    def spin():
+        while rclpy.ok():
+            try:
+                ex.spin_once(timeout_sec=0.1)
+            except Exception:  # noqa: BLE001 - context shut down under us
+                break
+
+    thread = threading.Thread(target=spin, name=f'{node.get_name()}_executor', daemon=True)
+    thread.start()
+    return thread
+
+
 def run_one_process(nodes, params_file=None, duration=None, args=None):
     """Run ``nodes`` in this process on one EventsExecutor until Ctrl-C or ``duration`` [s]."""
     import rclpy
@@ -177,11 +202,16 @@ def run_one_process(nodes, params_file=None, duration=None, args=None):
     rclpy.init(args=(args or []) + ros_args)
     executor = EventsExecutor()
     instances = []
+    threads = []
     try:
         for name in nodes:
             node = node_class(name)()
             instances.append(node)
-            executor.add_node(node)
+            if name in BLOCKING_NODES:
+                # its services wait on other nodes' services: give it its own executor
+                threads.append(_spin_in_thread(node))
+            else:
+                executor.add_node(node)
         # EventsExecutor.spin() in rclpy 7.1 ignores SIGINT/SIGTERM (measured here); a
         # spin_once loop stops on both.
         t_end = None if duration is None else time.monotonic() + duration

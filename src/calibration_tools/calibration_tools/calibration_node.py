@@ -54,6 +54,7 @@ class _Capture(Node):
         super().__init__('calibration_capture', context=context)
         self.writer = None
         self.frames = 0
+        self.states = 0
         qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, qos, raw=True)
         self.create_subscription(GalvoState, 'galvo/state', self._on_state, qos, raw=True)
@@ -69,6 +70,7 @@ class _Capture(Node):
     def _on_state(self, data):
         if self.writer is not None:
             self.writer.write('/galvo/state', data, time.time_ns())
+            self.states += 1
 
 
 class CalibrationNode(Node):
@@ -130,7 +132,7 @@ class CalibrationNode(Node):
         writer.open()
         writer.add_topic('/camera/image_raw', 'sensor_msgs/msg/Image')
         writer.add_topic('/galvo/state', 'galvoscan_msgs/msg/GalvoState')
-        cap.writer, cap.frames = writer, 0
+        cap.writer, cap.frames, cap.states = writer, 0, 0
         try:
             resp = self._call('scan/start', StartScan.Request(
                 pattern='custom', voltages=np.asarray(step.voltages).ravel().tolist(),
@@ -148,8 +150,8 @@ class CalibrationNode(Node):
                     if state != 'running':
                         break
                     last = time.monotonic()
-            t_quiet = time.monotonic() + 0.3  # the last states may trail their images
-            while time.monotonic() < t_quiet:
+            t_quiet = time.monotonic() + 2.0  # the last states may trail their images
+            while cap.states < cap.frames and time.monotonic() < t_quiet:
                 self._cap_executor.spin_once(timeout_sec=0.05)
         finally:
             cap.writer = None

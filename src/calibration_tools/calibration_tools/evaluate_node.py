@@ -130,7 +130,7 @@ class GraphClient:
             if time.monotonic() - last > 0.5 and not done:
                 done = self._progress().state != 'running'
                 last = time.monotonic() if not done else last
-            if done and time.monotonic() - last > 3.0:
+            if done and time.monotonic() - last > 1.5:
                 break
         while self._progress().state == 'running' and time.monotonic() < t_end:
             self.spin(0.1)
@@ -189,8 +189,8 @@ class Evaluation:
         return res, cloud
 
     def stair_grid(self, n_x, n_y, frames):
-        xs = np.linspace(-0.42, 0.42, n_x) if n_x > 1 else [0.0]
-        ys = np.linspace(-0.45, 0.45, n_y) if n_y > 1 else [0.0]
+        xs = np.linspace(-0.38, 0.38, n_x) if n_x > 1 else [0.0]
+        ys = np.linspace(-0.33, 0.33, n_y) if n_y > 1 else [0.0]
         positions = [(x, y, 0.65) for y in ys for x in xs]
         self.progress.stage('stair block at 650 mm', len(positions), 'positions')
         rows, clouds = [], []

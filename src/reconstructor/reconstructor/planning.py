@@ -99,6 +99,10 @@ def view_sweep(model: RigModel, u1_pan: float, u1_tilt: float, distance: float,
             plane = laser_plane_v0(model, u)
             return float(plane[:3] @ point + plane[3])
 
+        if f(-VOLTAGE_LIMIT) * f(VOLTAGE_LIMIT) > 0:
+            raise ValueError(f'the laser cannot reach this view at {distance:g} m within '
+                             f'+-{VOLTAGE_LIMIT} V of G2 tilt (U1 = ({u1_pan:.3g}, '
+                             f'{u1_tilt:.3g}) V)')
         ends.append(brentq(f, -VOLTAGE_LIMIT, VOLTAGE_LIMIT, xtol=1e-12))
     u2 = np.linspace(ends[0], ends[1], frames) if frames > 1 else np.array([np.mean(ends)])
     out = np.zeros((frames, 4))

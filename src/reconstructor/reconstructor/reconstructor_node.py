@@ -100,7 +100,10 @@ class ReconstructorNode(Node):
         self._last_marker = 0.0
         self.create_subscription(StripeCenters, 'stripe/centers', self._on_centers,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
-        self._pub_points = self.create_publisher(PointCloud2, 'points', 10)
+        # a deep history: a reliable writer drops what a slow reader has not acknowledged
+        # once KEEP_LAST overflows, and frames come at up to 1 kHz
+        self._pub_points = self.create_publisher(
+            PointCloud2, 'points', QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE))
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._pub_scan = self.create_publisher(PointCloud2, 'points/scan', latched)
