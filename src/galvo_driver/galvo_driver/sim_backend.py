@@ -9,7 +9,9 @@ Frames are stamped on a virtual clock: frame ``i`` of a scan has the stamp
 ``t_start + i / frame_rate + exposure / 2`` (the middle of its exposure), where
 ``t_start`` is the wall time the scan started. Frames are handed out as they fall due at
 the requested rate; when rendering is slower than that rate, they come out as fast as the
-simulator renders them, stamps unchanged. Sequence numbers run on across scans.
+simulator renders them, stamps unchanged. One frame is handed out per poll by default:
+a burst of 720x540 images overflows Fast DDS's default shared-memory segment and a
+best-effort subscriber then loses frames. Sequence numbers run on across scans.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from galvo_driver.backend import STATUS_SETTLED, BackendError, Frame, GalvoBacke
 class SimBackend(GalvoBackend):
     name = 'sim'
 
-    def __init__(self, rig='reference', scene='stair_block', seed=0, max_frames_per_poll=4):
+    def __init__(self, rig='reference', scene='stair_block', seed=0, max_frames_per_poll=1):
         self.rig_name, self.scene_name, self.seed = rig, scene, int(seed)
         self.max_frames_per_poll = int(max_frames_per_poll)
         self.sim = None
