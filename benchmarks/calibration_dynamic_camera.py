@@ -224,42 +224,46 @@ def measured_protocol(rig, model, V0_T_W_est, seed):
             "rotation_rmse_deg": math.degrees(e.rotation_rmse_rad)}
 
 
-def dynamic_stage(rig, cal, placements, seed, label):
+def dynamic_stage(rig, cal, placements, seed, label, variants):
+    """Render once, run the stage with each option set; one result dict per variant."""
     views, priors, truths = board_views(rig, placements, seed)
-    t0 = time.perf_counter()
-    res = run_dynamic_camera(views, cal, board_pose=priors)
-    dt = time.perf_counter() - t0
-    model = apply_result(cal, res).model
     tp = rig.true_model_parameters()
-    checked, wrong = check_labels(res, truths, CameraIntrinsics(
-        rig.camera.fx, rig.camera.fy, rig.camera.cx, rig.camera.cy,
-        tuple(rig.camera.distortion), 720, 540))
-    tme = transfer_matrix_error(model, true_v0_T_v(rig))
+    cam = rig.camera
+    intr_true = CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, tuple(cam.distortion), 720, 540)
     grid = paper_grid()
     inner = grid[np.all(np.abs(grid) <= 6.0, axis=1)]
-    tme_inner = transfer_matrix_error(model, true_v0_T_v(rig), inner)
-    ex = res.extra["dynamic_camera"]
-    out = {
-        "views": len(views), "accepted": res.samples_used, "labels_checked_views": checked,
-        "wrong_labels": wrong,
-        "l_err_mm": 1e3 * (model.l - tp.l), "d_err_mm": 1e3 * (model.d - tp.d),
-        "k_pan_err_pct": 100 * (model.g1_pan.k / tp.k_pan - 1),
-        "k_tilt_err_pct": 100 * (model.g1_tilt.k / tp.k_tilt - 1),
-        "theta0_pan_err_deg": math.degrees(model.g1_pan.theta0 - tp.theta0_pan),
-        "l_mm": 1e3 * model.l, "d_mm": 1e3 * model.d,
-        "linear_eq16_l_mm": 1e3 * ex.get("linear_l_m", float("nan")),
-        "linear_eq16_d_mm": 1e3 * ex.get("linear_d_m", float("nan")),
-        "reprojection_rms_px": res.residuals["reprojection_rms_px"],
-        "tme_true_36_rmse_mm": tme.rmse_mm,
-        "tme_true_36_translation_rmse_mm": 1e3 * tme.translation_rmse_m,
-        "tme_true_36_rotation_rmse_deg": math.degrees(tme.rotation_rmse_rad),
-        "tme_true_inner16_rmse_mm": tme_inner.rmse_mm,
-        "time_s": dt,
-    }
-    if label == "central":
-        out["tme_measured_protocol"] = measured_protocol(rig, model,
-                                                         ex_pose(res, 0), seed)
-    return out
+    outs = {}
+    for name, options in variants.items():
+        t0 = time.perf_counter()
+        res = run_dynamic_camera(views, cal, board_pose=priors, **options)
+        dt = time.perf_counter() - t0
+        model = apply_result(cal, res).model
+        checked, wrong = check_labels(res, truths, intr_true)
+        tme = transfer_matrix_error(model, true_v0_T_v(rig))
+        tme_inner = transfer_matrix_error(model, true_v0_T_v(rig), inner)
+        ex = res.extra["dynamic_camera"]
+        out = {
+            "options": {k: v for k, v in options.items()},
+            "views": len(views), "accepted": res.samples_used, "labels_checked_views": checked,
+            "wrong_labels": wrong,
+            "l_err_mm": 1e3 * (model.l - tp.l), "d_err_mm": 1e3 * (model.d - tp.d),
+            "k_pan_err_pct": 100 * (model.g1_pan.k / tp.k_pan - 1),
+            "k_tilt_err_pct": 100 * (model.g1_tilt.k / tp.k_tilt - 1),
+            "theta0_pan_err_deg": math.degrees(model.g1_pan.theta0 - tp.theta0_pan),
+            "l_mm": 1e3 * model.l, "d_mm": 1e3 * model.d,
+            "linear_eq16_l_mm": 1e3 * ex.get("linear_l_m", float("nan")),
+            "linear_eq16_d_mm": 1e3 * ex.get("linear_d_m", float("nan")),
+            "reprojection_rms_px": res.residuals["reprojection_rms_px"],
+            "tme_true_36_rmse_mm": tme.rmse_mm,
+            "tme_true_36_translation_rmse_mm": 1e3 * tme.translation_rmse_m,
+            "tme_true_36_rotation_rmse_deg": math.degrees(tme.rotation_rmse_rad),
+            "tme_true_inner16_rmse_mm": tme_inner.rmse_mm,
+            "time_s": dt,
+        }
+        if label == "central":
+            out["tme_measured_protocol"] = measured_protocol(rig, model, ex_pose(res, 0), seed)
+        outs[f"{label}{name}"] = out
+    return outs
 
 
 def ex_pose(res, p):
@@ -288,27 +292,30 @@ def main():
             runs.append(("wide", [((0.0, 0.0), n_central // 2)] + [
                 ((sx * side, sy * side), n_side)
                 for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1))]))
+        variants = {"": {}}
+        if rig_name == "reference":  # also fit the galvos' quadratic and cubic terms
+            variants["_poly2"] = {"refine_poly": 2}
         for label, placements in runs:
-            r = dynamic_stage(rig, cal, placements, seed=7, label=label)
-            results[rig_name][f"dynamic_camera_{label}"] = r
-            print(f"[{rig_name}/{label}] {r['accepted']}/{r['views']} views, wrong labels "
-                  f"{r['wrong_labels']} (of {r['labels_checked_views']} views checked); "
-                  f"l {r['l_err_mm']:+.4f} mm, d {r['d_err_mm']:+.4f} mm, k "
-                  f"{r['k_pan_err_pct']:+.5f} / {r['k_tilt_err_pct']:+.5f} %, theta0 "
-                  f"{r['theta0_pan_err_deg']:+.5f} deg; Eq.16 (l, d) = "
-                  f"({r['linear_eq16_l_mm']:.3f}, {r['linear_eq16_d_mm']:.3f}) mm; rms "
-                  f"{r['reprojection_rms_px']:.3f} px", flush=True)
-            print(f"    transfer-matrix RMSE vs simulator truth, 36 positions -10..10 V: "
-                  f"{r['tme_true_36_rmse_mm']:.4f} mm (translation "
-                  f"{r['tme_true_36_translation_rmse_mm']:.4f} mm, rotation "
-                  f"{r['tme_true_36_rotation_rmse_deg']:.5f} deg); inner 16 positions: "
-                  f"{r['tme_true_inner16_rmse_mm']:.4f} mm [paper: {PAPER_TME_MM} mm, "
-                  f"measured]", flush=True)
-            mp = r.get("tme_measured_protocol")
-            if mp:
-                print(f"    paper's protocol (model vs board-measured) at {mp['positions']} "
-                      f"positions: {mp['rmse_mm']:.4f} mm (V0 from {mp['v0_from']})",
-                      flush=True)
+            for key, r in dynamic_stage(rig, cal, placements, 7, label, variants).items():
+                results[rig_name][f"dynamic_camera_{key}"] = r
+                print(f"[{rig_name}/{key}] {r['accepted']}/{r['views']} views, wrong labels "
+                      f"{r['wrong_labels']} (of {r['labels_checked_views']} views checked); "
+                      f"l {r['l_err_mm']:+.4f} mm, d {r['d_err_mm']:+.4f} mm, k "
+                      f"{r['k_pan_err_pct']:+.5f} / {r['k_tilt_err_pct']:+.5f} %, theta0 "
+                      f"{r['theta0_pan_err_deg']:+.5f} deg; Eq.16 (l, d) = "
+                      f"({r['linear_eq16_l_mm']:.3f}, {r['linear_eq16_d_mm']:.3f}) mm; rms "
+                      f"{r['reprojection_rms_px']:.3f} px", flush=True)
+                print(f"    transfer-matrix RMSE vs simulator truth, 36 positions -10..10 V: "
+                      f"{r['tme_true_36_rmse_mm']:.4f} mm (translation "
+                      f"{r['tme_true_36_translation_rmse_mm']:.4f} mm, rotation "
+                      f"{r['tme_true_36_rotation_rmse_deg']:.5f} deg); inner 16 positions: "
+                      f"{r['tme_true_inner16_rmse_mm']:.4f} mm [paper: {PAPER_TME_MM} mm, "
+                      f"measured]", flush=True)
+                mp = r.get("tme_measured_protocol")
+                if mp:
+                    print(f"    paper's protocol (model vs board-measured) at "
+                          f"{mp['positions']} positions: {mp['rmse_mm']:.4f} mm (V0 from "
+                          f"{mp['v0_from']})", flush=True)
     results["paper_tme_rmse_mm"] = PAPER_TME_MM
     print(json.dumps(results, default=float))
 

@@ -419,10 +419,11 @@ def run_dynamic_camera(
     StageResult
         ``updates``: l, d, and (when refined) ``g1_pan.k``, ``g1_pan.theta0``,
         ``g1_tilt.k`` (and poly), ``intrinsics`` fx, fy, cx, cy (when refined).
-        ``residuals``: ``reprojection_rms_px``, ``reprojection_max_px``, ``linear_translation_rms_m`` (Eq. 16),
-        ``transfer_translation_rms_m`` / ``transfer_rotation_rms_rad`` (model vs PnP-measured
-        transfer matrices). ``extra['dynamic_camera']``: Eq. 16 (l, d), standard errors, board
-        poses, the paper's Eq. 18-1 RMSE in mm against the measured matrices, and per
+        ``residuals``: ``reprojection_rms_px``, ``reprojection_max_px``,
+        ``linear_translation_rms_m`` (Eq. 16), ``transfer_translation_rms_m`` and
+        ``transfer_rotation_rms_rad`` (model vs PnP-measured transfer matrices).
+        ``extra['dynamic_camera']``: Eq. 16 (l, d), standard errors, board poses, the
+        paper's Eq. 18-1 RMSE in mm against the measured matrices, and per
         accepted view (input index) its circle labels and detected centres.
     """
     if not isinstance(board, CircleBoard):
