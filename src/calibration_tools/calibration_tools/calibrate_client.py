@@ -35,6 +35,13 @@ def calibrate_all(client, cal_path, progress, quick=False) -> dict:
     cal = calibration_file.load(cal_path)
     for stage in STAGES:
         info[stage]['residuals'] = cal.stages.get(stage, {}).get('residuals', {})
+    nodes = [n for n in cal.stages.get('joint_correction', {}).get('nodes', [])
+             if 'error2_rms_m' in n]
+    if nodes:
+        info['joint_correction_curves'] = {
+            label: [n[key] * 1e3 for n in nodes] for label, key in (
+                ('Error1, before', 'error1_rms_m'), ('Error3, before', 'error3_rms_m'),
+                ('Error2, after', 'error2_rms_m'))}
     jc = info['joint_correction']['residuals']
     for key, name in (('joint_error_before_mm', 'error1_rms_m'),
                       ('joint_error_before_error3_mm', 'error3_rms_m'),

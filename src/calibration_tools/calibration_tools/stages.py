@@ -111,6 +111,12 @@ def apply_result(calibration, result: StageResult, sources=()):
         'residuals': {k: float(v) for k, v in result.residuals.items()},
         'updated': sorted(_flat_keys(result.updates)),
     }
+    if result.extra.get('nodes'):  # per-view figures of a stage, for reports
+        keep = ('pose_index', 'u1_pan', 'u1_tilt', 'status', 'error1_rms_m', 'error2_rms_m',
+                'error3_rms_m')
+        stages[result.stage]['nodes'] = [
+            {k: (float(v) if isinstance(v, (int, float)) and k != 'pose_index' else v)
+             for k, v in node.items() if k in keep} for node in result.extra['nodes']]
     if 'joint_correction' in result.extra:
         jc = result.extra['joint_correction']
     elif result.updates:
