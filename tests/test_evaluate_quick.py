@@ -36,7 +36,7 @@ def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
             assert math.isfinite(value)
     assert sum(v is not None for v in by_distance.values()) >= 4
     cvt = metrics['calibrated_vs_true']
-    assert {'fx_px', 'l_m', 'd_m', 'laser_axis_angle_deg'} <= set(cvt)
+    assert {'fx_px', 'l_m', 'd_m', 'laser_axis_direction_error_deg'} <= set(cvt)
     for name in ('report.md', 'calibration.yaml', 'stair_650mm.ply', 'plate.ply',
                  'sphere.ply', 'stair_error_vs_angle.png'):
         assert (out / name).stat().st_size > 0, name

@@ -44,15 +44,16 @@ def calibrated_vs_true(model, rig) -> dict:
     for j, name in enumerate(('k1', 'k2', 'p1', 'p2', 'k3')):
         out[f'dist_{name}'] = {'calibrated': float(i.dist[j]), 'true': float(p.distortion[j])}
     n_cal, n_true = np.asarray(model.laser_plane_v0[:3]), np.asarray(p.pi0[:3])
-    out['laser_plane_normal_angle_deg'] = {
-        'calibrated': 0.0,
-        'true': math.degrees(math.acos(min(1.0, abs(float(n_cal @ n_true)))))}
+    # directions: the angle of the calibrated one from the true one (0 for the truth)
+    out['laser_plane_normal_error_deg'] = {
+        'calibrated': math.degrees(math.acos(min(1.0, abs(float(n_cal @ n_true))))),
+        'true': 0.0}
     out['laser_plane_offset_m'] = {'calibrated': float(model.laser_plane_v0[3]),
                                    'true': float(p.pi0[3] * np.sign(n_cal @ n_true))}
     a_cal, a_true = np.asarray(model.laser_axis_dir), np.asarray(p.n)
-    out['laser_axis_angle_deg'] = {
-        'calibrated': 0.0,
-        'true': math.degrees(math.acos(min(1.0, abs(float(a_cal @ a_true)))))}
+    out['laser_axis_direction_error_deg'] = {
+        'calibrated': math.degrees(math.acos(min(1.0, abs(float(a_cal @ a_true))))),
+        'true': 0.0}
     P = np.asarray(model.laser_axis_point)
     # distance of the calibrated axis point from the true axis line
     d = (P - p.P) - ((P - p.P) @ a_true) * a_true
