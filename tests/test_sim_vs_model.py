@@ -9,11 +9,9 @@ pixels, reconstructs the simulator's true stripe points to within 1 um.
 import numpy as np
 import pytest
 
+from calibration_tools.truth import truth_model
 from galvo_driver.sim import Simulator, load_rig, load_scene, patterns
 from reconstructor.model import (
-    CameraIntrinsics,
-    MirrorParams,
-    RigModel,
     laser_plane_v0,
     triangulate,
     v0_T_v,
@@ -21,22 +19,7 @@ from reconstructor.model import (
 
 RIG = load_rig('ideal')
 PARAMS = RIG.true_model_parameters()
-
-
-def model_from_truth(p) -> RigModel:
-    cam = RIG.camera
-    return RigModel(
-        intrinsics=CameraIntrinsics(fx=p.fx, fy=p.fy, cx=p.cx, cy=p.cy,
-                                    dist=tuple(float(v) for v in p.distortion),
-                                    width=cam.width, height=cam.height),
-        g1_pan=MirrorParams(theta0=p.theta0_pan, k=p.k_pan),
-        g1_tilt=MirrorParams(theta0=p.theta0_tilt, k=p.k_tilt),
-        l=p.l, d=p.d,
-        laser_plane_v0=p.pi0, laser_axis_dir=p.n, laser_axis_point=p.P,
-        g2_tilt=MirrorParams(theta0=np.pi / 4, k=p.k2))
-
-
-MODEL = model_from_truth(PARAMS)
+MODEL = truth_model(RIG)
 # DAC-exact voltages (multiples of 20 V / 2**16), so commanded == applied
 G1_VOLTS = [(0.0, 0.0), (1.25, -2.5), (-7.5, 3.75), (9.375, 9.375), (-10.0, -5.0),
             (0.3125, -0.15625)]
