@@ -12,6 +12,13 @@ import sys
 import time
 
 import pytest
+from hypothesis import settings
+
+# The machine is shared and noisy: no per-example deadlines. Under CI, the examples are
+# derived from a fixed seed so that a run is repeatable.
+settings.register_profile('galvoscan', deadline=None,
+                          derandomize=bool(os.environ.get('CI')))
+settings.load_profile('galvoscan')
 
 
 @pytest.fixture
