@@ -39,14 +39,14 @@ from calibration_tools.joint_correction import run_joint_correction
 from calibration_tools.laser_axis import run_laser_axis
 from calibration_tools.laser_plane import run_laser_plane
 from calibration_tools.sim_captures import board_poses_on_laser, sphere_g1_grid
+from calibration_tools.sim_scores import stripe_point_errors
 from calibration_tools.stages import apply_result
 from galvo_driver.sim.rig import load_rig
 from galvo_driver.sim.scene import load_scene
 from galvo_driver.sim.simulator import Simulator
 from reconstructor import calibration_file as cf
 from reconstructor.correction import CorrectionTable
-from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel, triangulate
-from stripe_extractor.extractor import extract
+from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 
 PAPER = {'error1_mm': 4.928, 'error3_mm': 5.475, 'error2_mm': 0.197}
 BOARD = CircleGrid(cols=11, rows=8, pitch=0.0045, diameter=0.0025)
@@ -147,21 +147,6 @@ def _axis_figures(rig, res):
     return figs
 
 
-def true_errors(model, views, truths):
-    out = []
-    for view, truth in zip(views, truths, strict=True):
-        s = extract(view.image)
-        uv = np.column_stack([s.u, s.v]).astype(np.float64)
-        res = triangulate(model, uv, *view.voltages[[0, 1, 3]])
-        for k in np.flatnonzero(res.valid):
-            same = np.flatnonzero(truth.stripe.column == round(uv[k, 0]))
-            if same.size:
-                j = same[np.argmin(np.abs(truth.stripe.v[same] - uv[k, 1]))]
-                if abs(truth.stripe.v[j] - uv[k, 1]) < 2.0:
-                    out.append(np.linalg.norm(res.p_v0[k] - truth.stripe.points_V0[j]))
-    return np.array(out)
-
-
 def rms_mm(x):
     return float(np.sqrt(np.mean(np.square(x)))) * 1e3 if len(x) else float('nan')
 
@@ -178,10 +163,10 @@ def joint_figures(cal, res, views, truths, held, held_truths):
         'error2_dense_mm': r['error2_dense_rms_m'] * 1e3,
         'nodes_registered': int(r['nodes_registered']), 'nodes_skipped': int(r['nodes_skipped']),
         'nodes_not_converged': int(r['nodes_not_converged']),
-        'true_rms_nodes_before_mm': rms_mm(true_errors(cal.model, views, truths)),
-        'true_rms_nodes_after_mm': rms_mm(true_errors(corrected, views, truths)),
-        'true_rms_between_before_mm': rms_mm(true_errors(cal.model, held, held_truths)),
-        'true_rms_between_after_mm': rms_mm(true_errors(corrected, held, held_truths)),
+        'true_rms_nodes_before_mm': rms_mm(stripe_point_errors(cal.model, views, truths)),
+        'true_rms_nodes_after_mm': rms_mm(stripe_point_errors(corrected, views, truths)),
+        'true_rms_between_before_mm': rms_mm(stripe_point_errors(cal.model, held, held_truths)),
+        'true_rms_between_after_mm': rms_mm(stripe_point_errors(corrected, held, held_truths)),
     }
 
 

@@ -200,3 +200,31 @@ def scores(model, rig) -> dict:
         'laser_plane_at_work_m': lp['at_work_m'],
         'laser_sweep_max_m': laser_sweep_error_m(model, rig),
     }
+
+
+def stripe_point_errors(model, views, truths) -> np.ndarray:
+    """Distances [m] of each view's reconstructed stripe points from the simulator's true
+    points (matched by column, within 2 px in v).
+
+    Parameters
+    ----------
+    views : sequence of CaptureView
+        Laser-on views; the stripe is extracted with the default extractor settings.
+    truths : sequence of FrameTruth
+        The simulator's truth of each view.
+    """
+    from reconstructor.model import triangulate
+    from stripe_extractor.extractor import extract
+
+    out = []
+    for view, truth in zip(views, truths, strict=True):
+        s = extract(view.image)
+        uv = np.column_stack([s.u, s.v]).astype(np.float64)
+        res = triangulate(model, uv, *view.voltages[[0, 1, 3]])
+        for k in np.flatnonzero(res.valid):
+            same = np.flatnonzero(truth.stripe.column == round(uv[k, 0]))
+            if same.size:
+                j = same[np.argmin(np.abs(truth.stripe.v[same] - uv[k, 1]))]
+                if abs(truth.stripe.v[j] - uv[k, 1]) < 2.0:
+                    out.append(np.linalg.norm(res.p_v0[k] - truth.stripe.points_V0[j]))
+    return np.array(out)

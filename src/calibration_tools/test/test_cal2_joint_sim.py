@@ -9,14 +9,14 @@ import pytest
 
 from calibration_tools.joint_correction import run_joint_correction
 from calibration_tools.sim_captures import sphere_g1_grid
+from calibration_tools.sim_scores import stripe_point_errors
 from calibration_tools.stages import apply_result
 from galvo_driver.sim.rig import load_rig
 from galvo_driver.sim.scene import load_scene
 from galvo_driver.sim.simulator import Simulator
 from reconstructor import calibration_file as cf
 from reconstructor.correction import CorrectionTable
-from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel, triangulate
-from stripe_extractor.extractor import extract
+from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 
 RADIUS = 0.01
 PANS = np.linspace(-0.3, 0.3, 5)
@@ -32,22 +32,6 @@ def model_from(truth, pan_gain=1.0, tilt_gain=1.0, dl=0.0):
         g1_tilt=MirrorParams(truth.theta0_tilt, truth.k_tilt * tilt_gain),
         l=truth.l + dl, d=truth.d, laser_plane_v0=truth.pi0, laser_axis_dir=truth.n,
         laser_axis_point=truth.P, g2_tilt=MirrorParams(math.pi / 4, truth.k2))
-
-
-def true_errors(model, views, truths):
-    """Distances of the reconstructed stripe points from the simulator's true points, m."""
-    out = []
-    for view, truth in zip(views, truths, strict=True):
-        s = extract(view.image)
-        uv = np.column_stack([s.u, s.v]).astype(np.float64)
-        res = triangulate(model, uv, *view.voltages[[0, 1, 3]])
-        for k in np.flatnonzero(res.valid):
-            same = np.flatnonzero(truth.stripe.column == round(uv[k, 0]))
-            if same.size:
-                j = same[np.argmin(np.abs(truth.stripe.v[same] - uv[k, 1]))]
-                if abs(truth.stripe.v[j] - uv[k, 1]) < 2.0:
-                    out.append(np.linalg.norm(res.p_v0[k] - truth.stripe.points_V0[j]))
-    return np.array(out)
 
 
 def rms(x):
@@ -74,10 +58,10 @@ def test_correction_brings_the_views_onto_the_truth(ideal):
     assert res.residuals['nodes_registered'] == len(views) - 1 and not res.rejected
     table = CorrectionTable.from_dict(res.extra['joint_correction'])
     corrected = dataclasses.replace(model, correction=table)
-    before, after = rms(true_errors(model, views, truths)), rms(true_errors(corrected, views,
-                                                                            truths))
-    h_before = rms(true_errors(model, held, held_truths))
-    h_after = rms(true_errors(corrected, held, held_truths))
+    before = rms(stripe_point_errors(model, views, truths))
+    after = rms(stripe_point_errors(corrected, views, truths))
+    h_before = rms(stripe_point_errors(model, held, held_truths))
+    h_after = rms(stripe_point_errors(corrected, held, held_truths))
     r = res.residuals
     print(f'\njoint correction (ideal rig, poor dynamic camera): true RMS error '
           f'{before * 1e3:.4f} -> {after * 1e3:.4f} mm at the nodes, {h_before * 1e3:.4f} -> '

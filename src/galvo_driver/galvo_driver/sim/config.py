@@ -155,6 +155,16 @@ class Section:
                 name, f'{expected}: a value is implausible in SI units{extra}', value)
         return arr
 
+    def header(self, version: int) -> str:
+        """Read a file's ``format_version`` (must equal ``version``), ``name`` and optional
+        ``description``; returns the name."""
+        got = self.integer('format_version', 1, 1000)
+        if got != version:
+            raise self.error('format_version', f'{version}', got)
+        name = self.string('name')
+        self.raw('description', 'a string', '')
+        return name
+
     def finish(self) -> None:
         """Reject keys that were never read."""
         extra = sorted(set(self.data) - self._used)

@@ -514,11 +514,7 @@ def rig_from_dict(data: dict, source: str) -> Rig:
         Naming ``source``, the key and what was expected.
     """
     top = Section(data, source)
-    version = top.integer('format_version', 1, 1000)
-    if version != RIG_FORMAT_VERSION:
-        raise top.error('format_version', f'{RIG_FORMAT_VERSION}', version)
-    name = top.string('name')
-    top.raw('description', 'a string', '')
+    name = top.header(RIG_FORMAT_VERSION)
 
     cam = top.section('camera')
     width = cam.integer('width', 16, 20000, 'px')

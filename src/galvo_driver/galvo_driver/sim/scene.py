@@ -649,11 +649,7 @@ def scene_from_dict(data: dict, source: str) -> Scene:
         Naming ``source``, the key and what was expected.
     """
     top = Section(data, source)
-    version = top.integer('format_version', 1, 1000)
-    if version != SCENE_FORMAT_VERSION:
-        raise top.error('format_version', f'{SCENE_FORMAT_VERSION}', version)
-    name = top.string('name')
-    top.raw('description', 'a string', '')
+    name = top.header(SCENE_FORMAT_VERSION)
     items = top.raw('objects', 'a list of objects')
     if not isinstance(items, list) or not items:
         raise top.error('objects', 'a non-empty list of objects', items)
