@@ -9,9 +9,12 @@ Arrangements:
   one process, 1000 fps
   separate processes, 500 fps   extractor and reconstructor each in its own process
 
-Figures: dropped frames [%] (frames published whose cloud never arrived) and the p99
-frame-to-cloud latency [ms] (cloud receipt time minus the image's publish time). The last
-stdout line is one JSON object.
+Figures: dropped frames [%] (frames published whose cloud never arrived), the p99
+frame-to-cloud latency [ms] (cloud receipt time minus the image's publish time) and the CPU
+time per frame [ms]: of the executor thread and of the whole process (one process), or of
+all processes (separate). The processes get the malloc and BLAS settings of
+``calibration_tools.runtime``, as ``galvoscan run`` gives them. The last stdout line is one
+JSON object.
 
     .venv/bin/python benchmarks/pipeline.py [--frames 10000] [--distinct 100]
 """
@@ -31,6 +34,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from galvoscan_common.runtime import child_env
 
 
 def make_bag(path, n, seed=0):
@@ -80,6 +85,7 @@ class Bench:
     """Player + sink node: publishes re-stamped CDR frames, measures clouds."""
 
     def __init__(self, node, frames, rate, total):
+        from diagnostic_msgs.msg import DiagnosticArray
         from galvoscan_msgs.msg import GalvoState
         from rclpy.qos import QoSProfile, ReliabilityPolicy
         from sensor_msgs.msg import Image, PointCloud2
@@ -88,16 +94,26 @@ class Bench:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub_img = node.create_publisher(Image, 'camera/image_raw', qos)
         self.pub_state = node.create_publisher(GalvoState, 'galvo/state', qos)
+        # raw: the sink reads only the stamp, so its own cost stays out of the figures
         node.create_subscription(PointCloud2, 'points', self._on_cloud,
-                                 QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+                                 QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
+                                 raw=True)
+        node.create_subscription(DiagnosticArray, 'diagnostics', self._on_diagnostics, 10)
+        self.extractor_counts = {}
         self.sent = 0
         self.latency = []
         self.received = 0
         self.t0 = None
 
-    def _on_cloud(self, msg):
+    def _on_diagnostics(self, msg):
+        for status in msg.status:
+            if 'stripe extraction' in status.name:
+                self.extractor_counts = {kv.key: kv.value for kv in status.values}
+
+    def _on_cloud(self, data):
         now = time.time()
-        self.latency.append(now - (msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9))
+        sec, nsec = struct.unpack_from('<iI', data, 4)   # little-endian CDR: header.stamp
+        self.latency.append(now - (sec + nsec * 1e-9))
         self.received += 1
 
     def publish_due(self):
@@ -112,6 +128,18 @@ class Bench:
             self.pub_state.publish(bytes(state))
             self.pub_img.publish(bytes(img))
             self.sent += 1
+
+
+def _children_cpu(procs) -> np.ndarray:
+    """User + system CPU time [s] of each running child process (from /proc)."""
+    out = np.zeros(len(procs))
+    for i, p in enumerate(procs):
+        try:
+            fields = Path(f'/proc/{p.pid}/stat').read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        out[i] = (int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK')
+    return out
 
 
 def run(frames, rate, total, one_process, cal_path, warmup=50):
@@ -142,7 +170,7 @@ def run(frames, rate, total, one_process, cal_path, warmup=50):
                 ex.add_node(n)
         else:
             bin_dir = Path(sys.executable).parent
-            env = dict(os.environ)
+            env = child_env()
             procs.append(subprocess.Popen([bin_dir / 'stripe_extractor'], env=env,
                                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             procs.append(subprocess.Popen(
@@ -168,18 +196,36 @@ def run(frames, rate, total, one_process, cal_path, warmup=50):
         bench.received = 0
         bench.latency.clear()
         bench.t0 = None
+        cpu0 = (time.thread_time(), time.process_time(), _children_cpu(procs))
+        counts0 = dict(bench.extractor_counts)
         while bench.sent < bench.total:
             bench.publish_due()
             ex.spin_once(timeout_sec=0.0005)
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end and bench.received < total:
             ex.spin_once(timeout_sec=0.01)
+        t_end = time.monotonic() + 1.5     # one more diagnostics message (1 s period)
+        while time.monotonic() < t_end:
+            ex.spin_once(timeout_sec=0.01)
         sent = bench.sent - start_sent
+        thread_s, process_s, children_s = (b - a for a, b in zip(
+            cpu0, (time.thread_time(), time.process_time(), _children_cpu(procs)),
+            strict=True))
         lat = np.array(bench.latency) * 1e3
-        return {'sent': sent, 'received': bench.received,
-                'drop_pct': 100.0 * max(sent - bench.received, 0) / sent,
-                'p50_ms': float(np.percentile(lat, 50)) if lat.size else float('nan'),
-                'p99_ms': float(np.percentile(lat, 99)) if lat.size else float('nan')}
+        out = {'sent': sent, 'received': bench.received,
+               'drop_pct': 100.0 * max(sent - bench.received, 0) / sent,
+               'p50_ms': float(np.percentile(lat, 50)) if lat.size else float('nan'),
+               'p99_ms': float(np.percentile(lat, 99)) if lat.size else float('nan'),
+               'executor_thread_cpu_ms_per_frame': 1e3 * thread_s / sent,
+               'cpu_ms_per_frame': 1e3 * (process_s + children_s.sum()) / sent}
+        if procs:
+            out['cpu_ms_per_frame_by_process'] = dict(zip(
+                ('player_and_sink', 'stripe_extractor', 'reconstructor'),
+                (1e3 * x / sent for x in (process_s, *children_s)), strict=True))
+        # where frames were lost: not taken by the extractor, dropped at its queue, or later
+        out['extractor'] = {k: int(bench.extractor_counts.get(k, 0)) - int(counts0.get(k, 0))
+                            for k in ('images_received', 'dropped_busy', 'centers_published')}
+        return out
     finally:
         for p in procs:
             p.send_signal(signal.SIGINT)
@@ -201,7 +247,10 @@ def main():
     parser.add_argument('--distinct', type=int, default=100, help='distinct recorded frames')
     args = parser.parse_args()
     from calibration_tools.truth import truth_calibration
+    from galvoscan_common.runtime import tune_this_process
     from reconstructor import calibration_file
+
+    tune_this_process()
 
     with tempfile.TemporaryDirectory() as tmp:
         bag = Path(tmp) / 'frames'
@@ -226,6 +275,10 @@ def main():
         'separate_500_drop_pct': results['separate_500']['drop_pct'],
         'one_process_500_p50_ms': results['one_process_500']['p50_ms'],
         'separate_500_p99_ms': results['separate_500']['p99_ms'],
+        'one_process_500_executor_cpu_ms_per_frame':
+            results['one_process_500']['executor_thread_cpu_ms_per_frame'],
+        'one_process_500_cpu_ms_per_frame': results['one_process_500']['cpu_ms_per_frame'],
+        'separate_500_cpu_ms_per_frame': results['separate_500']['cpu_ms_per_frame'],
         'frames_per_arrangement': args.frames,
         'load_average_1min': load,
     }

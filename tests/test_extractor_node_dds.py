@@ -18,6 +18,7 @@ from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 
 from stripe_extractor.synthetic import StripeSpec, render, score
@@ -81,10 +82,12 @@ class _Harness:
         return {kv.key: kv.value for kv in self.diags[-1].status[0].values}
 
 
-def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env):
+@pytest.mark.parametrize('thread', [True, False], ids=['extraction_thread', 'executor_thread'])
+def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, thread):
     exe = Path(sys.executable).with_name('stripe_extractor')
     proc = spawn([exe, '--ros-args', '-p', 'diagnostics_period:=0.2',
-                  '-p', 'line_width_px:=4.7', '-p', 'min_strength:=20.0'],
+                  '-p', 'line_width_px:=4.7', '-p', 'min_strength:=20.0',
+                  '-p', f'extraction_thread:={str(thread).lower()}'],
                  name='stripe_extractor')
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
@@ -142,8 +145,12 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env):
             t.state_pub.publish(_state(stamp, 2000 + stamp))
             t.img_pub.publish(msg)
             t.spin_for(0.03)
+        # a truncated CDR image (published serialised, as a faulty writer could send it)
+        t.img_pub.publish(serialize_message(_image(205, good))[:1000])
+        t.spin_for(0.03)
         want = {'skipped_unsupported_encoding': 2, 'skipped_data_length': 1,
-                'skipped_zero_size': 1, 'skipped_step_too_small': 1}
+                'skipped_zero_size': 1, 'skipped_step_too_small': 1,
+                'skipped_malformed_cdr': 1}
         t.spin_until(lambda: all(int(t.counters().get(k, -1)) >= n for k, n in want.items()),
                      10, f'counters {want}')
         # A good frame after the bad ones is still processed.
@@ -156,8 +163,9 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env):
                      'diagnostics counting the last frame')
         c = t.counters()
         assert {k: int(c[k]) for k in want} == want
-        assert int(c['skipped_total']) == 5
-        assert int(c['images_received']) == 12 and int(c['centers_published']) == 7
+        assert int(c['skipped_total']) == 6
+        assert int(c['images_received']) == 13 and int(c['centers_published']) == 7
+        assert int(c['dropped_busy']) == 0
         assert int(c['frames_extracted']) == 7
         assert int(c['unmatched_states_dropped']) == 5    # the bad frames' states
 

@@ -9,7 +9,8 @@ import pytest
 from catkin_pkg.package import parse_package
 
 ROOT = Path(__file__).resolve().parents[1]
-PY_PACKAGES = ['galvo_driver', 'stripe_extractor', 'reconstructor', 'calibration_tools']
+PY_PACKAGES = ['galvoscan_common', 'galvo_driver', 'stripe_extractor', 'reconstructor',
+               'calibration_tools']
 
 
 @pytest.mark.parametrize('path', ['msgs'] + [f'src/{p}' for p in PY_PACKAGES])

@@ -9,7 +9,9 @@ One process
     ``spin()`` ignores SIGINT/SIGTERM in rclpy 7.1). ``MultiThreadedExecutor`` loses most
     500 Hz frames here.
 Separate processes
-    Each node runs its own console script with ``--ros-args --params-file``. The supervisor
+    Each node runs its own console script with ``--ros-args --params-file``, with the
+    malloc and BLAS settings of :mod:`calibration_tools.runtime` in its environment (the
+    one-process arrangement applies the malloc part to itself). The supervisor
     watches them: a node that exits unexpectedly is logged and, with ``respawn``, restarted
     (at most ``max_respawns`` times); otherwise the graph is stopped. Ctrl-C (SIGINT) or
     SIGTERM stops every child with SIGINT, then SIGTERM, then SIGKILL after timeouts, so the
@@ -29,6 +31,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
+
+from galvoscan_common.executor import spin_nodes
+from galvoscan_common.runtime import child_env, tune_this_process
 
 log = logging.getLogger('galvoscan.bringup')
 
@@ -83,7 +88,7 @@ class Supervisor:
         self.params_file = str(params_file) if params_file else None
         self.respawn = respawn
         self.max_respawns = max_respawns
-        self.env = dict(os.environ if env is None else env)
+        self.env = child_env(env)
         self.log_dir = Path(log_dir) if log_dir else None
         self.children = []
         for name in nodes:
@@ -196,27 +201,22 @@ def run_one_process(nodes, params_file=None, duration=None, args=None):
     """Run ``nodes`` in this process on one EventsExecutor until Ctrl-C or ``duration`` [s]."""
     import rclpy
     from rclpy.executors import ExternalShutdownException
-    from rclpy.experimental import EventsExecutor
 
+    tune_this_process()
     ros_args = ['--ros-args'] + (['--params-file', str(params_file)] if params_file else [])
     rclpy.init(args=(args or []) + ros_args)
-    executor = EventsExecutor()
     instances = []
-    threads = []
     try:
+        on_executor = []
         for name in nodes:
             node = node_class(name)()
             instances.append(node)
             if name in BLOCKING_NODES:
                 # its services wait on other nodes' services: give it its own executor
-                threads.append(_spin_in_thread(node))
+                _spin_in_thread(node)
             else:
-                executor.add_node(node)
-        # EventsExecutor.spin() in rclpy 7.1 ignores SIGINT/SIGTERM (measured here); a
-        # spin_once loop stops on both.
-        t_end = None if duration is None else time.monotonic() + duration
-        while rclpy.ok() and (t_end is None or time.monotonic() < t_end):
-            executor.spin_once(timeout_sec=0.1)
+                on_executor.append(node)
+        spin_nodes(on_executor, duration=duration)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -225,5 +225,4 @@ def run_one_process(nodes, params_file=None, duration=None, args=None):
             if safe is not None:
                 safe()
             node.destroy_node()
-        executor.shutdown()
         rclpy.try_shutdown()

@@ -36,6 +36,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
 from visualization_msgs.msg import Marker, MarkerArray
 
+from galvoscan_common.executor import spin_nodes
+from galvoscan_common.runtime import tune_this_process
 from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
@@ -81,6 +83,8 @@ class ReconstructorNode(Node):
             description='distance at which the field of view is drawn [m]',
             floating_point_range=[FloatingPointRange(from_value=0.05, to_value=10.0, step=0.0)]))
         self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._cache_parameters)
+        self._cache_parameters()
 
         self.counters = {'frames': 0, 'points': 0, 'invalid_points': 0, 'skipped': {}}
         self._warned = set()
@@ -118,6 +122,12 @@ class ReconstructorNode(Node):
             if p.type_ == p.Type.DOUBLE and not math.isfinite(p.value):
                 return SetParametersResult(successful=False, reason=f'{p.name} must be finite')
         return SetParametersResult(successful=True)
+
+    def _cache_parameters(self, _params=None):
+        # read per frame: a dict lookup instead of rclpy's get_parameter
+        self._p = {name: self.get_parameter(name).value for name in (
+            'frame_id', 'min_ray_plane_angle', 'scan_end_timeout', 'marker_period',
+            'marker_range')}
 
     def _load(self, path):
         try:
@@ -162,7 +172,7 @@ class ReconstructorNode(Node):
             return self._skip('laser_off')
         res = triangulate(self.model, np.column_stack([u, v]), g.g1_pan_voltage,
                           g.g1_tilt_voltage, g.g2_tilt_voltage,
-                          min_angle=self.get_parameter('min_ray_plane_angle').value)
+                          min_angle=self._p['min_ray_plane_angle'])
         valid = res.valid
         cloud = np.empty(int(valid.sum()), CLOUD_DTYPE)
         p = res.p_v0[valid]
@@ -172,14 +182,14 @@ class ReconstructorNode(Node):
         self.counters['points'] += cloud.shape[0]
         self.counters['invalid_points'] += n - cloud.shape[0]
         header = msg.header
-        header.frame_id = self.get_parameter('frame_id').value
+        header.frame_id = self._p['frame_id']
         self._pub_points.publish(cloud_msg(cloud, header))
         if cloud.shape[0]:
             self._scan_parts.append(cloud)
         self._maybe_markers(header, volts)
 
     def _check_scan_end(self):
-        timeout = self.get_parameter('scan_end_timeout').value
+        timeout = self._p['scan_end_timeout']
         if self._last_frame_time is None or time.monotonic() - self._last_frame_time < timeout:
             return
         self._last_frame_time = None
@@ -189,13 +199,13 @@ class ReconstructorNode(Node):
         self._last_scan = scan
         header = PointCloud2().header
         header.stamp = self.get_clock().now().to_msg()
-        header.frame_id = self.get_parameter('frame_id').value
+        header.frame_id = self._p['frame_id']
         self._pub_scan.publish(cloud_msg(scan, header))
         self.get_logger().info(f'scan ended: {scan.shape[0]} points on points/scan')
 
     # -- markers ----------------------------------------------------------------------
     def _maybe_markers(self, header, volts):
-        period = self.get_parameter('marker_period').value
+        period = self._p['marker_period']
         now = time.monotonic()
         if period <= 0 or now - self._last_marker < period:
             return
@@ -204,7 +214,7 @@ class ReconstructorNode(Node):
 
     def markers(self, header, volts):
         """The laser plane patch and the camera field-of-view frustum, in V0."""
-        model, rng = self.model, self.get_parameter('marker_range').value
+        model, rng = self.model, self._p['marker_range']
         intr = model.intrinsics
         T = v0_T_v(model, volts[0], volts[1])
         corners = np.array([[0, 0], [intr.width, 0], [intr.width, intr.height],
@@ -269,14 +279,17 @@ class ReconstructorNode(Node):
 
 
 def main(args=None):
+    tune_this_process()
     rclpy.init(args=args)
-    node = ReconstructorNode()
+    node = None
     try:
-        rclpy.spin(node)
+        node = ReconstructorNode()
+        spin_nodes([node])
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
 
 

@@ -15,9 +15,18 @@ Image and state are paired by header stamp (the driver stamps the state with the
 stamp); either may arrive first (:class:`~stripe_extractor.pairing.StampPairer`). Bad images
 are logged once per cause, counted and skipped; the node never dies on input.
 
+Data path: the image subscription is raw, and the serialised CDR is read in place
+(:func:`~stripe_extractor.image_msg.parse_image_cdr`), with no rclpy Image and no copy of the
+pixels. A paired frame goes to one extraction thread
+(:class:`~stripe_extractor.worker.SerialWorker`, parameter ``extraction_thread``, default
+true): the numba kernels release the GIL, so extraction runs on another core while the
+executor thread takes the next messages. Frames arriving while ``IMAGE_QUEUE_DEPTH`` frames
+already wait are dropped and counted (``dropped_busy``). With ``extraction_thread`` false the
+executor thread extracts.
+
 Composition: ``StripeExtractorNode`` does not call ``rclpy.init``; pass ``context=...`` or
-other ``Node`` keyword arguments and add it to any executor together with other nodes, e.g.
-:func:`spin_composed`.
+other ``Node`` keyword arguments and add it to any executor together with other nodes
+(``galvoscan run --one-process`` puts every node on one EventsExecutor).
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ import array
 import time
 
 import rclpy
+from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from galvoscan_msgs.msg import GalvoState, StripeCenters
 from rcl_interfaces.msg import (
@@ -35,7 +45,7 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
     HistoryPolicy,
@@ -44,6 +54,10 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 from sensor_msgs.msg import Image
+from std_msgs.msg import Header
+
+from galvoscan_common.executor import spin_nodes
+from galvoscan_common.runtime import tune_this_process
 
 from .extractor import (
     LINE_WIDTH_RANGE_PX,
@@ -55,8 +69,9 @@ from .extractor import (
     extract,
     warm_up,
 )
-from .image_msg import CAUSES, BadImageError, image_to_array
+from .image_msg import CAUSES, BadImageError, image_to_array, parse_image_cdr
 from .pairing import StampPairer
+from .worker import SerialWorker
 
 PAIRING_BUFFER_RANGE = (1, 1000)
 DIAGNOSTICS_PERIOD_RANGE_S = (0.1, 60.0)
@@ -72,7 +87,28 @@ def _float32_field(values) -> array.array:
     return out
 
 
-#: frames the image subscription holds while the extractor is busy (about 12 MB at 720x540)
+def _centers_msg(header, state: GalvoState, result) -> StripeCenters:
+    cfg = result.config
+    out = StripeCenters()
+    out.header = header
+    out.galvo = state
+    out.image_height, out.image_width = result.image_shape
+    out.u = _float32_field(result.u)
+    out.v = _float32_field(result.v)
+    out.width = _float32_field(result.width)
+    out.strength = _float32_field(result.strength)
+    out.method = cfg.method
+    out.sigma = float(cfg.sigma)
+    out.min_strength = float(cfg.min_strength)
+    out.roi_half_height = int(cfg.roi_half_height)
+    out.orientation = (StripeCenters.ORIENTATION_VERTICAL if cfg.orientation == 'vertical'
+                       else StripeCenters.ORIENTATION_HORIZONTAL)
+    out.rejected_secondary = int(result.rejected_secondary)
+    return out
+
+
+#: frames the image subscription, and the extraction queue, hold while the extractor is busy
+#: (about 12 MB each at 720x540)
 IMAGE_QUEUE_DEPTH = 30
 
 
@@ -115,6 +151,10 @@ class StripeExtractorNode(Node):
             description='Frames and states each kept waiting for their partner [1]',
             integer_range=[IntegerRange(from_value=PAIRING_BUFFER_RANGE[0],
                                         to_value=PAIRING_BUFFER_RANGE[1], step=1)]))
+        self.declare_parameter('extraction_thread', True, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL, read_only=True,
+            description='Extract on a separate thread (another core) instead of the '
+                        'executor thread'))
         self.declare_parameter('diagnostics_period', 1.0, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
             description='Period of the diagnostics message with the counters [s]',
@@ -124,10 +164,13 @@ class StripeExtractorNode(Node):
 
         self._config = self._config_from({})
         self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
-        self._counts = {'images_received': 0, 'states_received': 0, 'frames_extracted': 0,
-                        'centers_published': 0, 'rejected_secondary': 0,
-                        'extraction_errors': 0}
+        # written by the executor thread
+        self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0}
         self._counts.update({f'skipped_{c}': 0 for c in CAUSES})
+        # written only by the extracting thread
+        self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
+                                'rejected_secondary': 0, 'extraction_errors': 0,
+                                'publish_errors': 0}
         self._logged_causes: set[str] = set()
         self._extract_s = 0.0
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -145,7 +188,12 @@ class StripeExtractorNode(Node):
                                reliability=qos_profile_sensor_data.reliability,
                                durability=qos_profile_sensor_data.durability,
                                history=HistoryPolicy.KEEP_LAST)
-        self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos)
+        self._worker = None
+        if self.get_parameter('extraction_thread').value:
+            self._worker = SerialWorker(self._extract_and_publish, IMAGE_QUEUE_DEPTH,
+                                        'stripe_extraction', on_error=self._skip_log_error)
+        self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
+                                 raw=True)
         self.create_subscription(
             GalvoState, 'galvo/state', self._on_state,
             QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
@@ -193,64 +241,79 @@ class StripeExtractorNode(Node):
             self.get_logger().warning(
                 f'skipped {cause}: {detail} (logged once per cause; see diagnostics)')
 
-    def _on_image(self, msg: Image) -> None:
+    def _on_image(self, data: bytes) -> None:
         self._counts['images_received'] += 1
         try:
-            img = image_to_array(msg)
+            raw = parse_image_cdr(data)
+            img = image_to_array(raw)
         except BadImageError as exc:
             self._skip(exc.cause, str(exc))
             return
-        config = self._config
-        t0 = time.perf_counter()
-        try:
-            result = extract(img, config)
-        except Exception as exc:  # noqa: BLE001 - the node must survive any input
-            self._counts['extraction_errors'] += 1
-            self._skip_log_error(exc)
-            return
-        self._extract_s += time.perf_counter() - t0
-        self._counts['frames_extracted'] += 1
-        self._counts['rejected_secondary'] += result.rejected_secondary
-        pair = self._pairer.add_frame(_stamp_ns(msg.header), (msg.header, result))
+        pair = self._pairer.add_frame(raw.stamp_ns, (raw, img))
         if pair is not None:
-            self._publish(*pair)
-
-    def _skip_log_error(self, exc: Exception) -> None:
-        if 'extraction_error' not in self._logged_causes:
-            self._logged_causes.add('extraction_error')
-            self.get_logger().error(f'skipped extraction_error: {exc!r} (logged once)')
+            self._submit(*pair)
 
     def _on_state(self, msg: GalvoState) -> None:
         self._counts['states_received'] += 1
         pair = self._pairer.add_state(_stamp_ns(msg.header), msg, seq=int(msg.seq))
         if pair is not None:
-            self._publish(*pair)
+            self._submit(*pair)
 
-    def _publish(self, frame, state: GalvoState) -> None:
-        header, result = frame
-        cfg = result.config
-        out = StripeCenters()
-        out.header = header
-        out.galvo = state
-        out.image_height, out.image_width = result.image_shape
-        out.u = _float32_field(result.u)
-        out.v = _float32_field(result.v)
-        out.width = _float32_field(result.width)
-        out.strength = _float32_field(result.strength)
-        out.method = cfg.method
-        out.sigma = float(cfg.sigma)
-        out.min_strength = float(cfg.min_strength)
-        out.roi_half_height = int(cfg.roi_half_height)
-        out.orientation = (StripeCenters.ORIENTATION_VERTICAL if cfg.orientation == 'vertical'
-                           else StripeCenters.ORIENTATION_HORIZONTAL)
-        out.rejected_secondary = int(result.rejected_secondary)
-        self._pub.publish(out)
-        self._counts['centers_published'] += 1
+    def _submit(self, frame, state: GalvoState) -> None:
+        job = (frame, state, self._config)
+        if self._worker is None:
+            self._extract_and_publish(job)
+        elif not self._worker.submit(job):
+            self._counts['dropped_busy'] += 1
+            if 'dropped_busy' not in self._logged_causes:
+                self._logged_causes.add('dropped_busy')
+                self.get_logger().warning(
+                    f'extraction queue full ({IMAGE_QUEUE_DEPTH} frames): frame dropped '
+                    '(logged once; counted as dropped_busy)')
+
+    def _skip_log_error(self, exc: BaseException) -> None:
+        if 'extraction_error' not in self._logged_causes:
+            self._logged_causes.add('extraction_error')
+            self.get_logger().error(f'skipped extraction_error: {exc!r} (logged once)')
+
+    def _extract_and_publish(self, job) -> None:
+        """Extract one paired frame and publish its centres (on the extracting thread)."""
+        (raw, img), state, config = job
+        counts = self._extract_counts
+        t0 = time.perf_counter()
+        try:
+            result = extract(img, config)
+        except Exception as exc:  # noqa: BLE001 - the node must survive any input
+            counts['extraction_errors'] += 1
+            self._skip_log_error(exc)
+            return
+        self._extract_s += time.perf_counter() - t0
+        counts['frames_extracted'] += 1
+        counts['rejected_secondary'] += result.rejected_secondary
+        header = Header(stamp=Time(sec=raw.stamp_sec, nanosec=raw.stamp_nanosec),
+                        frame_id=raw.frame_id)
+        try:
+            self._pub.publish(_centers_msg(header, state, result))
+        except Exception as exc:  # noqa: BLE001 - e.g. the context shut down meanwhile
+            counts['publish_errors'] += 1
+            if 'publish_error' not in self._logged_causes:
+                self._logged_causes.add('publish_error')
+                self.get_logger().error(f'publishing stripe/centers failed: {exc!r} '
+                                        '(logged once; counted)')
+            return
+        counts['centers_published'] += 1
+
+    def destroy_node(self):
+        """Let the extraction thread finish what is queued, then destroy the node."""
+        if self._worker is not None and not self._worker.stop():
+            self.get_logger().error('extraction thread did not stop within 5 s')
+        return super().destroy_node()
 
     # ---- counters ---------------------------------------------------------------------
     def counters(self) -> dict[str, int]:
         """Snapshot of every counter [1] (also published on ``diagnostics``)."""
         c = dict(self._counts)
+        c.update(self._extract_counts)
         pc = self._pairer.counters
         c['unmatched_images_dropped'] = pc.unmatched_frames_dropped
         c['unmatched_states_dropped'] = pc.unmatched_states_dropped
@@ -264,11 +327,11 @@ class StripeExtractorNode(Node):
         status = DiagnosticStatus()
         status.name = f'{self.get_name()}: stripe extraction'
         status.hardware_id = ''
-        bad = c['skipped_total'] + c['extraction_errors']
+        bad = c['skipped_total'] + c['extraction_errors'] + c['dropped_busy']
         status.level = DiagnosticStatus.WARN if bad else DiagnosticStatus.OK
         mean_ms = 1e3 * self._extract_s / max(c['frames_extracted'], 1)
-        status.message = (f'{c["centers_published"]} published, {bad} bad images skipped, '
-                          f'{mean_ms:.3f} ms mean extraction')
+        status.message = (f'{c["centers_published"]} published, {bad} frames skipped or '
+                          f'dropped, {mean_ms:.3f} ms mean extraction')
         status.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
         status.values.append(KeyValue(key='extraction_ms_mean', value=f'{mean_ms:.4f}'))
         msg = DiagnosticArray()
@@ -277,33 +340,13 @@ class StripeExtractorNode(Node):
         self._diag_pub.publish(msg)
 
 
-def make_executor(context=None):
-    """The executor used by :func:`main`: ``SingleThreadedExecutor``.
-
-    ``rclpy.experimental.EventsExecutor`` was tried on this rclpy (7.1, PyPI wheels): its
-    timers never fired, it used half a core while idle and it ignored SIGTERM, so it is not
-    used. ``MultiThreadedExecutor`` loses most 500 Hz images (TOOLCHAIN.md).
-    """
-    return SingleThreadedExecutor(context=context)
-
-
-def spin_composed(nodes, executor=None) -> None:
-    """Spin several nodes (e.g. a camera node and this one) in one process and executor."""
-    executor = executor or make_executor()
-    for node in nodes:
-        executor.add_node(node)
-    try:
-        executor.spin()
-    finally:
-        executor.shutdown()
-
-
 def main(args=None):
+    tune_this_process()
     rclpy.init(args=args)
     node = None
     try:
         node = StripeExtractorNode()
-        spin_composed([node])
+        spin_nodes([node])
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

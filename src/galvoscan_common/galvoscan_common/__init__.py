@@ -1,0 +1,1 @@
+"""Shared by every galvoscan node process: process settings and the executor loop."""

@@ -1,0 +1,69 @@
+"""Process settings for the 500 fps image path: glibc malloc and BLAS threads.
+
+No rclpy here. Measured on this 2-core machine (``benchmarks/pipeline.py`` and the notes
+of issue 8):
+
+- Every 720x540 image is copied several times per hop (rmw take, Python ``bytes``). glibc
+  serves blocks this large with fresh ``mmap`` pages and unmaps them on free, so each copy
+  page-faults on all its ~95 pages: publishing and taking one image cost about 0.6 ms of
+  the executor thread, about half of it in the kernel. With the mmap threshold raised (and
+  the heap no longer trimmed back after each frame) the same hop costs about 0.3 ms.
+- OpenBLAS threads spin after each call and take the second core from the extraction
+  thread; the nodes' matrices are 3x3/4x4, which one thread does faster anyway.
+
+:func:`child_env` adds both as environment variables for processes the supervisor starts
+(glibc and OpenBLAS read them at start-up); :func:`tune_this_process` applies the malloc
+part to the running process with ``mallopt`` (the one-process bring-up and the benchmark).
+Both leave settings the user already made alone.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+#: Blocks at least this large come from mmap [bytes]: above any image we handle.
+MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
+#: Free memory at the top of the heap kept for reuse rather than returned [bytes].
+TRIM_THRESHOLD_BYTES = 256 * 1024 * 1024
+
+#: Environment for child processes (glibc reads the MALLOC_* variables at start-up).
+ENV = {
+    'MALLOC_MMAP_THRESHOLD_': str(MMAP_THRESHOLD_BYTES),
+    'MALLOC_TRIM_THRESHOLD_': str(TRIM_THRESHOLD_BYTES),
+    'OPENBLAS_NUM_THREADS': '1',
+}
+
+# mallopt parameter numbers from glibc's <malloc.h>
+_M_TRIM_THRESHOLD = -1
+_M_MMAP_THRESHOLD = -3
+
+
+def child_env(env: dict | None = None) -> dict:
+    """``env`` (default: ``os.environ``) plus :data:`ENV`, without overriding what is set."""
+    out = dict(os.environ if env is None else env)
+    for key, value in ENV.items():
+        out.setdefault(key, value)
+    return out
+
+
+def tune_this_process() -> bool:
+    """Apply the malloc thresholds to this process; False where there is no glibc mallopt.
+
+    Skipped (True returned) when the process already got ``MALLOC_MMAP_THRESHOLD_`` from its
+    environment, so a user's own setting wins.
+    """
+    if 'MALLOC_MMAP_THRESHOLD_' in os.environ:
+        return True
+    name = ctypes.util.find_library('c')
+    if not name:
+        return False
+    try:
+        mallopt = ctypes.CDLL(name).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    mallopt.restype = ctypes.c_int
+    ok = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1
+    return mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1 and ok
