@@ -1,4 +1,4 @@
-"""Process settings for the 500 fps image path: glibc malloc and BLAS threads.
+"""Process settings for the 500 fps image path: glibc malloc, BLAS threads, Fast DDS.
 
 No rclpy here. Measured on this 2-core machine (``benchmarks/pipeline.py`` and the notes
 of issue 8):
@@ -10,11 +10,15 @@ of issue 8):
   the heap no longer trimmed back after each frame) the same hop costs about 0.3 ms.
 - OpenBLAS threads spin after each call and take the second core from the extraction
   thread; the nodes' matrices are 3x3/4x4, which one thread does faster anyway.
+- Fast DDS's default shared-memory segment (0.5 MB) holds one 389 kB image, so a frame
+  published while a reader still holds the previous one is lost for it
+  (``fastdds_profile.xml`` beside this file: a 32 MB segment; its comment has the figures).
 
-:func:`child_env` adds both as environment variables for processes the supervisor starts
-(glibc and OpenBLAS read them at start-up); :func:`tune_this_process` applies the malloc
-part to the running process with ``mallopt`` (the one-process bring-up and the benchmark).
-Both leave settings the user already made alone.
+:func:`child_env` adds all three as environment variables for processes the supervisor
+starts (glibc, OpenBLAS and Fast DDS read them at start-up); :func:`tune_this_process`
+applies the malloc part to the running process with ``mallopt`` and sets the Fast DDS
+profile for participants it creates later (call it before ``rclpy.init``). Both leave
+settings the user already made alone, and the profile is only used with Fast DDS.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import os
+from pathlib import Path
 
 #: Blocks at least this large come from mmap [bytes]: above any image we handle.
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
@@ -35,6 +40,10 @@ ENV = {
     'OPENBLAS_NUM_THREADS': '1',
 }
 
+#: Fast DDS participant profile with a shared-memory segment that holds many images.
+FASTDDS_PROFILE = Path(__file__).with_name('fastdds_profile.xml')
+_PROFILE_VARS = ('FASTDDS_DEFAULT_PROFILES_FILE', 'FASTRTPS_DEFAULT_PROFILES_FILE')
+
 # mallopt parameter numbers from glibc's <malloc.h>
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
@@ -45,15 +54,25 @@ def child_env(env: dict | None = None) -> dict:
     out = dict(os.environ if env is None else env)
     for key, value in ENV.items():
         out.setdefault(key, value)
+    _add_fastdds_profile(out)
     return out
+
+
+def _add_fastdds_profile(env) -> None:
+    """Point Fast DDS at :data:`FASTDDS_PROFILE` unless a profile or another RMW is chosen."""
+    rmw = env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
+    if rmw.startswith('rmw_fastrtps') and not any(env.get(k) for k in _PROFILE_VARS):
+        env['FASTDDS_DEFAULT_PROFILES_FILE'] = str(FASTDDS_PROFILE)
 
 
 def tune_this_process() -> bool:
     """Apply the malloc thresholds to this process; False where there is no glibc mallopt.
 
-    Skipped (True returned) when the process already got ``MALLOC_MMAP_THRESHOLD_`` from its
-    environment, so a user's own setting wins.
+    Also sets the Fast DDS profile (see :func:`child_env`) for participants created after
+    this call. The malloc part is skipped (True returned) when the process already got
+    ``MALLOC_MMAP_THRESHOLD_`` from its environment, so a user's own setting wins.
     """
+    _add_fastdds_profile(os.environ)
     if 'MALLOC_MMAP_THRESHOLD_' in os.environ:
         return True
     name = ctypes.util.find_library('c')

@@ -4,7 +4,7 @@ import subprocess
 import sys
 import textwrap
 
-from galvoscan_common.runtime import ENV, child_env
+from galvoscan_common.runtime import ENV, FASTDDS_PROFILE, child_env
 
 # Makes three copies of a 389 kB buffer (one 720x540 image: a take, a Python bytes, a
 # message) and frees them, 300 times, and prints the minor page faults.
@@ -48,3 +48,23 @@ def test_image_sized_copies_stop_page_faulting_once_tuned():
     assert untuned > 300 * 50
     assert _faults('tuned', plain) < 300
     assert _faults('plain', child_env(plain)) < 300
+
+
+def test_fastdds_profile_only_when_nothing_else_is_chosen():
+    assert FASTDDS_PROFILE.is_file()
+    assert child_env({})['FASTDDS_DEFAULT_PROFILES_FILE'] == str(FASTDDS_PROFILE)
+    assert child_env({'FASTRTPS_DEFAULT_PROFILES_FILE': '/mine.xml'}).get(
+        'FASTDDS_DEFAULT_PROFILES_FILE') is None
+    assert child_env({'FASTDDS_DEFAULT_PROFILES_FILE': '/mine.xml'})[
+        'FASTDDS_DEFAULT_PROFILES_FILE'] == '/mine.xml'
+    assert 'FASTDDS_DEFAULT_PROFILES_FILE' not in child_env(
+        {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'})
+
+
+def test_fastdds_profile_is_valid_xml_with_a_large_shm_segment():
+    import xml.etree.ElementTree as ET
+
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ET.parse(FASTDDS_PROFILE).getroot()
+    sizes = [int(e.text) for e in root.iterfind('.//p:transport_descriptor/p:segment_size', ns)]
+    assert sizes and min(sizes) >= 16 * 389 * 1024     # room for 16 images or more
