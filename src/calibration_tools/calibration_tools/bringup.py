@@ -10,8 +10,8 @@ One process
     500 Hz frames here.
 Separate processes
     Each node runs its own console script with ``--ros-args --params-file``, with the
-    malloc and BLAS settings of :mod:`calibration_tools.runtime` in its environment (the
-    one-process arrangement applies the malloc part to itself). The supervisor
+    malloc, BLAS and Fast DDS settings of :mod:`galvoscan_common.runtime` in its environment
+    (the one-process arrangement applies them to itself). The supervisor
     watches them: a node that exits unexpectedly is logged and, with ``respawn``, restarted
     (at most ``max_respawns`` times); otherwise the graph is stopped. Ctrl-C (SIGINT) or
     SIGTERM stops every child with SIGINT, then SIGTERM, then SIGKILL after timeouts, so the

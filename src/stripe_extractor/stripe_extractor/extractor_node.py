@@ -314,6 +314,7 @@ class StripeExtractorNode(Node):
         """Snapshot of every counter [1] (also published on ``diagnostics``)."""
         c = dict(self._counts)
         c.update(self._extract_counts)
+        c['extraction_thread_errors'] = self._worker.errors if self._worker else 0
         pc = self._pairer.counters
         c['unmatched_images_dropped'] = pc.unmatched_frames_dropped
         c['unmatched_states_dropped'] = pc.unmatched_states_dropped
