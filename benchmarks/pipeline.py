@@ -142,7 +142,7 @@ def _children_cpu(procs) -> np.ndarray:
     return out
 
 
-def run(frames, rate, total, one_process, cal_path, warmup=50):
+def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread=True):
     import rclpy
     from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
@@ -161,7 +161,8 @@ def run(frames, rate, total, one_process, cal_path, warmup=50):
             from reconstructor.reconstructor_node import ReconstructorNode
             from stripe_extractor.extractor_node import StripeExtractorNode
 
-            ext = StripeExtractorNode(context=ctx)
+            ext = StripeExtractorNode(context=ctx, parameter_overrides=[
+                rclpy.parameter.Parameter('extraction_thread', value=extraction_thread)])
             rec = ReconstructorNode(context=ctx, parameter_overrides=[
                 rclpy.parameter.Parameter('calibration_file', value=str(cal_path)),
                 rclpy.parameter.Parameter('marker_period', value=0.0)])
@@ -171,8 +172,10 @@ def run(frames, rate, total, one_process, cal_path, warmup=50):
         else:
             bin_dir = Path(sys.executable).parent
             env = child_env()
-            procs.append(subprocess.Popen([bin_dir / 'stripe_extractor'], env=env,
-                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            procs.append(subprocess.Popen(
+                [bin_dir / 'stripe_extractor', '--ros-args', '-p',
+                 f'extraction_thread:={str(extraction_thread).lower()}'], env=env,
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             procs.append(subprocess.Popen(
                 [bin_dir / 'reconstructor', '--ros-args', '-p',
                  f'calibration_file:={cal_path}', '-p', 'marker_period:=0.0'], env=env,
@@ -200,7 +203,9 @@ def run(frames, rate, total, one_process, cal_path, warmup=50):
         counts0 = dict(bench.extractor_counts)
         while bench.sent < bench.total:
             bench.publish_due()
-            ex.spin_once(timeout_sec=0.0005)
+            # wait for events until the next frame is due (an idle spin_once costs CPU)
+            ex.spin_once(timeout_sec=max(bench.t0 + bench.sent / bench.rate
+                                         - time.monotonic(), 0.0))
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end and bench.received < total:
             ex.spin_once(timeout_sec=0.01)

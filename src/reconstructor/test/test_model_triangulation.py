@@ -403,3 +403,48 @@ def test_correction_is_applied_after_v0_and_inverted_by_prediction():
 def test_model_rejects_correction_without_method():
     with pytest.raises(ValueError, match="correction"):
         dataclasses.replace(nominal_example_rig(), correction=object())
+
+
+@settings(max_examples=60, deadline=None)
+@given(model=rig_models(), u1p=st.floats(-3.0, 3.0), u1t=st.floats(-3.0, 3.0),
+       u2t=st.floats(-3.0, 3.0), seed=st.integers(0, 10_000))
+def test_compiled_hot_path_equals_the_numpy_path(model, u1p, u1t, u2t, seed):
+    """The numba pass gives the numpy path's points to round-off, and declines (falls back)
+    whenever the numpy path would not take its own hot path."""
+    import reconstructor.geometry.triangulation as tri
+
+    rng = np.random.default_rng(seed)
+    intr = model.intrinsics
+    uv = np.column_stack([rng.uniform(0, intr.width, 300), rng.uniform(0, intr.height, 300)])
+    compiled = triangulate(model, uv, u1p, u1t, u2t)
+    original = tri._try_hot_path
+    tri._try_hot_path = lambda *a: None
+    try:
+        reference = triangulate(model, uv, u1p, u1t, u2t)
+    finally:
+        tri._try_hot_path = original
+    np.testing.assert_array_equal(compiled.valid, reference.valid)
+    scale = 1.0 + np.abs(reference.p_v0).max()
+    np.testing.assert_allclose(compiled.p_v0, reference.p_v0, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(compiled.p_v, reference.p_v, rtol=0, atol=1e-12 * scale)
+
+
+def test_compiled_hot_path_is_taken_for_an_ordinary_frame_and_declines_otherwise():
+    import reconstructor.geometry.triangulation as tri
+
+    model = nominal_example_rig(dist=DIST)
+    T = v0_T_v(model, 0.3, -0.2)
+    plane = T.T @ laser_plane_v0(model, 0.1)
+    uv = np.column_stack([np.arange(0.0, 720.0, 1.0), np.full(720, 270.0)])
+    sin_min = math.sin(1e-3)
+    assert tri._try_hot_path(model.intrinsics, uv, plane, sin_min, T) is not None
+    bad = uv.copy()
+    bad[5] = np.nan                                      # one non-finite pixel
+    assert tri._try_hot_path(model.intrinsics, bad, plane, sin_min, T) is None
+    far = uv.copy()
+    far[0] = (1e5, 1e5)                                  # outside the undistortion disk
+    assert tri._try_hot_path(model.intrinsics, far, plane, sin_min, T) is None
+    assert tri._try_hot_path(model.intrinsics, uv[:0], plane, sin_min, T) is None
+    edge = plane.copy()
+    edge[3] = 0.0                                        # plane through the centre
+    assert tri._try_hot_path(model.intrinsics, uv, edge, sin_min, T) is None

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .camera import CameraIntrinsics, project_points, undistort_normalised
@@ -110,6 +111,81 @@ def _bookkeeping(p_v, p_v0, ok, front, finite, converged):
     )
 
 
+@numba.njit(cache=True, nogil=True)
+def _hot_path(uv, cx, cy, fxi, fyi, s_max, distorted, use_guess, n_fast, k1, k2, k3, p1, p2,
+              b1, b2, b3, plane, threshold, T, p_v, p_v0):  # pragma: no cover - numba
+    """The common frame in one compiled pass: every pixel in the hot-path disk and every ray
+    clearly in front of the camera and not near-parallel to the plane.
+
+    Same formulas, in the same order, as :func:`undistort_normalised`'s disk branch and the
+    numpy hot path of :func:`triangulate`. Fills ``p_v`` and ``p_v0`` (shape (3, n)) and
+    returns True, or returns False as soon as a point needs the general path (the outputs
+    are then meaningless).
+    """
+    n = uv.shape[0]
+    neg_e = -plane[3]
+    if neg_e == 0.0:
+        return False
+    lo = np.inf
+    hi = -np.inf
+    for i in range(n):
+        xd = (uv[i, 0] - cx) * fxi
+        yd = (uv[i, 1] - cy) * fyi
+        sq = xd * xd + yd * yd
+        if not sq <= s_max:                     # also False for NaN
+            return False
+        x = xd
+        y = yd
+        if distorted:
+            if use_guess:
+                f = 1.0 + sq * (b1 + sq * (b2 + sq * b3))
+                dot = 2.0 * p2 * xd + 2.0 * p1 * yd
+                x = xd * f - (dot * xd + sq * p2)
+                y = yd * f - (dot * yd + sq * p1)
+            for _ in range(n_fast):
+                r2 = x * x + y * y
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                dot = 2.0 * p2 * x + 2.0 * p1 * y
+                x, y = (xd - (dot * x + r2 * p2)) / radial, (yd - (dot * y + r2 * p1)) / radial
+        denom = plane[0] * x + plane[1] * y + plane[2]
+        lo = min(lo, denom)
+        hi = max(hi, denom)
+        p_v[0, i] = x
+        p_v[1, i] = y
+        p_v[2, i] = denom
+    if not ((neg_e > 0.0 and lo > threshold) or (neg_e < 0.0 and hi < -threshold)):
+        return False
+    for i in range(n):
+        Z = neg_e / p_v[2, i]
+        px = p_v[0, i] * Z
+        py = p_v[1, i] * Z
+        p_v[0, i] = px
+        p_v[1, i] = py
+        p_v[2, i] = Z
+        for r in range(3):
+            p_v0[r, i] = T[r, 0] * px + T[r, 1] * py + T[r, 2] * Z + T[r, 3]
+    return True
+
+
+def _try_hot_path(intr: CameraIntrinsics, uv, plane_v, sin_min, T):
+    """``(p_v, p_v0)`` of shape (3, n) from :func:`_hot_path`, or None."""
+    plan = intr._plan
+    n = uv.shape[0]
+    if n == 0 or plan.s_max < 0.0:
+        return None
+    p_v = np.empty((3, n))
+    p_v0 = np.empty((3, n))
+    ok = _hot_path(np.ascontiguousarray(uv), float(plan.c[0, 0]), float(plan.c[1, 0]),
+                   float(plan.finv[0, 0]), float(plan.finv[1, 0]), float(plan.s_max),
+                   bool(plan.distorted), bool(plan.use_guess), int(plan.n_fast),
+                   float(plan.k1), float(plan.k2), float(plan.k3), float(plan.p_col[1, 0]),
+                   float(plan.p_col[0, 0]), float(plan.b1), float(plan.b2), float(plan.b3),
+                   np.ascontiguousarray(plane_v, dtype=np.float64),
+                   sin_min * plan.ray_norm_max, np.ascontiguousarray(T, dtype=np.float64),
+                   p_v, p_v0)
+    return (p_v, p_v0) if ok else None
+
+
 def _all_invalid(n: int) -> TriangulationResult:
     return TriangulationResult(
         p_v=np.zeros((n, 3)), p_v0=np.zeros((n, 3)), valid=np.zeros(n, dtype=bool), n_nonfinite=n
@@ -153,6 +229,9 @@ def triangulate(
     plane_v = T.T @ np.array(laser_plane_v0_scalar(model, u2t))
     if model.correction is not None:
         T = np.asarray(model.correction.V0c_T_V0(u1p, u1t), dtype=np.float64) @ T
+    hot = _try_hot_path(model.intrinsics, uv, plane_v, sin_min, T)
+    if hot is not None:
+        return TriangulationResult(p_v=hot[0].T, p_v0=hot[1].T, valid=np.ones(n, dtype=bool))
     x, finite, converged, in_disk = _rays(model.intrinsics, uv)
     neg_e = -float(plane_v[3])
     if in_disk and neg_e != 0.0:
