@@ -12,11 +12,13 @@ Arrangements:
 Figures: dropped frames [%] (frames published whose cloud never arrived), the p99
 frame-to-cloud latency [ms] (cloud receipt time minus the image's publish time) and the CPU
 time per frame [ms]: of the executor thread and of the whole process (one process), or of
-all processes (separate). The processes get the malloc and BLAS settings of
-``calibration_tools.runtime``, as ``galvoscan run`` gives them. The last stdout line is one
+all processes (separate), and where frames were lost (the extractor's counters from its
+``diagnostics``). The processes get the malloc, BLAS and Fast DDS settings of
+``galvoscan_common.runtime``, as ``galvoscan run`` gives them. The last stdout line is one
 JSON object.
 
     .venv/bin/python benchmarks/pipeline.py [--frames 10000] [--distinct 100]
+                                            [--extraction-thread {true,false}]
 """
 
 from __future__ import annotations
@@ -209,13 +211,13 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end and bench.received < total:
             ex.spin_once(timeout_sec=0.01)
+        thread_s, process_s, children_s = (b - a for a, b in zip(
+            cpu0, (time.thread_time(), time.process_time(), _children_cpu(procs)),
+            strict=True))
         t_end = time.monotonic() + 1.5     # one more diagnostics message (1 s period)
         while time.monotonic() < t_end:
             ex.spin_once(timeout_sec=0.01)
         sent = bench.sent - start_sent
-        thread_s, process_s, children_s = (b - a for a, b in zip(
-            cpu0, (time.thread_time(), time.process_time(), _children_cpu(procs)),
-            strict=True))
         lat = np.array(bench.latency) * 1e3
         out = {'sent': sent, 'received': bench.received,
                'drop_pct': 100.0 * max(sent - bench.received, 0) / sent,
@@ -250,6 +252,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--frames', type=int, default=10000, help='frames per arrangement')
     parser.add_argument('--distinct', type=int, default=100, help='distinct recorded frames')
+    parser.add_argument('--extraction-thread', choices=('true', 'false'), default='true',
+                        help="the extractor's extraction_thread parameter")
     args = parser.parse_args()
     from calibration_tools.truth import truth_calibration
     from galvoscan_common.runtime import tune_this_process
@@ -269,7 +273,8 @@ def main():
         for key, rate, one in (('one_process_500', 500.0, True),
                                ('one_process_1000', 1000.0, True),
                                ('separate_500', 500.0, False)):
-            r = run(frames, rate, args.frames, one, cal)
+            r = run(frames, rate, args.frames, one, cal,
+                    extraction_thread=args.extraction_thread == 'true')
             results[key] = r
             print(f'{key}: {r}', flush=True)
         load = os.getloadavg()[0]
@@ -285,6 +290,7 @@ def main():
         'one_process_500_cpu_ms_per_frame': results['one_process_500']['cpu_ms_per_frame'],
         'separate_500_cpu_ms_per_frame': results['separate_500']['cpu_ms_per_frame'],
         'frames_per_arrangement': args.frames,
+        'extraction_thread': args.extraction_thread == 'true',
         'load_average_1min': load,
     }
     print(json.dumps(out))
