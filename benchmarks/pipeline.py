@@ -18,7 +18,7 @@ all processes (separate), and where frames were lost (the extractor's counters f
 JSON object.
 
     .venv/bin/python benchmarks/pipeline.py [--frames 10000] [--distinct 100]
-                                            [--extraction-thread {true,false}]
+                                            [--extraction-thread {default,true,false}]
 """
 
 from __future__ import annotations
@@ -144,7 +144,8 @@ def _children_cpu(procs) -> np.ndarray:
     return out
 
 
-def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread=True):
+def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread=None):
+    """One arrangement; ``extraction_thread`` None keeps the node's default for it."""
     import rclpy
     from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
@@ -163,8 +164,8 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
             from reconstructor.reconstructor_node import ReconstructorNode
             from stripe_extractor.extractor_node import StripeExtractorNode
 
-            ext = StripeExtractorNode(context=ctx, parameter_overrides=[
-                rclpy.parameter.Parameter('extraction_thread', value=extraction_thread)])
+            ext = StripeExtractorNode(context=ctx, extraction_thread_default=(
+                True if extraction_thread is None else extraction_thread))
             rec = ReconstructorNode(context=ctx, parameter_overrides=[
                 rclpy.parameter.Parameter('calibration_file', value=str(cal_path)),
                 rclpy.parameter.Parameter('marker_period', value=0.0)])
@@ -174,10 +175,10 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
         else:
             bin_dir = Path(sys.executable).parent
             env = child_env()
-            procs.append(subprocess.Popen(
-                [bin_dir / 'stripe_extractor', '--ros-args', '-p',
-                 f'extraction_thread:={str(extraction_thread).lower()}'], env=env,
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+            ext_args = [] if extraction_thread is None else [
+                '--ros-args', '-p', f'extraction_thread:={str(extraction_thread).lower()}']
+            procs.append(subprocess.Popen([bin_dir / 'stripe_extractor', *ext_args], env=env,
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
             procs.append(subprocess.Popen(
                 [bin_dir / 'reconstructor', '--ros-args', '-p',
                  f'calibration_file:={cal_path}', '-p', 'marker_period:=0.0'], env=env,
@@ -252,8 +253,10 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--frames', type=int, default=10000, help='frames per arrangement')
     parser.add_argument('--distinct', type=int, default=100, help='distinct recorded frames')
-    parser.add_argument('--extraction-thread', choices=('true', 'false'), default='true',
-                        help="the extractor's extraction_thread parameter")
+    parser.add_argument('--extraction-thread', choices=('default', 'true', 'false'),
+                        default='default',
+                        help="the extractor's extraction_thread parameter (default: the "
+                             "node's own default, true composed and false alone)")
     args = parser.parse_args()
     from calibration_tools.truth import truth_calibration
     from galvoscan_common.runtime import tune_this_process
@@ -273,8 +276,8 @@ def main():
         for key, rate, one in (('one_process_500', 500.0, True),
                                ('one_process_1000', 1000.0, True),
                                ('separate_500', 500.0, False)):
-            r = run(frames, rate, args.frames, one, cal,
-                    extraction_thread=args.extraction_thread == 'true')
+            r = run(frames, rate, args.frames, one, cal, extraction_thread={
+                'default': None, 'true': True, 'false': False}[args.extraction_thread])
             results[key] = r
             print(f'{key}: {r}', flush=True)
         load = os.getloadavg()[0]
@@ -290,7 +293,7 @@ def main():
         'one_process_500_cpu_ms_per_frame': results['one_process_500']['cpu_ms_per_frame'],
         'separate_500_cpu_ms_per_frame': results['separate_500']['cpu_ms_per_frame'],
         'frames_per_arrangement': args.frames,
-        'extraction_thread': args.extraction_thread == 'true',
+        'extraction_thread': args.extraction_thread,
         'load_average_1min': load,
     }
     print(json.dumps(out))

@@ -17,12 +17,13 @@ are logged once per cause, counted and skipped; the node never dies on input.
 
 Data path: the image subscription is raw, and the serialised CDR is read in place
 (:func:`~stripe_extractor.image_msg.parse_image_cdr`), with no rclpy Image and no copy of the
-pixels. A paired frame goes to one extraction thread
-(:class:`~stripe_extractor.worker.SerialWorker`, parameter ``extraction_thread``, default
-true): the numba kernels release the GIL, so extraction runs on another core while the
-executor thread takes the next messages. Frames arriving while ``IMAGE_QUEUE_DEPTH`` frames
-already wait are dropped and counted (``dropped_busy``). With ``extraction_thread`` false the
-executor thread extracts.
+pixels. With parameter ``extraction_thread`` true (the default when the node is composed
+with others, as in ``galvoscan run --one-process``), a paired frame goes to one extraction
+thread (:class:`~stripe_extractor.worker.SerialWorker`): the numba kernels release the GIL,
+so extraction runs on another core while the executor thread serves the other nodes. Frames
+arriving while ``IMAGE_QUEUE_DEPTH`` frames already wait are dropped and counted
+(``dropped_busy``). The console script (the node alone in its process) defaults to false:
+its executor thread has little else to do, and the thread hand-offs only cost CPU there.
 
 Composition: ``StripeExtractorNode`` does not call ``rclpy.init``; pass ``context=...`` or
 other ``Node`` keyword arguments and add it to any executor together with other nodes
@@ -115,7 +116,7 @@ IMAGE_QUEUE_DEPTH = 30
 class StripeExtractorNode(Node):
     """Thin adapter around :func:`stripe_extractor.extractor.extract` (see module docstring)."""
 
-    def __init__(self, **kwargs):
+    def __init__(self, extraction_thread_default: bool = True, **kwargs):
         super().__init__('stripe_extractor', **kwargs)
         defaults = ExtractorConfig()
         self.declare_parameter('method', defaults.method, ParameterDescriptor(
@@ -151,10 +152,12 @@ class StripeExtractorNode(Node):
             description='Frames and states each kept waiting for their partner [1]',
             integer_range=[IntegerRange(from_value=PAIRING_BUFFER_RANGE[0],
                                         to_value=PAIRING_BUFFER_RANGE[1], step=1)]))
-        self.declare_parameter('extraction_thread', True, ParameterDescriptor(
-            type=ParameterType.PARAMETER_BOOL, read_only=True,
-            description='Extract on a separate thread (another core) instead of the '
-                        'executor thread'))
+        self.declare_parameter(
+            'extraction_thread', bool(extraction_thread_default), ParameterDescriptor(
+                type=ParameterType.PARAMETER_BOOL, read_only=True,
+                description='Extract on a separate thread (another core) instead of the '
+                            'executor thread; default true when composed with other nodes, '
+                            'false when the node runs alone in its process'))
         self.declare_parameter('diagnostics_period', 1.0, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
             description='Period of the diagnostics message with the counters [s]',
@@ -346,7 +349,9 @@ def main(args=None):
     rclpy.init(args=args)
     node = None
     try:
-        node = StripeExtractorNode()
+        # alone in its process the executor thread is mostly idle: extracting on it saves
+        # the thread hand-offs (benchmarks/pipeline.py, separate processes)
+        node = StripeExtractorNode(extraction_thread_default=False)
         spin_nodes([node])
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
