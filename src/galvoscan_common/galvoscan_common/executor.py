@@ -1,5 +1,8 @@
 """The executor loop of the galvoscan node processes: one EventsExecutor, stopped by signals.
 
+ROS process plumbing only (no maths): :func:`spin_nodes` spins nodes, :func:`run_node` is the
+whole ``main`` of a one-node process.
+
 rclpy's ``rclpy.experimental.EventsExecutor`` costs the least per message here (the
 SingleThreadedExecutor's per-message overhead, with a 389 kB image, is about twice as
 large; MultiThreadedExecutor loses most 500 Hz frames: TOOLCHAIN.md). Its ``spin()`` ignores
@@ -35,3 +38,28 @@ def spin_nodes(nodes, context=None, duration: float | None = None) -> None:
         pass
     finally:
         executor.shutdown()
+
+
+def run_node(factory, args=None) -> None:
+    """``main`` of a process holding one node: settings, init, spin, clean shutdown.
+
+    ``factory()`` builds the node after ``rclpy.init``; the process settings of
+    :mod:`galvoscan_common.runtime` are applied first. Ctrl-C and SIGTERM end it normally.
+    """
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from galvoscan_common.runtime import tune_this_process
+
+    tune_this_process()
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = factory()
+        spin_nodes([node])
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -25,19 +25,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-import rclpy
 from galvoscan_msgs.msg import StripeCenters
 from galvoscan_msgs.srv import LoadCalibration, SaveScan
 from geometry_msgs.msg import Point
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2, PointField
 from visualization_msgs.msg import Marker, MarkerArray
 
-from galvoscan_common.executor import spin_nodes
-from galvoscan_common.runtime import tune_this_process
+from galvoscan_common.executor import run_node
 from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
@@ -279,18 +276,7 @@ class ReconstructorNode(Node):
 
 
 def main(args=None):
-    tune_this_process()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ReconstructorNode()
-        spin_nodes([node])
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(ReconstructorNode, args)
 
 
 if __name__ == '__main__':

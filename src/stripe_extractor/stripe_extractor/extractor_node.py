@@ -35,7 +35,6 @@ from __future__ import annotations
 import array
 import time
 
-import rclpy
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from galvoscan_msgs.msg import GalvoState, StripeCenters
@@ -46,7 +45,6 @@ from rcl_interfaces.msg import (
     ParameterType,
     SetParametersResult,
 )
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (
     HistoryPolicy,
@@ -57,8 +55,7 @@ from rclpy.qos import (
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from galvoscan_common.executor import spin_nodes
-from galvoscan_common.runtime import tune_this_process
+from galvoscan_common.executor import run_node
 
 from .extractor import (
     LINE_WIDTH_RANGE_PX,
@@ -345,20 +342,9 @@ class StripeExtractorNode(Node):
 
 
 def main(args=None):
-    tune_this_process()
-    rclpy.init(args=args)
-    node = None
-    try:
-        # alone in its process the executor thread is mostly idle: extracting on it saves
-        # the thread hand-offs (benchmarks/pipeline.py, separate processes)
-        node = StripeExtractorNode(extraction_thread_default=False)
-        spin_nodes([node])
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    # alone in its process the executor thread is mostly idle: extracting on it saves the
+    # thread hand-offs (benchmarks/pipeline.py, separate processes)
+    run_node(lambda: StripeExtractorNode(extraction_thread_default=False), args)
 
 
 if __name__ == '__main__':

@@ -87,6 +87,9 @@ class RawImage:
 
 #: CDR encapsulation identifiers (plain CDR, as ROS 2 writes it): big and little endian.
 _CDR_BE, _CDR_LE = b'\x00\x00', b'\x00\x01'
+#: (uint32, int32) unpackers for little- and big-endian CDR.
+_LE = (struct.Struct('<I'), struct.Struct('<i'))
+_BE = (struct.Struct('>I'), struct.Struct('>i'))
 #: Longest header.frame_id / encoding string accepted [bytes].
 MAX_STRING_BYTES = 4096
 
@@ -96,8 +99,7 @@ class _Reader:
 
     def __init__(self, buf: memoryview, little: bool):
         self.buf, self.pos, self.end = buf, 4, len(buf)
-        self.u32 = struct.Struct('<I' if little else '>I')
-        self.i32 = struct.Struct('<i' if little else '>i')
+        self.u32, self.i32 = _LE if little else _BE
 
     def _take(self, n: int, what: str) -> int:
         start = self.pos

@@ -61,6 +61,19 @@ def read_yaml_file(path: Path) -> dict:
     return read_yaml_text(text, str(path))
 
 
+def read_shipped_or_file(name_or_path, directory: Path) -> tuple[dict, str]:
+    """(data, source) of a YAML file shipped in ``directory`` (by name) or at a path."""
+    path = Path(name_or_path)
+    if not path.suffix and not path.exists():
+        path = directory / f'{name_or_path}.yaml'
+    return read_yaml_file(path), str(path)
+
+
+def shipped_names(directory: Path) -> list[str]:
+    """Names of the YAML files shipped in ``directory``."""
+    return sorted(p.stem for p in directory.glob('*.yaml'))
+
+
 class Section:
     """A mapping from a YAML file, read with typed, range-checked accessors.
 

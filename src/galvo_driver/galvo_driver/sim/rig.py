@@ -21,7 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraModel
-from .config import ConfigError, Section, read_yaml_file, read_yaml_text
+from .config import (
+    ConfigError,
+    Section,
+    read_shipped_or_file,
+    read_yaml_text,
+    shipped_names,
+)
 from .galvo import Dac, GalvoHead, MirrorDrive
 from .spatial import (
     invert_transform,
@@ -642,10 +648,7 @@ def load_rig(name_or_path) -> Rig:
     ConfigError
         The file is missing, malformed, or has a missing/implausible/unknown key.
     """
-    path = Path(name_or_path)
-    if not path.suffix and not path.exists():
-        path = RIG_DIR / f'{name_or_path}.yaml'
-    return rig_from_dict(read_yaml_file(path), str(path))
+    return rig_from_dict(*read_shipped_or_file(name_or_path, RIG_DIR))
 
 
 def load_rig_text(text: str, source: str = '<rig yaml>') -> Rig:
@@ -655,4 +658,4 @@ def load_rig_text(text: str, source: str = '<rig yaml>') -> Rig:
 
 def shipped_rigs() -> list[str]:
     """Names of the rig files shipped with the package."""
-    return sorted(p.stem for p in RIG_DIR.glob('*.yaml'))
+    return shipped_names(RIG_DIR)

@@ -27,7 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from . import raykernels as rk
-from .config import ConfigError, Section, read_yaml_file, read_yaml_text
+from .config import (
+    ConfigError,
+    Section,
+    read_shipped_or_file,
+    read_yaml_text,
+    shipped_names,
+)
 from .spatial import invert_transform, make_transform, rotation_from_vector
 
 SCENE_FORMAT_VERSION = 1
@@ -669,10 +675,7 @@ def load_scene(name_or_path) -> Scene:
     name_or_path : str or Path
         A shipped scene name (see :func:`shipped_scenes`) or a path to a YAML file.
     """
-    path = Path(name_or_path)
-    if not path.suffix and not path.exists():
-        path = SCENE_DIR / f'{name_or_path}.yaml'
-    return scene_from_dict(read_yaml_file(path), str(path))
+    return scene_from_dict(*read_shipped_or_file(name_or_path, SCENE_DIR))
 
 
 def load_scene_text(text: str, source: str = '<scene yaml>') -> Scene:
@@ -682,7 +685,7 @@ def load_scene_text(text: str, source: str = '<scene yaml>') -> Scene:
 
 def shipped_scenes() -> list[str]:
     """Names of the scene files shipped with the package."""
-    return sorted(p.stem for p in SCENE_DIR.glob('*.yaml'))
+    return shipped_names(SCENE_DIR)
 
 
 __all__ = ['ConfigError', 'Hits', 'OBJECT_TYPES', 'Scene', 'SceneObject', 'load_scene',

@@ -143,6 +143,13 @@ class CameraIntrinsics:
         # Largest ray length sqrt(1 + r2) in the disk (with 1 % slack), for the angle test.
         r2 = x[0] * x[0] + x[1] * x[1]
         plan.ray_norm_max = 1.01 * float(np.sqrt(1.0 + np.nanmax(r2)))
+        # the same constants as plain scalars, in the order the compiled triangulation pass
+        # takes them (triangulation._hot_path)
+        plan.kernel_args = (
+            float(plan.c[0, 0]), float(plan.c[1, 0]), float(plan.finv[0, 0]),
+            float(plan.finv[1, 0]), float(plan.s_max), bool(plan.distorted),
+            bool(plan.use_guess), int(plan.n_fast), float(k1), float(k2), float(k3),
+            float(p1), float(p2), float(plan.b1), float(plan.b2), float(plan.b3))
         return plan
 
 

@@ -175,11 +175,7 @@ def _try_hot_path(intr: CameraIntrinsics, uv, plane_v, sin_min, T):
         return None
     p_v = np.empty((3, n))
     p_v0 = np.empty((3, n))
-    ok = _hot_path(np.ascontiguousarray(uv), float(plan.c[0, 0]), float(plan.c[1, 0]),
-                   float(plan.finv[0, 0]), float(plan.finv[1, 0]), float(plan.s_max),
-                   bool(plan.distorted), bool(plan.use_guess), int(plan.n_fast),
-                   float(plan.k1), float(plan.k2), float(plan.k3), float(plan.p_col[1, 0]),
-                   float(plan.p_col[0, 0]), float(plan.b1), float(plan.b2), float(plan.b3),
+    ok = _hot_path(np.ascontiguousarray(uv), *plan.kernel_args,
                    np.ascontiguousarray(plane_v, dtype=np.float64),
                    sin_min * plan.ray_norm_max, np.ascontiguousarray(T, dtype=np.float64),
                    p_v, p_v0)
