@@ -132,6 +132,11 @@ class Bench:
             self.sent += 1
 
 
+#: name: (frame rate [1/s], one process)
+ARRANGEMENTS = {'one_process_500': (500.0, True), 'one_process_1000': (1000.0, True),
+                'separate_500': (500.0, False)}
+
+
 def _children_cpu(procs) -> np.ndarray:
     """User + system CPU time [s] of each running child process (from /proc)."""
     out = np.zeros(len(procs))
@@ -257,6 +262,9 @@ def main():
                         default='default',
                         help="the extractor's extraction_thread parameter (default: the "
                              "node's own default, true composed and false alone)")
+    parser.add_argument('--only', choices=ARRANGEMENTS, action='append',
+                        help='run only this arrangement (repeatable); the JSON then holds '
+                             'null for the others')
     args = parser.parse_args()
     from calibration_tools.truth import truth_calibration
     from galvoscan_common.runtime import tune_this_process
@@ -272,10 +280,12 @@ def main():
         calibration_file.save(truth_calibration(rig), cal)
         print(f'{len(frames)} recorded frames in {bag}; {args.frames} per arrangement',
               flush=True)
-        results = {}
-        for key, rate, one in (('one_process_500', 500.0, True),
-                               ('one_process_1000', 1000.0, True),
-                               ('separate_500', 500.0, False)):
+        skipped = dict.fromkeys(('drop_pct', 'p50_ms', 'p99_ms', 'cpu_ms_per_frame',
+                                 'executor_thread_cpu_ms_per_frame'))
+        results = dict.fromkeys(ARRANGEMENTS, skipped)
+        for key, (rate, one) in ARRANGEMENTS.items():
+            if args.only and key not in args.only:
+                continue
             r = run(frames, rate, args.frames, one, cal, extraction_thread={
                 'default': None, 'true': True, 'false': False}[args.extraction_thread])
             results[key] = r

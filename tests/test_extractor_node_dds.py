@@ -147,10 +147,12 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, th
             t.spin_for(0.03)
         # a truncated CDR image (published serialised, as a faulty writer could send it)
         t.img_pub.publish(serialize_message(_image(205, good))[:1000])
+        # and a truncated CDR state
+        t.state_pub.publish(serialize_message(_state(206, 2206))[:30])
         t.spin_for(0.03)
         want = {'skipped_unsupported_encoding': 2, 'skipped_data_length': 1,
                 'skipped_zero_size': 1, 'skipped_step_too_small': 1,
-                'skipped_malformed_cdr': 1}
+                'skipped_malformed_cdr': 1, 'skipped_malformed_state': 1}
         t.spin_until(lambda: all(int(t.counters().get(k, -1)) >= n for k, n in want.items()),
                      10, f'counters {want}')
         # A good frame after the bad ones is still processed.
@@ -163,7 +165,7 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, th
                      'diagnostics counting the last frame')
         c = t.counters()
         assert {k: int(c[k]) for k in want} == want
-        assert int(c['skipped_total']) == 6
+        assert int(c['skipped_total']) == 7
         assert int(c['images_received']) == 13 and int(c['centers_published']) == 7
         assert int(c['dropped_busy']) == 0
         assert int(c['frames_extracted']) == 7

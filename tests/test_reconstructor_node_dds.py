@@ -12,6 +12,7 @@ from galvoscan_msgs.msg import StripeCenters
 from galvoscan_msgs.srv import LoadCalibration, SaveScan
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
 from reconstructor import calibration_file
@@ -103,6 +104,8 @@ def test_reconstructor_node(spawn, ros_env, tmp_path):
                 m.galvo.g2_tilt_voltage = 12.0  # out of range
             bad.append(m)
             pub.publish(m)
+            # and a truncated CDR message, as a faulty writer could send it
+            pub.publish(serialize_message(m)[:60 + 40 * seq])
         deadline = time.monotonic() + 15
         while len(clouds) < len(frames) and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.1)
@@ -118,6 +121,10 @@ def test_reconstructor_node(spawn, ros_env, tmp_path):
             np.testing.assert_allclose(xyz, pts, atol=2e-5)
             np.testing.assert_array_equal(got['intensity'], np.arange(pts.shape[0]))
         assert proc.poll() is None
+        deadline = time.monotonic() + 5          # the truncated messages were logged, not fatal
+        while 'skipping frame: malformed_cdr' not in proc.log_path.read_text():
+            assert time.monotonic() < deadline, proc.log_path.read_text()
+            time.sleep(0.1)
 
         # the accumulated scan arrives on the latched topic, also for a late subscriber
         time.sleep(0.8)

@@ -14,8 +14,11 @@ Services
     reconstructor/reload_calibration  galvoscan_msgs/LoadCalibration (empty path: same file)
     reconstructor/save_scan           galvoscan_msgs/SaveScan (.ply or .pcd, via open3d)
 
-Bad input (mismatched array lengths, non-finite or out-of-range voltages, no calibration)
-is logged once per cause, counted and skipped; the node never dies on input.
+Bad input (malformed CDR, mismatched array lengths, non-finite or out-of-range voltages, no
+calibration) is logged once per cause, counted and skipped; the node never dies on input.
+
+Data path: the centres subscription is raw and the clouds are published as bytes, both read
+and written by :mod:`galvoscan_common.cdr` (no rclpy message objects per frame).
 """
 
 from __future__ import annotations
@@ -31,31 +34,17 @@ from geometry_msgs.msg import Point
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from galvoscan_common import cdr
 from galvoscan_common.executor import run_node
 from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
 
 VOLTAGE_LIMIT = 10.0
-_FIELDS = [PointField(name=n, offset=4 * i, datatype=PointField.FLOAT32, count=1)
-           for i, n in enumerate(CLOUD_DTYPE.names)]
-
-
-def cloud_msg(points: np.ndarray, header) -> PointCloud2:
-    """Pack a structured array of CLOUD_DTYPE into an unorganised PointCloud2."""
-    msg = PointCloud2()
-    msg.header = header
-    msg.height, msg.width = 1, int(points.shape[0])
-    msg.fields = _FIELDS
-    msg.is_bigendian = False
-    msg.point_step = CLOUD_DTYPE.itemsize
-    msg.row_step = msg.point_step * msg.width
-    msg.is_dense = True  # invalid points are dropped, never sent as NaN
-    msg.data = points.tobytes()
-    return msg
 
 
 class ReconstructorNode(Node):
@@ -100,7 +89,8 @@ class ReconstructorNode(Node):
         self._last_frame_time = None
         self._last_marker = 0.0
         self.create_subscription(StripeCenters, 'stripe/centers', self._on_centers,
-                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE),
+                                 raw=True)
         # a deep history: a reliable writer drops what a slow reader has not acknowledged
         # once KEEP_LAST overflows, and frames come at up to 1 kHz
         self._pub_points = self.create_publisher(
@@ -143,7 +133,11 @@ class ReconstructorNode(Node):
             self.get_logger().warning(f'skipping frame: {cause} {detail} (logged once; counted)')
 
     # -- frames -----------------------------------------------------------------------
-    def _on_centers(self, msg: StripeCenters):
+    def _on_centers(self, data: bytes):
+        try:
+            msg = cdr.parse_stripe_centers(data)
+        except cdr.CdrError as exc:
+            return self._skip('malformed_cdr', str(exc))
         try:
             self._process(msg)
         except Exception as exc:  # noqa: BLE001 - a node never dies on input
@@ -158,10 +152,9 @@ class ReconstructorNode(Node):
             return self._skip('nonfinite_voltage')
         if max(abs(v) for v in volts) > VOLTAGE_LIMIT:
             return self._skip('voltage_out_of_range', f'{volts}')
-        u = np.frombuffer(msg.u, np.float32) if len(msg.u) else np.zeros(0, np.float32)
-        v = np.frombuffer(msg.v, np.float32) if len(msg.v) else np.zeros(0, np.float32)
+        u, v = msg.u, msg.v
         n = u.shape[0]
-        if not (v.shape[0] == n == len(msg.width) == len(msg.strength)):
+        if not (v.shape[0] == n == msg.width.shape[0] == msg.strength.shape[0]):
             return self._skip('array_length_mismatch')
         self._last_frame_time = time.monotonic()
         self.counters['frames'] += 1
@@ -174,13 +167,13 @@ class ReconstructorNode(Node):
         cloud = np.empty(int(valid.sum()), CLOUD_DTYPE)
         p = res.p_v0[valid]
         cloud['x'], cloud['y'], cloud['z'] = p[:, 0], p[:, 1], p[:, 2]
-        cloud['intensity'] = np.frombuffer(msg.strength, np.float32)[valid] if n else []
-        cloud['width'] = np.frombuffer(msg.width, np.float32)[valid] if n else []
+        cloud['intensity'] = msg.strength[valid]
+        cloud['width'] = msg.width[valid]
         self.counters['points'] += cloud.shape[0]
         self.counters['invalid_points'] += n - cloud.shape[0]
-        header = msg.header
-        header.frame_id = self._p['frame_id']
-        self._pub_points.publish(cloud_msg(cloud, header))
+        header = cdr.Header(msg.header.sec, msg.header.nanosec, self._p['frame_id'])
+        # invalid points are dropped, never sent as NaN: the cloud is dense
+        self._pub_points.publish(cdr.serialize_point_cloud(cloud, header))
         if cloud.shape[0]:
             self._scan_parts.append(cloud)
         self._maybe_markers(header, volts)
@@ -194,10 +187,9 @@ class ReconstructorNode(Node):
                 else np.zeros(0, CLOUD_DTYPE))
         self._scan_parts = []
         self._last_scan = scan
-        header = PointCloud2().header
-        header.stamp = self.get_clock().now().to_msg()
-        header.frame_id = self._p['frame_id']
-        self._pub_scan.publish(cloud_msg(scan, header))
+        sec, nanosec = divmod(self.get_clock().now().nanoseconds, 1_000_000_000)
+        header = cdr.Header(sec, nanosec, self._p['frame_id'])
+        self._pub_scan.publish(cdr.serialize_point_cloud(scan, header))
         self.get_logger().info(f'scan ended: {scan.shape[0]} points on points/scan')
 
     # -- markers ----------------------------------------------------------------------
@@ -207,9 +199,11 @@ class ReconstructorNode(Node):
         if period <= 0 or now - self._last_marker < period:
             return
         self._last_marker = now
-        self._pub_markers.publish(self.markers(header, volts))
+        ros_header = Header(frame_id=header.frame_id)
+        ros_header.stamp.sec, ros_header.stamp.nanosec = header.sec, header.nanosec
+        self._pub_markers.publish(self.markers(ros_header, volts))
 
-    def markers(self, header, volts):
+    def markers(self, header: Header, volts):
         """The laser plane patch and the camera field-of-view frustum, in V0."""
         model, rng = self.model, self._p['marker_range']
         intr = model.intrinsics

@@ -15,12 +15,14 @@ Image and state are paired by header stamp (the driver stamps the state with the
 stamp); either may arrive first (:class:`~stripe_extractor.pairing.StampPairer`). Bad images
 are logged once per cause, counted and skipped; the node never dies on input.
 
-Data path: the image subscription is raw, and the serialised CDR is read in place
-(:func:`~stripe_extractor.image_msg.parse_image_cdr`), with no rclpy Image and no copy of the
-pixels. With parameter ``extraction_thread`` true (the default when the node is composed
-with others, as in ``galvoscan run --one-process``), a paired frame goes to one extraction
-thread (:class:`~stripe_extractor.worker.SerialWorker`): the numba kernels release the GIL,
-so extraction runs on another core while the executor thread serves the other nodes. Frames
+Data path: the image and state subscriptions are raw, and the serialised CDR is read in place
+(:func:`~stripe_extractor.image_msg.parse_image_cdr`, :mod:`galvoscan_common.cdr`), with no
+rclpy Image and no copy of the pixels; the centres are written as CDR and published as bytes
+(a malformed state is counted as ``skipped_malformed_state``). With parameter
+``extraction_thread`` true (the default when the node is composed with others, as in
+``galvoscan run --one-process``), a paired frame goes to one extraction thread
+(:class:`~stripe_extractor.worker.SerialWorker`): the numba kernels release the GIL, so
+extraction runs on another core while the executor thread serves the other nodes. Frames
 arriving while ``IMAGE_QUEUE_DEPTH`` frames already wait are dropped and counted
 (``dropped_busy``). The console script (the node alone in its process) defaults to false:
 its executor thread has little else to do, and the thread hand-offs only cost CPU there.
@@ -32,10 +34,8 @@ other ``Node`` keyword arguments and add it to any executor together with other 
 
 from __future__ import annotations
 
-import array
 import time
 
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from galvoscan_msgs.msg import GalvoState, StripeCenters
 from rcl_interfaces.msg import (
@@ -53,8 +53,8 @@ from rclpy.qos import (
     qos_profile_sensor_data,
 )
 from sensor_msgs.msg import Image
-from std_msgs.msg import Header
 
+from galvoscan_common import cdr
 from galvoscan_common.executor import run_node
 
 from .extractor import (
@@ -75,34 +75,15 @@ PAIRING_BUFFER_RANGE = (1, 1000)
 DIAGNOSTICS_PERIOD_RANGE_S = (0.1, 60.0)
 
 
-def _stamp_ns(header) -> int:
-    return int(header.stamp.sec) * 1_000_000_000 + int(header.stamp.nanosec)
-
-
-def _float32_field(values) -> array.array:
-    out = array.array('f')
-    out.frombytes(values.astype('<f4', copy=False).tobytes())
-    return out
-
-
-def _centers_msg(header, state: GalvoState, result) -> StripeCenters:
+def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result) -> bytes:
+    """The serialised StripeCenters of one extraction result (image header, its state)."""
     cfg = result.config
-    out = StripeCenters()
-    out.header = header
-    out.galvo = state
-    out.image_height, out.image_width = result.image_shape
-    out.u = _float32_field(result.u)
-    out.v = _float32_field(result.v)
-    out.width = _float32_field(result.width)
-    out.strength = _float32_field(result.strength)
-    out.method = cfg.method
-    out.sigma = float(cfg.sigma)
-    out.min_strength = float(cfg.min_strength)
-    out.roi_half_height = int(cfg.roi_half_height)
-    out.orientation = (StripeCenters.ORIENTATION_VERTICAL if cfg.orientation == 'vertical'
-                       else StripeCenters.ORIENTATION_HORIZONTAL)
-    out.rejected_secondary = int(result.rejected_secondary)
-    return out
+    h, w = result.image_shape
+    return cdr.serialize_stripe_centers(cdr.StripeCenters(
+        header, state, w, h, result.u, result.v, result.width, result.strength, cfg.method,
+        float(cfg.sigma), float(cfg.min_strength), int(cfg.roi_half_height),
+        StripeCenters.ORIENTATION_VERTICAL if cfg.orientation == 'vertical'
+        else StripeCenters.ORIENTATION_HORIZONTAL, int(result.rejected_secondary)))
 
 
 #: frames the image subscription, and the extraction queue, hold while the extractor is busy
@@ -166,7 +147,7 @@ class StripeExtractorNode(Node):
         self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
         # written by the executor thread
         self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0}
-        self._counts.update({f'skipped_{c}': 0 for c in CAUSES})
+        self._counts.update({f'skipped_{c}': 0 for c in (*CAUSES, 'malformed_state')})
         # written only by the extracting thread
         self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
                                 'rejected_secondary': 0, 'extraction_errors': 0,
@@ -197,7 +178,7 @@ class StripeExtractorNode(Node):
         self.create_subscription(
             GalvoState, 'galvo/state', self._on_state,
             QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
-                       history=HistoryPolicy.KEEP_LAST))
+                       history=HistoryPolicy.KEEP_LAST), raw=True)
         self._diag_timer = self.create_timer(
             self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
         self.get_logger().info(f'ready: {self._config}')
@@ -253,13 +234,18 @@ class StripeExtractorNode(Node):
         if pair is not None:
             self._submit(*pair)
 
-    def _on_state(self, msg: GalvoState) -> None:
+    def _on_state(self, data: bytes) -> None:
         self._counts['states_received'] += 1
-        pair = self._pairer.add_state(_stamp_ns(msg.header), msg, seq=int(msg.seq))
+        try:
+            state = cdr.parse_galvo_state(data)
+        except cdr.CdrError as exc:
+            self._skip('malformed_state', str(exc))
+            return
+        pair = self._pairer.add_state(state.header.stamp_ns, state, seq=state.seq)
         if pair is not None:
             self._submit(*pair)
 
-    def _submit(self, frame, state: GalvoState) -> None:
+    def _submit(self, frame, state: cdr.GalvoState) -> None:
         job = (frame, state, self._config)
         if self._worker is None:
             self._extract_and_publish(job)
@@ -290,10 +276,9 @@ class StripeExtractorNode(Node):
         self._extract_s += time.perf_counter() - t0
         counts['frames_extracted'] += 1
         counts['rejected_secondary'] += result.rejected_secondary
-        header = Header(stamp=Time(sec=raw.stamp_sec, nanosec=raw.stamp_nanosec),
-                        frame_id=raw.frame_id)
+        header = cdr.Header(raw.stamp_sec, raw.stamp_nanosec, raw.frame_id)
         try:
-            self._pub.publish(_centers_msg(header, state, result))
+            self._pub.publish(centers_cdr(header, state, result))
         except Exception as exc:  # noqa: BLE001 - e.g. the context shut down meanwhile
             counts['publish_errors'] += 1
             if 'publish_error' not in self._logged_causes:
