@@ -33,15 +33,25 @@ class CdrError(ValueError):
     """The bytes are not a well-formed CDR message of the expected type."""
 
 
-_FORMATS = {'u8': 'B', 'u32': 'I', 'i32': 'i', 'u64': 'Q', 'f32': 'f', 'f64': 'd'}
-_STRUCTS = {order: {k: struct.Struct(order + f) for k, f in _FORMATS.items()}
-            for order in '<>'}
+_STRUCTS: dict[str, struct.Struct] = {}
+
+
+def _struct(fmt: str) -> struct.Struct:
+    """``struct.Struct(fmt)``, cached (``fmt`` starts with the byte order)."""
+    s = _STRUCTS.get(fmt)
+    if s is None:
+        s = _STRUCTS[fmt] = struct.Struct(fmt)
+    return s
 
 
 class Reader:
-    """Sequential reader of one CDR message; alignment counts from the end of the header."""
+    """Sequential reader of one CDR message; alignment counts from the end of the header.
 
-    __slots__ = ('buf', 'pos', 'end', 'order', '_s')
+    :meth:`unpack` reads a run of fields that share one alignment and need no padding
+    between them (e.g. ``'Qdddd'`` after an 8-byte boundary) in one call.
+    """
+
+    __slots__ = ('buf', 'pos', 'end', 'order')
 
     def __init__(self, data):
         try:
@@ -53,7 +63,6 @@ class Reader:
                            f'{bytes(buf[:4]).hex() or "none"})')
         self.buf, self.pos, self.end = buf, 4, len(buf)
         self.order = '<' if bytes(buf[:2]) == CDR_LE else '>'
-        self._s = _STRUCTS[self.order]
 
     def _take(self, n: int, align: int, what: str) -> int:
         start = self.pos + (-(self.pos - 4) % align)
@@ -62,33 +71,16 @@ class Reader:
         self.pos = start + n
         return start
 
-    def _prim(self, kind: str, size: int, what: str):
-        s = self._s[kind]
-        return s.unpack_from(self.buf, self._take(size, size, what))[0]
+    def unpack(self, fmt: str, align: int, what: str) -> tuple:
+        """The fields of ``fmt`` (struct codes, no byte order), the first aligned to ``align``."""
+        s = _struct(self.order + fmt)
+        return s.unpack_from(self.buf, self._take(s.size, align, what))
 
     def u8(self, what: str) -> int:
         return self.buf[self._take(1, 1, what)]
 
-    def boolean(self, what: str) -> bool:
-        v = self.u8(what)
-        if v > 1:
-            raise CdrError(f'{what}: bool byte {v}')
-        return bool(v)
-
     def u32(self, what: str) -> int:
-        return self._prim('u32', 4, what)
-
-    def i32(self, what: str) -> int:
-        return self._prim('i32', 4, what)
-
-    def u64(self, what: str) -> int:
-        return self._prim('u64', 8, what)
-
-    def f32(self, what: str) -> float:
-        return self._prim('f32', 4, what)
-
-    def f64(self, what: str) -> float:
-        return self._prim('f64', 8, what)
+        return self.unpack('I', 4, what)[0]
 
     def string(self, what: str) -> str:
         n = self.u32(what)
@@ -123,52 +115,31 @@ class Writer:
     """Little-endian CDR writer; :meth:`bytes` returns the message."""
 
     __slots__ = ('buf',)
-    _s = _STRUCTS['<']
 
     def __init__(self):
         self.buf = bytearray(CDR_LE + b'\x00\x00')
 
-    def _align(self, n: int) -> None:
-        pad = -(len(self.buf) - 4) % n
+    def pack(self, fmt: str, align: int, *values) -> None:
+        """Write the fields of ``fmt`` (struct codes, no byte order), aligned to ``align``."""
+        pad = -(len(self.buf) - 4) % align
         if pad:
             self.buf += bytes(pad)
-
-    def _prim(self, kind: str, size: int, value) -> None:
-        self._align(size)
-        self.buf += self._s[kind].pack(value)
-
-    def u8(self, v: int) -> None:
-        self.buf.append(v)
-
-    def u32(self, v: int) -> None:
-        self._prim('u32', 4, v)
-
-    def i32(self, v: int) -> None:
-        self._prim('i32', 4, v)
-
-    def u64(self, v: int) -> None:
-        self._prim('u64', 8, v)
-
-    def f32(self, v: float) -> None:
-        self._prim('f32', 4, v)
-
-    def f64(self, v: float) -> None:
-        self._prim('f64', 8, v)
+        self.buf += _struct('<' + fmt).pack(*values)
 
     def string(self, s: str) -> None:
         raw = s.encode('utf-8')
-        self.u32(len(raw) + 1)
+        self.pack('I', 4, len(raw) + 1)
         self.buf += raw
         self.buf.append(0)
 
     def octets(self, data) -> None:
         data = memoryview(data).cast('B')
-        self.u32(len(data))
+        self.pack('I', 4, len(data))
         self.buf += data
 
     def f32_array(self, values: np.ndarray) -> None:
         values = np.asarray(values)
-        self.u32(values.shape[0])
+        self.pack('I', 4, values.shape[0])
         self.buf += values.astype('<f4', copy=False).tobytes()
 
     def bytes(self) -> bytes:
@@ -191,16 +162,14 @@ class Header:
 
 
 def read_header(r: Reader, what: str = 'header') -> Header:
-    sec = r.i32(f'{what}.stamp.sec')
-    nanosec = r.u32(f'{what}.stamp.nanosec')
+    sec, nanosec = r.unpack('iI', 4, f'{what}.stamp')
     if nanosec >= 1_000_000_000:
         raise CdrError(f'{what}.stamp.nanosec {nanosec} >= 1e9')
     return Header(sec, nanosec, r.string(f'{what}.frame_id'))
 
 
 def write_header(w: Writer, h: Header) -> None:
-    w.i32(h.sec)
-    w.u32(h.nanosec)
+    w.pack('iI', 4, h.sec, h.nanosec)
     w.string(h.frame_id)
 
 
@@ -220,19 +189,17 @@ class GalvoState:
 
 def _read_galvo_state(r: Reader, what: str) -> GalvoState:
     header = read_header(r, f'{what}.header')
-    return GalvoState(header, r.u64(f'{what}.seq'), r.f64(f'{what}.g1_pan_voltage'),
-                      r.f64(f'{what}.g1_tilt_voltage'), r.f64(f'{what}.g2_pan_voltage'),
-                      r.f64(f'{what}.g2_tilt_voltage'), r.boolean(f'{what}.laser_on'),
-                      r.u8(f'{what}.status'))
+    seq, *volts = r.unpack('Qdddd', 8, f'{what}.seq and voltages')
+    laser_on, status = r.unpack('BB', 1, f'{what}.laser_on and status')
+    if laser_on > 1:
+        raise CdrError(f'{what}.laser_on: bool byte {laser_on}')
+    return GalvoState(header, seq, *volts, bool(laser_on), status)
 
 
 def _write_galvo_state(w: Writer, g: GalvoState) -> None:
     write_header(w, g.header)
-    w.u64(g.seq)
-    for v in (g.g1_pan_voltage, g.g1_tilt_voltage, g.g2_pan_voltage, g.g2_tilt_voltage):
-        w.f64(v)
-    w.u8(1 if g.laser_on else 0)
-    w.u8(g.status)
+    w.pack('QddddBB', 8, g.seq, g.g1_pan_voltage, g.g1_tilt_voltage, g.g2_pan_voltage,
+           g.g2_tilt_voltage, 1 if g.laser_on else 0, g.status)
 
 
 def parse_galvo_state(data) -> GalvoState:
@@ -277,10 +244,12 @@ def parse_stripe_centers(data) -> StripeCenters:
     r = Reader(data)
     header = read_header(r)
     galvo = _read_galvo_state(r, 'galvo')
-    out = StripeCenters(header, galvo, r.u32('image_width'), r.u32('image_height'),
-                        r.f32_array('u'), r.f32_array('v'), r.f32_array('width'),
-                        r.f32_array('strength'), r.string('method'), r.f32('sigma'),
-                        r.f32('min_strength'), r.u32('roi_half_height'), r.u8('orientation'),
+    size = r.unpack('II', 4, 'image_width and image_height')
+    arrays = (r.f32_array('u'), r.f32_array('v'), r.f32_array('width'),
+              r.f32_array('strength'))
+    method = r.string('method')
+    params = r.unpack('ffIB', 4, 'sigma, min_strength, roi_half_height and orientation')
+    out = StripeCenters(header, galvo, *size, *arrays, method, *params,
                         r.u32('rejected_secondary'))
     r.done('StripeCenters')
     return out
@@ -290,16 +259,12 @@ def serialize_stripe_centers(m: StripeCenters) -> bytes:
     w = Writer()
     write_header(w, m.header)
     _write_galvo_state(w, m.galvo)
-    w.u32(m.image_width)
-    w.u32(m.image_height)
+    w.pack('II', 4, m.image_width, m.image_height)
     for a in (m.u, m.v, m.width, m.strength):
         w.f32_array(a)
     w.string(m.method)
-    w.f32(m.sigma)
-    w.f32(m.min_strength)
-    w.u32(m.roi_half_height)
-    w.u8(m.orientation)
-    w.u32(m.rejected_secondary)
+    w.pack('ffIB', 4, m.sigma, m.min_strength, m.roi_half_height, m.orientation)
+    w.pack('I', 4, m.rejected_secondary)
     return w.bytes()
 
 
@@ -309,31 +274,44 @@ POINT_FIELD_TYPES = {np.dtype('<i1'): 1, np.dtype('<u1'): 2, np.dtype('<i2'): 3,
                      np.dtype('<f4'): 7, np.dtype('<f8'): 8}
 
 
+_FIELD_BLOCKS: dict[np.dtype, bytes] = {}
+
+
+def _fields_block(dt: np.dtype) -> bytes:
+    """The ``fields`` sequence of a PointCloud2 for ``dt``, written from a 4-byte boundary."""
+    block = _FIELD_BLOCKS.get(dt)
+    if block is None:
+        if dt.names is None:
+            raise ValueError('points must be a structured array')
+        w = Writer()
+        w.pack('I', 4, len(dt.names))
+        for name in dt.names:
+            ftype, offset = dt.fields[name][:2]
+            if ftype not in POINT_FIELD_TYPES:
+                raise ValueError(f'field {name}: {ftype} is not a little-endian PointField type')
+            w.string(name)
+            w.pack('I', 4, offset)
+            w.pack('B', 1, POINT_FIELD_TYPES[ftype])
+            w.pack('I', 4, 1)
+        block = _FIELD_BLOCKS[dt] = w.bytes()[4:]
+    return block
+
+
 def serialize_point_cloud(points: np.ndarray, header: Header, is_dense: bool = True) -> bytes:
     """An unorganised sensor_msgs/PointCloud2 (height 1) holding a structured array.
 
     Every field of ``points.dtype`` becomes a PointField (count 1) at its offset; fields must be
-    little-endian scalars of a PointField type.
+    little-endian scalars of a PointField type. Written in one join (a frame's cloud is
+    published at up to 1 kHz).
     """
-    dt = points.dtype
-    if dt.names is None:
-        raise ValueError('points must be a structured array')
-    w = Writer()
-    write_header(w, header)
-    w.u32(1)
-    w.u32(points.shape[0])
-    w.u32(len(dt.names))
-    for name in dt.names:
-        ftype, offset = dt.fields[name][:2]
-        if ftype not in POINT_FIELD_TYPES:
-            raise ValueError(f'field {name}: {ftype} is not a little-endian PointField type')
-        w.string(name)
-        w.u32(offset)
-        w.u8(POINT_FIELD_TYPES[ftype])
-        w.u32(1)
-    w.u8(0)                                 # is_bigendian
-    w.u32(dt.itemsize)
-    w.u32(dt.itemsize * points.shape[0])
-    w.octets(np.ascontiguousarray(points).view(np.uint8).reshape(-1))
-    w.u8(1 if is_dense else 0)
-    return w.bytes()
+    fields = _fields_block(points.dtype)
+    frame_id = header.frame_id.encode('utf-8')
+    head = _struct('<4siII').pack(CDR_LE + b'\x00\x00', header.sec, header.nanosec,
+                                  len(frame_id) + 1)
+    pad = -(len(head) + len(frame_id) + 1 - 4) % 4
+    n, step = points.shape[0], points.dtype.itemsize
+    # after the fields (from a 4-byte boundary): is_bigendian, padding, three uint32
+    tail_pad = -(len(fields) + 1) % 4
+    return b''.join((head, frame_id, bytes(1 + pad), _struct('<II').pack(1, n), fields,
+                     bytes(1 + tail_pad), _struct('<III').pack(step, step * n, step * n),
+                     np.ascontiguousarray(points).tobytes(), b'\x01' if is_dense else b'\x00'))

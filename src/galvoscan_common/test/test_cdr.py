@@ -12,8 +12,9 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from galvoscan_common import cdr
 
-# ROS strings are C strings: no NUL inside
-TEXT = st.text(st.characters(blacklist_characters='\x00'), max_size=12)
+# ROS strings are UTF-8 C strings: no NUL inside, no lone surrogates
+TEXT = st.text(st.characters(blacklist_characters='\x00', blacklist_categories=('Cs',)),
+               max_size=12)
 F64 = st.floats(allow_nan=False, width=64)
 
 

@@ -163,12 +163,14 @@ class ReconstructorNode(Node):
         res = triangulate(self.model, np.column_stack([u, v]), g.g1_pan_voltage,
                           g.g1_tilt_voltage, g.g2_tilt_voltage,
                           min_angle=self._p['min_ray_plane_angle'])
-        valid = res.valid
-        cloud = np.empty(int(valid.sum()), CLOUD_DTYPE)
-        p = res.p_v0[valid]
-        cloud['x'], cloud['y'], cloud['z'] = p[:, 0], p[:, 1], p[:, 2]
-        cloud['intensity'] = msg.strength[valid]
-        cloud['width'] = msg.width[valid]
+        # x, y, z, intensity, width as the columns of one float32 block, then viewed as records
+        block = np.empty((n, 5), np.float32)
+        block[:, :3] = res.p_v0
+        block[:, 3] = msg.strength
+        block[:, 4] = msg.width
+        if not res.valid.all():
+            block = block[res.valid]
+        cloud = block.view(CLOUD_DTYPE).reshape(-1)
         self.counters['points'] += cloud.shape[0]
         self.counters['invalid_points'] += n - cloud.shape[0]
         header = cdr.Header(msg.header.sec, msg.header.nanosec, self._p['frame_id'])

@@ -26,7 +26,8 @@ def _image(h, w, encoding, frame_id, big, pad, seed):
 @given(h=st.integers(0, 9), w=st.integers(0, 9), enc=st.sampled_from(
     ['mono8', 'mono16', '8UC1', '16UC1', 'rgb8']),
     # ROS strings are C strings: no NUL inside
-    frame_id=st.text(st.characters(blacklist_characters='\x00'), max_size=12),
+    frame_id=st.text(st.characters(blacklist_characters='\x00', blacklist_categories=('Cs',)),
+                     max_size=12),
     big=st.booleans(), pad=st.integers(0, 3), seed=st.integers(0, 1000))
 def test_fields_equal_rclpy_deserialisation(h, w, enc, frame_id, big, pad, seed):
     msg = _image(h, w, enc, frame_id, big, pad, seed)
@@ -95,7 +96,7 @@ def test_truncated_flipped_or_random_bytes_give_only_bad_image_errors(seed, cut,
 @pytest.mark.parametrize('data, match', [
     (b'', 'encapsulation'),
     (b'\x00\x07\x00\x00' + b'\0' * 64, 'encapsulation'),
-    (b'\x00\x01\x00\x00\x01\x00\x00\x00', 'header.stamp.nanosec: needs 4 bytes'),
+    (b'\x00\x01\x00\x00\x01\x00\x00\x00', 'header.stamp: needs 8 bytes'),
     (b'\x00\x01\x00\x00' + struct.pack('<iI', 0, 1_000_000_000) + b'\0' * 32, '>= 1e9'),
     (b'\x00\x01\x00\x00' + struct.pack('<iII', 0, 0, 0) + b'\0' * 32, 'string length 0'),
     (b'\x00\x01\x00\x00' + struct.pack('<iII', 0, 0, 2) + b'ab\0\0' + b'\0' * 32,
