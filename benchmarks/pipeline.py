@@ -169,8 +169,9 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
             from reconstructor.reconstructor_node import ReconstructorNode
             from stripe_extractor.extractor_node import StripeExtractorNode
 
-            ext = StripeExtractorNode(context=ctx, extraction_thread_default=(
-                True if extraction_thread is None else extraction_thread))
+            ext = StripeExtractorNode(context=ctx, **(
+                {} if extraction_thread is None
+                else {'extraction_thread_default': extraction_thread}))
             rec = ReconstructorNode(context=ctx, parameter_overrides=[
                 rclpy.parameter.Parameter('calibration_file', value=str(cal_path)),
                 rclpy.parameter.Parameter('marker_period', value=0.0)])
@@ -237,7 +238,8 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
                 (1e3 * x / sent for x in (process_s, *children_s)), strict=True))
         # where frames were lost: not taken by the extractor, dropped at its queue, or later
         out['extractor'] = {k: int(bench.extractor_counts.get(k, 0)) - int(counts0.get(k, 0))
-                            for k in ('images_received', 'dropped_busy', 'centers_published')}
+                            for k in ('images_received', 'dropped_busy', 'centers_published',
+                                      'frames_offloaded')}
         return out
     finally:
         for p in procs:
@@ -258,10 +260,10 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--frames', type=int, default=10000, help='frames per arrangement')
     parser.add_argument('--distinct', type=int, default=100, help='distinct recorded frames')
-    parser.add_argument('--extraction-thread', choices=('default', 'true', 'false'),
+    parser.add_argument('--extraction-thread', choices=('default', 'true', 'false', 'auto'),
                         default='default',
                         help="the extractor's extraction_thread parameter (default: the "
-                             "node's own default, true composed and false alone)")
+                             "node's own default, auto)")
     parser.add_argument('--only', choices=ARRANGEMENTS, action='append',
                         help='run only this arrangement (repeatable); the JSON then holds '
                              'null for the others')
@@ -287,7 +289,8 @@ def main():
             if args.only and key not in args.only:
                 continue
             r = run(frames, rate, args.frames, one, cal, extraction_thread={
-                'default': None, 'true': True, 'false': False}[args.extraction_thread])
+                'default': None, 'true': True, 'false': False, 'auto': 'auto'}[
+                    args.extraction_thread])
             results[key] = r
             print(f'{key}: {r}', flush=True)
         load = os.getloadavg()[0]

@@ -82,7 +82,8 @@ class _Harness:
         return {kv.key: kv.value for kv in self.diags[-1].status[0].values}
 
 
-@pytest.mark.parametrize('thread', [True, False], ids=['extraction_thread', 'executor_thread'])
+@pytest.mark.parametrize('thread', [True, False, 'auto'],
+                         ids=['extraction_thread', 'executor_thread', 'auto'])
 def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, thread):
     exe = Path(sys.executable).with_name('stripe_extractor')
     proc = spawn([exe, '--ros-args', '-p', 'diagnostics_period:=0.2',

@@ -18,14 +18,21 @@ are logged once per cause, counted and skipped; the node never dies on input.
 Data path: the image and state subscriptions are raw, and the serialised CDR is read in place
 (:func:`~stripe_extractor.image_msg.parse_image_cdr`, :mod:`galvoscan_common.cdr`), with no
 rclpy Image and no copy of the pixels; the centres are written as CDR and published as bytes
-(a malformed state is counted as ``skipped_malformed_state``). With parameter
-``extraction_thread`` true (the default when the node is composed with others, as in
-``galvoscan run --one-process``), a paired frame goes to one extraction thread
-(:class:`~stripe_extractor.worker.SerialWorker`): the numba kernels release the GIL, so
-extraction runs on another core while the executor thread serves the other nodes. Frames
-arriving while ``IMAGE_QUEUE_DEPTH`` frames already wait are dropped and counted
-(``dropped_busy``). The console script (the node alone in its process) defaults to false:
-its executor thread has little else to do, and the thread hand-offs only cost CPU there.
+(a malformed state is counted as ``skipped_malformed_state``).
+
+Where extraction runs (parameter ``extraction_thread``):
+- ``true``: every paired frame goes to one extraction thread
+  (:class:`~stripe_extractor.worker.SerialWorker`); the numba kernels release the GIL, so
+  extraction runs on another core while the executor thread serves the other nodes. Frames
+  arriving while ``IMAGE_QUEUE_DEPTH`` frames already wait are dropped and counted
+  (``dropped_busy``).
+- ``false``: on the executor thread, in the subscription callback. No thread hand-off, so
+  the lowest latency while the executor thread has time to spare.
+- ``auto`` (the default): on the executor thread while the mean extraction time is below
+  ``AUTO_INLINE_BELOW`` of the mean interval between frames, on the extraction thread once
+  it exceeds ``AUTO_OFFLOAD_ABOVE`` (e.g. 1000 fps, or a loaded machine), and back only when
+  the thread has finished every frame it holds, so the output stays in order. Frames
+  extracted on the thread are counted (``frames_offloaded``).
 
 Composition: ``StripeExtractorNode`` does not call ``rclpy.init``; pass ``context=...`` or
 other ``Node`` keyword arguments and add it to any executor together with other nodes
@@ -69,7 +76,7 @@ from .extractor import (
 )
 from .image_msg import CAUSES, BadImageError, image_to_array, parse_image_cdr
 from .pairing import StampPairer
-from .worker import SerialWorker
+from .worker import OffloadPolicy, SerialWorker
 
 PAIRING_BUFFER_RANGE = (1, 1000)
 DIAGNOSTICS_PERIOD_RANGE_S = (0.1, 60.0)
@@ -89,12 +96,17 @@ def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result) -> bytes:
 #: frames the image subscription, and the extraction queue, hold while the extractor is busy
 #: (about 12 MB each at 720x540)
 IMAGE_QUEUE_DEPTH = 30
+#: ``extraction_thread`` auto: extraction time / frame interval above which frames go to the
+#: extraction thread, and below which they return to the executor thread (benchmarks/pipeline.py:
+#: about 0.25 at 500 fps and 0.5 at 1000 fps on an unloaded machine)
+AUTO_OFFLOAD_ABOVE, AUTO_INLINE_BELOW = 0.4, 0.3
+EXTRACTION_THREAD_CHOICES = (True, False, 'auto')
 
 
 class StripeExtractorNode(Node):
     """Thin adapter around :func:`stripe_extractor.extractor.extract` (see module docstring)."""
 
-    def __init__(self, extraction_thread_default: bool = True, **kwargs):
+    def __init__(self, extraction_thread_default: bool | str = 'auto', **kwargs):
         super().__init__('stripe_extractor', **kwargs)
         defaults = ExtractorConfig()
         self.declare_parameter('method', defaults.method, ParameterDescriptor(
@@ -131,11 +143,13 @@ class StripeExtractorNode(Node):
             integer_range=[IntegerRange(from_value=PAIRING_BUFFER_RANGE[0],
                                         to_value=PAIRING_BUFFER_RANGE[1], step=1)]))
         self.declare_parameter(
-            'extraction_thread', bool(extraction_thread_default), ParameterDescriptor(
-                type=ParameterType.PARAMETER_BOOL, read_only=True,
-                description='Extract on a separate thread (another core) instead of the '
-                            'executor thread; default true when composed with other nodes, '
-                            'false when the node runs alone in its process'))
+            'extraction_thread', extraction_thread_default, ParameterDescriptor(
+                dynamic_typing=True, read_only=True,
+                description='Where to extract: true = on a separate thread (another core), '
+                            'false = on the executor thread, auto = on the executor thread '
+                            'while extraction takes under 30 % of the frame interval, on the '
+                            'separate thread above 40 %',
+                additional_constraints='true, false or auto'))
         self.declare_parameter('diagnostics_period', 1.0, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
             description='Period of the diagnostics message with the counters [s]',
@@ -146,7 +160,8 @@ class StripeExtractorNode(Node):
         self._config = self._config_from({})
         self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
         # written by the executor thread
-        self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0}
+        self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0,
+                        'frames_offloaded': 0}
         self._counts.update({f'skipped_{c}': 0 for c in (*CAUSES, 'malformed_state')})
         # written only by the extracting thread
         self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
@@ -169,8 +184,14 @@ class StripeExtractorNode(Node):
                                reliability=qos_profile_sensor_data.reliability,
                                durability=qos_profile_sensor_data.durability,
                                history=HistoryPolicy.KEEP_LAST)
+        mode = self.get_parameter('extraction_thread').value
+        if mode not in EXTRACTION_THREAD_CHOICES or isinstance(mode, (int, float)) and \
+                not isinstance(mode, bool):
+            raise ValueError(f'extraction_thread must be true, false or auto, got {mode!r}')
+        self._policy = (OffloadPolicy(AUTO_OFFLOAD_ABOVE, AUTO_INLINE_BELOW)
+                        if mode == 'auto' else None)
         self._worker = None
-        if self.get_parameter('extraction_thread').value:
+        if mode is not False:
             self._worker = SerialWorker(self._extract_and_publish, IMAGE_QUEUE_DEPTH,
                                         'stripe_extraction', on_error=self._skip_log_error)
         self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
@@ -247,9 +268,15 @@ class StripeExtractorNode(Node):
 
     def _submit(self, frame, state: cdr.GalvoState) -> None:
         job = (frame, state, self._config)
-        if self._worker is None:
+        if self._policy is not None:
+            offload = self._policy.decide(time.monotonic(), self._worker.idle)
+        else:
+            offload = self._worker is not None
+        if not offload:
             self._extract_and_publish(job)
-        elif not self._worker.submit(job):
+            return
+        self._counts['frames_offloaded'] += 1
+        if not self._worker.submit(job):
             self._counts['dropped_busy'] += 1
             if 'dropped_busy' not in self._logged_causes:
                 self._logged_causes.add('dropped_busy')
@@ -273,7 +300,10 @@ class StripeExtractorNode(Node):
             counts['extraction_errors'] += 1
             self._skip_log_error(exc)
             return
-        self._extract_s += time.perf_counter() - t0
+        dt = time.perf_counter() - t0
+        self._extract_s += dt
+        if self._policy is not None:
+            self._policy.note_extraction(dt)
         counts['frames_extracted'] += 1
         counts['rejected_secondary'] += result.rejected_secondary
         header = cdr.Header(raw.stamp_sec, raw.stamp_nanosec, raw.frame_id)
@@ -327,9 +357,7 @@ class StripeExtractorNode(Node):
 
 
 def main(args=None):
-    # alone in its process the executor thread is mostly idle: extracting on it saves the
-    # thread hand-offs (benchmarks/pipeline.py, separate processes)
-    run_node(lambda: StripeExtractorNode(extraction_thread_default=False), args)
+    run_node(StripeExtractorNode, args)
 
 
 if __name__ == '__main__':

@@ -1,4 +1,5 @@
-"""One background thread that processes submitted items in order, with a bounded queue.
+"""One background thread that processes submitted items in order, with a bounded queue, and
+the rule that decides when to use it.
 
 No rclpy here. The extractor node hands each paired frame to a :class:`SerialWorker`, so the
 numba kernels (compiled with ``nogil=True``) run on the second core while the executor thread
@@ -51,6 +52,11 @@ class SerialWorker:
         return self._queue.qsize()
 
     @property
+    def idle(self) -> bool:
+        """Nothing waiting and nothing being processed."""
+        return self._queue.unfinished_tasks == 0
+
+    @property
     def alive(self) -> bool:
         return self._thread.is_alive()
 
@@ -83,3 +89,48 @@ class SerialWorker:
                 if self._on_error is not None:
                     self._on_error(exc)
             self.processed += 1
+            self._queue.task_done()
+
+
+class OffloadPolicy:
+    """When to hand frames to the worker: the ``auto`` mode of the extractor node.
+
+    Keeps running means (weight ``weight`` for the newest value) of the interval between
+    frames and of the extraction time. Frames go to the worker once extraction takes more
+    than ``above`` of the interval, and come back to the caller's thread once it takes less
+    than ``below`` and the worker is idle (so the output stays in order). An interval longer
+    than ``max_interval`` (a pause between scans) counts as ``max_interval`` [s].
+    """
+
+    def __init__(self, above: float = 0.4, below: float = 0.3, weight: float = 0.05,
+                 max_interval: float = 0.1):
+        if not 0.0 < below <= above or not 0.0 < weight <= 1.0 or max_interval <= 0.0:
+            raise ValueError('need 0 < below <= above, 0 < weight <= 1 and max_interval > 0')
+        self.above, self.below, self.weight, self.max_interval = above, below, weight, \
+            max_interval
+        self.offload = False
+        self.interval_mean = max_interval
+        self.extract_mean = 0.0
+        self._last = None
+
+    @property
+    def load(self) -> float:
+        """Mean extraction time / mean frame interval [1]."""
+        return self.extract_mean / self.interval_mean
+
+    def note_extraction(self, seconds: float) -> None:
+        """One frame's extraction time [s] (from whichever thread extracted it)."""
+        self.extract_mean += self.weight * (seconds - self.extract_mean)
+
+    def decide(self, now: float, worker_idle: bool) -> bool:
+        """A frame arrived at ``now`` [s, monotonic]: True to hand it to the worker."""
+        if self._last is not None:
+            interval = min(max(now - self._last, 0.0), self.max_interval)
+            self.interval_mean += self.weight * (interval - self.interval_mean)
+        self._last = now
+        load = self.extract_mean / max(self.interval_mean, 1e-9)
+        if not self.offload and load > self.above:
+            self.offload = True
+        elif self.offload and load < self.below and worker_idle:
+            self.offload = False
+        return self.offload
