@@ -132,11 +132,6 @@ class Writer:
         self.buf += raw
         self.buf.append(0)
 
-    def octets(self, data) -> None:
-        data = memoryview(data).cast('B')
-        self.pack('I', 4, len(data))
-        self.buf += data
-
     def f32_array(self, values: np.ndarray) -> None:
         values = np.asarray(values)
         self.pack('I', 4, values.shape[0])
