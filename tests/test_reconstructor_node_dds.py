@@ -62,109 +62,163 @@ def cloud_points(msg):
     return np.frombuffer(bytes(msg.data), CLOUD_DTYPE)
 
 
-def test_reconstructor_node(spawn, ros_env, tmp_path):
-    model = nominal_example_rig()
-    cal_path = tmp_path / 'truth_for_tests.yaml'
-    calibration_file.save(calibration_file.Calibration(model=model, source='simulator_truth'),
-                          cal_path)
-    proc = spawn([
-        sys.executable, '-m', 'reconstructor.reconstructor_node', '--ros-args',
-        '-p', f'calibration_file:={cal_path}', '-p', 'scan_end_timeout:=0.4'],
-        name='reconstructor')
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
-    node = Node('reconstructor_test', context=ctx)
-    ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
-    clouds = []
-    try:
-        pub = node.create_publisher(StripeCenters, 'stripe/centers',
-                                    QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
-        node.create_subscription(PointCloud2, 'points', clouds.append, 50)
+class Rig:
+    """A reconstructor process with a truth calibration, and a test node talking to it."""
+
+    def __init__(self, spawn, ros_env, tmp_path, *params):
+        self.model = nominal_example_rig()
+        self.cal_path = tmp_path / 'truth_for_tests.yaml'
+        calibration_file.save(
+            calibration_file.Calibration(model=self.model, source='simulator_truth'),
+            self.cal_path)
+        args = ['-p', f'calibration_file:={self.cal_path}', '-p', 'scan_end_timeout:=0.4']
+        for param in params:
+            args += ['-p', param]
+        self.proc = spawn([sys.executable, '-m', 'reconstructor.reconstructor_node',
+                           '--ros-args', *args], name='reconstructor')
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+        self.node = Node('reconstructor_test', context=self.ctx)
+        self.ex = rclpy.executors.SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.pub = self.node.create_publisher(
+            StripeCenters, 'stripe/centers',
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        self.clouds = []
+        self.node.create_subscription(PointCloud2, 'points', self.clouds.append, 50)
         deadline = time.monotonic() + 20
-        while pub.get_subscription_count() == 0 or node.count_publishers('points') == 0:
-            assert time.monotonic() < deadline and proc.poll() is None, \
-                proc.log_path.read_text()
-            ex.spin_once(timeout_sec=0.1)
+        while self.pub.get_subscription_count() == 0 or \
+                self.node.count_publishers('points') == 0:
+            assert time.monotonic() < deadline and self.proc.poll() is None, self.log()
+            self.ex.spin_once(timeout_sec=0.1)
 
-        frames = [(0.0, 0.0, 0.0, 0.0), (3.0, -2.0, 0.0, -1.5), (-6.0, 7.5, 0.0, 5.0)]
-        truth = []
-        bad = []
-        for seq, volts in enumerate(frames):
-            pts = stripe_points(model, volts)
-            truth.append(pts)
-            pub.publish(centers_msg(model, volts, seq, pts))
-            # bad input between good frames: each must be skipped without harm
-            m = centers_msg(model, volts, 100 + seq, pts)
-            if seq == 0:
-                m.v = m.v[:-1]  # length mismatch
-            elif seq == 1:
-                m.galvo.g1_tilt_voltage = math.nan
-            else:
-                m.galvo.g2_tilt_voltage = 12.0  # out of range
-            bad.append(m)
-            pub.publish(m)
-            # and a truncated CDR message, as a faulty writer could send it
-            pub.publish(serialize_message(m)[:60 + 40 * seq])
-        deadline = time.monotonic() + 15
-        while len(clouds) < len(frames) and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.1)
-        assert len(clouds) == len(frames), proc.log_path.read_text()
-        for msg, pts, seq in zip(clouds, truth, range(len(frames)), strict=True):
-            assert msg.header.frame_id == 'v0'
-            assert msg.header.stamp.sec == 100 + seq
-            assert msg.point_step == 20 and msg.row_step == 20 * msg.width and msg.is_dense
-            got = cloud_points(msg)
-            assert got.shape[0] == pts.shape[0]
-            xyz = np.column_stack([got['x'], got['y'], got['z']])
-            # float32 pixels and coordinates: ~1e-5 m is the representation limit here
-            np.testing.assert_allclose(xyz, pts, atol=2e-5)
-            np.testing.assert_array_equal(got['intensity'], np.arange(pts.shape[0]))
-        assert proc.poll() is None
-        deadline = time.monotonic() + 5          # the truncated messages were logged, not fatal
-        while 'skipping frame: malformed_cdr' not in proc.log_path.read_text():
-            assert time.monotonic() < deadline, proc.log_path.read_text()
-            time.sleep(0.1)
+    def log(self):
+        return self.proc.log_path.read_text()
 
-        # the accumulated scan arrives on the latched topic, also for a late subscriber
-        time.sleep(0.8)
-        scans = []
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        node.create_subscription(PointCloud2, 'points/scan', scans.append, latched)
-        deadline = time.monotonic() + 10
-        while not scans and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.1)
-        assert scans and scans[0].width == sum(len(p) for p in truth)
+    def spin_until(self, done, timeout):
+        deadline = time.monotonic() + timeout
+        while not done() and time.monotonic() < deadline:
+            self.ex.spin_once(timeout_sec=0.1)
 
-        save = node.create_client(SaveScan, 'reconstructor/save_scan')
-        assert save.wait_for_service(timeout_sec=10)
-        for name, ok in (('scan.ply', True), ('scan.pcd', True), ('scan.xyz', False)):
-            fut = save.call_async(SaveScan.Request(path=str(tmp_path / name)))
-            ex.spin_until_future_complete(fut, timeout_sec=10)
-            assert fut.result().success is ok, fut.result().message
-            if ok:
-                pcd = o3d.io.read_point_cloud(str(tmp_path / name))
-                assert len(pcd.points) == scans[0].width
+    def close(self):
+        self.ex.shutdown()
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
 
-        reload = node.create_client(LoadCalibration, 'reconstructor/reload_calibration')
-        assert reload.wait_for_service(timeout_sec=10)
-        broken = tmp_path / 'broken.yaml'
-        broken.write_text(cal_path.read_text().replace('l: 0.08345', 'l: 83.45'))
-        fut = reload.call_async(LoadCalibration.Request(path=str(broken)))
+
+@pytest.fixture
+def rig(spawn, ros_env, tmp_path):
+    rigs = []
+
+    def _start(*params):
+        rigs.append(Rig(spawn, ros_env, tmp_path, *params))
+        return rigs[-1]
+
+    yield _start
+    for r in rigs:
+        r.close()
+
+
+def test_reconstructor_node(rig, tmp_path):
+    r = rig()
+    model, proc, node, ex, pub, clouds = r.model, r.proc, r.node, r.ex, r.pub, r.clouds
+    cal_path = r.cal_path
+    frames = [(0.0, 0.0, 0.0, 0.0), (3.0, -2.0, 0.0, -1.5), (-6.0, 7.5, 0.0, 5.0)]
+    truth = []
+    bad = []
+    for seq, volts in enumerate(frames):
+        pts = stripe_points(model, volts)
+        truth.append(pts)
+        pub.publish(centers_msg(model, volts, seq, pts))
+        # bad input between good frames: each must be skipped without harm
+        m = centers_msg(model, volts, 100 + seq, pts)
+        if seq == 0:
+            m.v = m.v[:-1]  # length mismatch
+        elif seq == 1:
+            m.galvo.g1_tilt_voltage = math.nan
+        else:
+            m.galvo.g2_tilt_voltage = 12.0  # out of range
+        bad.append(m)
+        pub.publish(m)
+        # and a truncated CDR message, as a faulty writer could send it
+        pub.publish(serialize_message(m)[:60 + 40 * seq])
+    deadline = time.monotonic() + 15
+    while len(clouds) < len(frames) and time.monotonic() < deadline:
+        ex.spin_once(timeout_sec=0.1)
+    assert len(clouds) == len(frames), proc.log_path.read_text()
+    for msg, pts, seq in zip(clouds, truth, range(len(frames)), strict=True):
+        assert msg.header.frame_id == 'v0'
+        assert msg.header.stamp.sec == 100 + seq
+        assert msg.point_step == 20 and msg.row_step == 20 * msg.width and msg.is_dense
+        got = cloud_points(msg)
+        assert got.shape[0] == pts.shape[0]
+        xyz = np.column_stack([got['x'], got['y'], got['z']])
+        # float32 pixels and coordinates: ~1e-5 m is the representation limit here
+        np.testing.assert_allclose(xyz, pts, atol=2e-5)
+        np.testing.assert_array_equal(got['intensity'], np.arange(pts.shape[0]))
+    assert proc.poll() is None
+    deadline = time.monotonic() + 5          # the truncated messages were logged, not fatal
+    while 'skipping frame: malformed_cdr' not in proc.log_path.read_text():
+        assert time.monotonic() < deadline, proc.log_path.read_text()
+        time.sleep(0.1)
+
+    # the accumulated scan arrives on the latched topic, also for a late subscriber
+    time.sleep(0.8)
+    scans = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    node.create_subscription(PointCloud2, 'points/scan', scans.append, latched)
+    deadline = time.monotonic() + 10
+    while not scans and time.monotonic() < deadline:
+        ex.spin_once(timeout_sec=0.1)
+    assert scans and scans[0].width == sum(len(p) for p in truth)
+
+    save = node.create_client(SaveScan, 'reconstructor/save_scan')
+    assert save.wait_for_service(timeout_sec=10)
+    for name, ok in (('scan.ply', True), ('scan.pcd', True), ('scan.xyz', False)):
+        fut = save.call_async(SaveScan.Request(path=str(tmp_path / name)))
         ex.spin_until_future_complete(fut, timeout_sec=10)
-        assert not fut.result().success and 'model.l' in fut.result().message
-        # the previous calibration is still active
-        clouds.clear()
-        pub.publish(centers_msg(model, frames[1], 50, truth[1]))
-        deadline = time.monotonic() + 10
-        while not clouds and time.monotonic() < deadline:
-            ex.spin_once(timeout_sec=0.1)
-        assert clouds and cloud_points(clouds[0]).shape[0] == truth[1].shape[0]
-        log = proc.log_path.read_text()
-        for cause in ('array_length_mismatch', 'nonfinite_voltage', 'voltage_out_of_range'):
-            assert cause in log
-    finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
+        assert fut.result().success is ok, fut.result().message
+        if ok:
+            pcd = o3d.io.read_point_cloud(str(tmp_path / name))
+            assert len(pcd.points) == scans[0].width
+
+    reload = node.create_client(LoadCalibration, 'reconstructor/reload_calibration')
+    assert reload.wait_for_service(timeout_sec=10)
+    broken = tmp_path / 'broken.yaml'
+    broken.write_text(cal_path.read_text().replace('l: 0.08345', 'l: 83.45'))
+    fut = reload.call_async(LoadCalibration.Request(path=str(broken)))
+    ex.spin_until_future_complete(fut, timeout_sec=10)
+    assert not fut.result().success and 'model.l' in fut.result().message
+    # the previous calibration is still active
+    clouds.clear()
+    pub.publish(centers_msg(model, frames[1], 50, truth[1]))
+    deadline = time.monotonic() + 10
+    while not clouds and time.monotonic() < deadline:
+        ex.spin_once(timeout_sec=0.1)
+    assert clouds and cloud_points(clouds[0]).shape[0] == truth[1].shape[0]
+    log = proc.log_path.read_text()
+    for cause in ('array_length_mismatch', 'nonfinite_voltage', 'voltage_out_of_range'):
+        assert cause in log
+
+
+def test_scan_cloud_is_bounded_by_scan_max_points(rig):
+    """Continuous scanning: a scan cloud holding scan_max_points is published and the scan
+    goes on in a new one, so memory stays bounded and no point is lost or repeated."""
+    r = rig('scan_max_points:=1000')
+    scans = []
+    r.node.create_subscription(
+        PointCloud2, 'points/scan', scans.append,
+        QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                   durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    r.spin_until(lambda: r.node.count_publishers('points/scan') > 0, 10)
+    volts = (1.0, -0.5, 0.0, 0.5)
+    pts = stripe_points(r.model, volts, n=300)
+    for seq in range(7):                        # 2100 points: two splits, then the pause
+        r.pub.publish(centers_msg(r.model, volts, seq, pts))
+    r.spin_until(lambda: len(scans) >= 3, 15)
+    assert [s.width for s in scans] == [900, 900, 300], r.log()
+    got = np.concatenate([cloud_points(s) for s in scans])
+    np.testing.assert_array_equal(got['intensity'], np.tile(np.arange(300), 7))
+    assert r.log().count('reached scan_max_points') == 2
+    assert r.log().count('scan ended: 300 points') == 1

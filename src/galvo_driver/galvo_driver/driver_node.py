@@ -38,6 +38,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from galvo_driver import patterns
 from galvo_driver.backend import BackendError
+from galvoscan_common.runtime import tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay')
 
@@ -329,6 +330,7 @@ class GalvoDriverNode(LifecycleNode):
 
 
 def main(args=None):
+    tune_this_process()
     rclpy.init(args=args)
     node = GalvoDriverNode()
     executor = rclpy.executors.SingleThreadedExecutor()

@@ -13,6 +13,8 @@ of issue 8):
 - Fast DDS's default shared-memory segment (0.5 MB) holds one 389 kB image, so a frame
   published while a reader still holds the previous one is lost for it
   (``fastdds_profile.xml`` beside this file: a 32 MB segment; its comment has the figures).
+  Fast DDS 2.x reads the profile's path from ``FASTRTPS_DEFAULT_PROFILES_FILE`` only;
+  ``tests`` check that a participant really gets the large segment.
 
 :func:`child_env` adds all three as environment variables for processes the supervisor
 starts (glibc, OpenBLAS and Fast DDS read them at start-up); :func:`tune_this_process`
@@ -42,7 +44,9 @@ ENV = {
 
 #: Fast DDS participant profile with a shared-memory segment that holds many images.
 FASTDDS_PROFILE = Path(__file__).with_name('fastdds_profile.xml')
-_PROFILE_VARS = ('FASTDDS_DEFAULT_PROFILES_FILE', 'FASTRTPS_DEFAULT_PROFILES_FILE')
+#: Where Fast DDS looks for a default profile: 2.x (ROS 2 Jazzy ships 2.14) reads only
+#: ``FASTRTPS_DEFAULT_PROFILES_FILE``, 3.x only ``FASTDDS_DEFAULT_PROFILES_FILE``.
+PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 
 # mallopt parameter numbers from glibc's <malloc.h>
 _M_TRIM_THRESHOLD = -1
@@ -61,8 +65,9 @@ def child_env(env: dict | None = None) -> dict:
 def _add_fastdds_profile(env) -> None:
     """Point Fast DDS at :data:`FASTDDS_PROFILE` unless a profile or another RMW is chosen."""
     rmw = env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
-    if rmw.startswith('rmw_fastrtps') and not any(env.get(k) for k in _PROFILE_VARS):
-        env['FASTDDS_DEFAULT_PROFILES_FILE'] = str(FASTDDS_PROFILE)
+    if rmw.startswith('rmw_fastrtps') and not any(env.get(k) for k in PROFILE_VARS):
+        for key in PROFILE_VARS:
+            env[key] = str(FASTDDS_PROFILE)
 
 
 def tune_this_process() -> bool:

@@ -1,10 +1,11 @@
 """Process settings: what children get, and that mallopt really stops the page faults."""
 
+import os
 import subprocess
 import sys
 import textwrap
 
-from galvoscan_common.runtime import ENV, FASTDDS_PROFILE, child_env
+from galvoscan_common.runtime import ENV, FASTDDS_PROFILE, PROFILE_VARS, child_env
 
 # Makes three copies of a 389 kB buffer (one 720x540 image: a take, a Python bytes, a
 # message) and frees them, 300 times, and prints the minor page faults.
@@ -52,13 +53,54 @@ def test_image_sized_copies_stop_page_faulting_once_tuned():
 
 def test_fastdds_profile_only_when_nothing_else_is_chosen():
     assert FASTDDS_PROFILE.is_file()
-    assert child_env({})['FASTDDS_DEFAULT_PROFILES_FILE'] == str(FASTDDS_PROFILE)
-    assert child_env({'FASTRTPS_DEFAULT_PROFILES_FILE': '/mine.xml'}).get(
-        'FASTDDS_DEFAULT_PROFILES_FILE') is None
-    assert child_env({'FASTDDS_DEFAULT_PROFILES_FILE': '/mine.xml'})[
-        'FASTDDS_DEFAULT_PROFILES_FILE'] == '/mine.xml'
-    assert 'FASTDDS_DEFAULT_PROFILES_FILE' not in child_env(
-        {'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'})
+    env = child_env({})
+    assert [env[k] for k in PROFILE_VARS] == [str(FASTDDS_PROFILE)] * 2
+    for key in PROFILE_VARS:
+        mine = child_env({key: '/mine.xml'})
+        assert [mine.get(k) for k in PROFILE_VARS].count('/mine.xml') == 1
+        assert str(FASTDDS_PROFILE) not in mine.values()
+    assert not set(PROFILE_VARS) & set(child_env({'RMW_IMPLEMENTATION': 'rmw_cyclonedds_cpp'}))
+
+
+# Creates a participant and prints the sizes of the Fast DDS shared-memory segments mapped.
+_SEGMENTS = textwrap.dedent('''
+    import os, sys
+    from galvoscan_common.runtime import tune_this_process
+    if sys.argv[1] == 'tuned':
+        tune_this_process()
+    import rclpy
+    rclpy.init()
+    node = rclpy.create_node('segment_probe')
+    sizes = set()
+    with open(f'/proc/{os.getpid()}/maps') as maps:
+        for line in maps:
+            if '/dev/shm/fastrtps_' in line:
+                lo, hi = (int(x, 16) for x in line.split()[0].split('-'))
+                sizes.add(hi - lo)
+    node.destroy_node()
+    rclpy.shutdown()
+    print(max(sizes))
+''')
+
+
+def _largest_segment(mode, env):
+    out = subprocess.run([sys.executable, '-c', _SEGMENTS, mode], env=env, check=True,
+                         capture_output=True, text=True, timeout=60)
+    return int(out.stdout.strip().splitlines()[-1])
+
+
+def test_fastdds_really_loads_the_profile():
+    """The participant's own shared-memory segment has the profile's size, whether the
+    profile comes from the environment a child gets or from ``tune_this_process``; without
+    it, Fast DDS's 0.5 MB default (one image) is what a participant gets."""
+    import xml.etree.ElementTree as ET
+
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    size = int(ET.parse(FASTDDS_PROFILE).getroot().find('.//p:segment_size', ns).text)
+    plain = {k: v for k, v in os.environ.items() if k not in PROFILE_VARS}
+    assert _largest_segment('plain', plain) < 1024 * 1024
+    assert _largest_segment('tuned', plain) >= size
+    assert _largest_segment('plain', child_env(plain)) >= size
 
 
 def test_fastdds_profile_is_valid_xml_with_a_large_shm_segment():

@@ -7,7 +7,8 @@ Publishes
                      fields x, y, z, intensity (stripe strength, DN), width (stripe width, px)
     points/scan      sensor_msgs/PointCloud2, the accumulated cloud of the last scan
                      (transient-local, depth 1), published when frames stop for
-                     ``scan_end_timeout`` seconds
+                     ``scan_end_timeout`` seconds, or as soon as it holds
+                     ``scan_max_points`` (then the scan goes on in the next cloud)
     markers          visualization_msgs/MarkerArray: the current laser plane and the camera's
                      field of view, for an rviz-style viewer
 Services
@@ -31,7 +32,12 @@ import numpy as np
 from galvoscan_msgs.msg import StripeCenters
 from galvoscan_msgs.srv import LoadCalibration, SaveScan
 from geometry_msgs.msg import Point
-from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor, SetParametersResult
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
@@ -45,6 +51,9 @@ from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
 
 VOLTAGE_LIMIT = 10.0
+#: Default bound of the accumulated scan cloud [points]: 20 bytes each, so 200 MB, about
+#: 28 s of continuous scanning at 500 fps with 720 points per frame.
+SCAN_MAX_POINTS = 10_000_000
 
 
 class ReconstructorNode(Node):
@@ -62,6 +71,10 @@ class ReconstructorNode(Node):
         self.declare_parameter('scan_end_timeout', 0.5, ParameterDescriptor(
             description='a pause in frames this long ends a scan [s]',
             floating_point_range=[FloatingPointRange(from_value=0.05, to_value=60.0, step=0.0)]))
+        self.declare_parameter('scan_max_points', SCAN_MAX_POINTS, ParameterDescriptor(
+            description='a scan cloud holding this many points is published and a new one '
+                        'begins (bounds the memory of continuous scanning) [points]',
+            integer_range=[IntegerRange(from_value=1000, to_value=100_000_000, step=0)]))
         self.declare_parameter('marker_period', 0.1, ParameterDescriptor(
             description='minimum time between marker updates [s] (0 disables markers)',
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=10.0, step=0.0)]))
@@ -72,7 +85,8 @@ class ReconstructorNode(Node):
         self.add_post_set_parameters_callback(self._cache_parameters)
         self._cache_parameters()
 
-        self.counters = {'frames': 0, 'points': 0, 'invalid_points': 0, 'skipped': {}}
+        self.counters = {'frames': 0, 'points': 0, 'invalid_points': 0, 'scans': 0,
+                         'scan_splits': 0, 'skipped': {}}
         self._warned = set()
         self.model = None
         self.calibration = None
@@ -85,6 +99,7 @@ class ReconstructorNode(Node):
                                     'reconstructor/reload_calibration loads one')
 
         self._scan_parts = []
+        self._scan_points = 0
         self._last_scan = None
         self._last_frame_time = None
         self._last_marker = 0.0
@@ -113,8 +128,8 @@ class ReconstructorNode(Node):
     def _cache_parameters(self, _params=None):
         # read per frame: a dict lookup instead of rclpy's get_parameter
         self._p = {name: self.get_parameter(name).value for name in (
-            'frame_id', 'min_ray_plane_angle', 'scan_end_timeout', 'marker_period',
-            'marker_range')}
+            'frame_id', 'min_ray_plane_angle', 'scan_end_timeout', 'scan_max_points',
+            'marker_period', 'marker_range')}
 
     def _load(self, path):
         try:
@@ -177,7 +192,12 @@ class ReconstructorNode(Node):
         # invalid points are dropped, never sent as NaN: the cloud is dense
         self._pub_points.publish(cdr.serialize_point_cloud(cloud, header))
         if cloud.shape[0]:
+            if self._scan_points + cloud.shape[0] > self._p['scan_max_points'] and \
+                    self._scan_parts:
+                self.counters['scan_splits'] += 1
+                self._publish_scan('reached scan_max_points; the scan goes on in a new cloud')
             self._scan_parts.append(cloud)
+            self._scan_points += cloud.shape[0]
         self._maybe_markers(header, volts)
 
     def _check_scan_end(self):
@@ -185,14 +205,20 @@ class ReconstructorNode(Node):
         if self._last_frame_time is None or time.monotonic() - self._last_frame_time < timeout:
             return
         self._last_frame_time = None
+        self._publish_scan('scan ended')
+
+    def _publish_scan(self, why):
+        """Publish the accumulated cloud on points/scan and start an empty one."""
         scan = (np.concatenate(self._scan_parts) if self._scan_parts
                 else np.zeros(0, CLOUD_DTYPE))
         self._scan_parts = []
+        self._scan_points = 0
         self._last_scan = scan
+        self.counters['scans'] += 1
         sec, nanosec = divmod(self.get_clock().now().nanoseconds, 1_000_000_000)
         header = cdr.Header(sec, nanosec, self._p['frame_id'])
         self._pub_scan.publish(cdr.serialize_point_cloud(scan, header))
-        self.get_logger().info(f'scan ended: {scan.shape[0]} points on points/scan')
+        self.get_logger().info(f'{why}: {scan.shape[0]} points on points/scan')
 
     # -- markers ----------------------------------------------------------------------
     def _maybe_markers(self, header, volts):

@@ -37,6 +37,8 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
+from galvoscan_common.runtime import tune_this_process
+
 from .ros_messages import import_message_class, qos_to_rosbags, split_ros_args
 from .writer import ROSBAGS_CHUNK_LIMIT, BagWriter
 
@@ -286,6 +288,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'galvoscan record: error: {err}', file=sys.stderr)
         return 1
 
+    tune_this_process()
     rclpy.init(args=['galvoscan record', *ros_args])
     node = None
     status = 0

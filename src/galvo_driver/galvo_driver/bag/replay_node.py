@@ -20,6 +20,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
 
+from galvoscan_common.runtime import tune_this_process
+
 from .reader import BagReadError, read_messages, read_topics
 from .ros_messages import import_message_class, qos_from_rosbags, split_ros_args
 
@@ -183,6 +185,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'galvoscan replay: error: {err}', file=sys.stderr)
         return 1
 
+    tune_this_process()
     rclpy.init(args=['galvoscan replay', *ros_args])
     node = None
     status = 0
