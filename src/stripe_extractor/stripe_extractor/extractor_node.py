@@ -28,11 +28,13 @@ Where extraction runs (parameter ``extraction_thread``):
   (``dropped_busy``).
 - ``false``: on the executor thread, in the subscription callback. No thread hand-off, so
   the lowest latency while the executor thread has time to spare.
-- ``auto`` (the default): on the executor thread while the mean extraction time is below
-  ``AUTO_INLINE_BELOW`` of the mean interval between frames, on the extraction thread once
-  it exceeds ``AUTO_OFFLOAD_ABOVE`` (e.g. 1000 fps, or a loaded machine), and back only when
-  the thread has finished every frame it holds, so the output stays in order. Frames
-  extracted on the thread are counted (``frames_offloaded``).
+- ``auto`` (the default): on the executor thread while that thread can carry it, on the
+  extraction thread once it cannot (:class:`~stripe_extractor.worker.OffloadPolicy`): once
+  the executor thread's CPU time per frame, extraction included, exceeds
+  ``AUTO_OFFLOAD_ABOVE`` of the mean interval between frames (1000 fps; or 500 fps with the
+  other nodes on the same executor on a loaded machine), and back below
+  ``AUTO_INLINE_BELOW`` once the thread has finished every frame it holds, so the output
+  stays in order. Frames extracted on the thread are counted (``frames_offloaded``).
 
 Composition: ``StripeExtractorNode`` does not call ``rclpy.init``; pass ``context=...`` or
 other ``Node`` keyword arguments and add it to any executor together with other nodes
@@ -96,10 +98,10 @@ def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result) -> bytes:
 #: frames the image subscription, and the extraction queue, hold while the extractor is busy
 #: (about 12 MB each at 720x540)
 IMAGE_QUEUE_DEPTH = 30
-#: ``extraction_thread`` auto: extraction time / frame interval above which frames go to the
-#: extraction thread, and below which they return to the executor thread (benchmarks/pipeline.py:
-#: about 0.25 at 500 fps and 0.5 at 1000 fps on an unloaded machine)
-AUTO_OFFLOAD_ABOVE, AUTO_INLINE_BELOW = 0.4, 0.3
+#: ``extraction_thread`` auto: the executor thread's CPU time per frame, extraction included,
+#: over the frame interval, above which frames go to the extraction thread, and below which
+#: they return to the executor thread
+AUTO_OFFLOAD_ABOVE, AUTO_INLINE_BELOW = 0.9, 0.7
 EXTRACTION_THREAD_CHOICES = (True, False, 'auto')
 
 
@@ -147,8 +149,8 @@ class StripeExtractorNode(Node):
                 dynamic_typing=True, read_only=True,
                 description='Where to extract: true = on a separate thread (another core), '
                             'false = on the executor thread, auto = on the executor thread '
-                            'while extraction takes under 30 % of the frame interval, on the '
-                            'separate thread above 40 %',
+                            'while it is busy under 70 % of the frame interval, extraction '
+                            'included, on the separate thread above 90 %',
                 additional_constraints='true, false or auto'))
         self.declare_parameter('diagnostics_period', 1.0, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
@@ -269,7 +271,8 @@ class StripeExtractorNode(Node):
     def _submit(self, frame, state: cdr.GalvoState) -> None:
         job = (frame, state, self._config)
         if self._policy is not None:
-            offload = self._policy.decide(time.monotonic(), self._worker.idle)
+            offload = self._policy.decide(time.monotonic(), time.thread_time(),
+                                          self._worker.idle)
         else:
             offload = self._worker is not None
         if not offload:

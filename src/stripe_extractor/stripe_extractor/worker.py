@@ -95,40 +95,72 @@ class SerialWorker:
 class OffloadPolicy:
     """When to hand frames to the worker: the ``auto`` mode of the extractor node.
 
-    Keeps running means (weight ``weight`` for the newest value) of the interval between
-    frames and of the extraction time. Frames go to the worker once extraction takes more
-    than ``above`` of the interval, and come back to the caller's thread once it takes less
-    than ``below`` and the worker is idle (so the output stays in order). An interval longer
-    than ``max_interval`` (a pause between scans) counts as ``max_interval`` [s].
+    Frames are extracted on the caller's thread (the executor) while it can carry them, and
+    handed to the worker only once it cannot. A second thread does not make the work
+    cheaper: it costs a hand-over and a wait for the GIL per frame, and on a loaded machine
+    the GIL holder can be descheduled while the other thread waits (measured in
+    ``benchmarks/pipeline.py``: in a process of its own at 500 fps, where the executor thread
+    has nothing else to do, handing over lost up to half of the frames where extracting
+    inline lost 2 %). It pays when the executor thread also serves other nodes, or when the
+    frame rate leaves no time to extract inline.
+
+    The policy keeps running means (weight ``weight`` for the newest value) of the interval
+    between frames, of the caller thread's CPU time per frame, and of the extraction CPU
+    time. The *inline load* is the share of the frame interval the caller's thread would be
+    busy extracting every frame itself: its own CPU time per frame, plus the extraction time
+    while frames go to the worker. Frames go to the worker once the inline load exceeds
+    ``above``, and come back once it is below ``below`` and the worker is idle (so the output
+    stays in order). Intervals longer than ``max_interval`` (pauses between scans) are not
+    learned from.
     """
 
-    def __init__(self, above: float = 0.4, below: float = 0.3, weight: float = 0.05,
+    def __init__(self, above: float = 0.9, below: float = 0.7, weight: float = 0.05,
                  max_interval: float = 0.1):
         if not 0.0 < below <= above or not 0.0 < weight <= 1.0 or max_interval <= 0.0:
             raise ValueError('need 0 < below <= above, 0 < weight <= 1 and max_interval > 0')
         self.above, self.below, self.weight, self.max_interval = above, below, weight, \
             max_interval
         self.offload = False
-        self.interval_mean = max_interval
+        self.interval_mean = None
+        self.thread_cpu_mean = 0.0
         self.extract_mean = 0.0
         self._last = None
 
     @property
-    def load(self) -> float:
-        """Mean extraction time / mean frame interval [1]."""
-        return self.extract_mean / self.interval_mean
+    def inline_load(self) -> float:
+        """Share of the frame interval the caller's thread needs to extract inline [1]."""
+        if not self.interval_mean:
+            return 0.0
+        own = self.thread_cpu_mean + (self.extract_mean if self.offload else 0.0)
+        return own / self.interval_mean
 
     def note_extraction(self, seconds: float) -> None:
-        """One frame's extraction time [s] (from whichever thread extracted it)."""
+        """One frame's extraction CPU time [s] (from whichever thread extracted it)."""
         self.extract_mean += self.weight * (seconds - self.extract_mean)
 
-    def decide(self, now: float, worker_idle: bool) -> bool:
-        """A frame arrived at ``now`` [s, monotonic]: True to hand it to the worker."""
+    def decide(self, now: float, thread_cpu: float, worker_idle: bool) -> bool:
+        """A frame arrived: True to hand it to the worker.
+
+        Parameters
+        ----------
+        now : float
+            Arrival time [s, monotonic].
+        thread_cpu : float
+            The caller thread's CPU time so far [s] (``time.thread_time()``).
+        worker_idle : bool
+            Nothing is queued or running on the worker.
+        """
         if self._last is not None:
-            interval = min(max(now - self._last, 0.0), self.max_interval)
-            self.interval_mean += self.weight * (interval - self.interval_mean)
-        self._last = now
-        load = self.extract_mean / max(self.interval_mean, 1e-9)
+            interval = now - self._last[0]
+            if 0.0 < interval <= self.max_interval:
+                cpu = max(thread_cpu - self._last[1], 0.0)
+                if self.interval_mean is None:
+                    self.interval_mean, self.thread_cpu_mean = interval, cpu
+                else:
+                    self.interval_mean += self.weight * (interval - self.interval_mean)
+                    self.thread_cpu_mean += self.weight * (cpu - self.thread_cpu_mean)
+        self._last = (now, thread_cpu)
+        load = self.inline_load
         if not self.offload and load > self.above:
             self.offload = True
         elif self.offload and load < self.below and worker_idle:

@@ -73,39 +73,60 @@ def test_idle_only_when_nothing_waits_or_runs():
     assert w.stop(timeout=10)
 
 
-def _run_policy(policy, rate, extract_s, frames, t0=0.0, worker_idle=True):
-    """Frames at ``rate`` [1/s], each extracted in ``extract_s``; the decisions made."""
-    out = []
-    for i in range(frames):
-        out.append(policy.decide(t0 + i / rate, worker_idle))
-        policy.note_extraction(extract_s)
-    return out
+class _Thread:
+    """The caller's thread: ``other_s`` of other work per frame, plus each kept extraction."""
+
+    def __init__(self, policy):
+        self.policy, self.now, self.cpu = policy, 0.0, 0.0
+
+    def run(self, rate, other_s, extract_s, frames, worker_idle=True):
+        """``frames`` frames at ``rate`` [1/s]; the decisions made."""
+        out = []
+        for _ in range(frames):
+            self.now += 1.0 / rate
+            offload = self.policy.decide(self.now, self.cpu, worker_idle)
+            self.policy.note_extraction(extract_s)
+            self.cpu += other_s + (0.0 if offload else extract_s)
+            out.append(offload)
+        return out
 
 
-def test_policy_offloads_when_extraction_fills_the_interval_and_comes_back():
-    p = OffloadPolicy(above=0.4, below=0.3)
-    # 500 fps, 0.5 ms per frame: load 0.25, stays on the caller's thread
-    assert not any(_run_policy(p, 500.0, 0.5e-3, 400))
-    assert p.load == pytest.approx(0.25, rel=0.02)
-    # 1000 fps: load 0.5, offloads within a few dozen frames and stays there
-    d = _run_policy(p, 1000.0, 0.5e-3, 400, t0=1.0)
+def test_policy_extracts_inline_while_the_thread_can_carry_it():
+    p = OffloadPolicy(above=0.9, below=0.7)
+    t = _Thread(p)
+    # a process of its own at 500 fps: 0.3 ms other work + 0.7 ms extraction = load 0.5
+    assert not any(t.run(500.0, 0.3e-3, 0.7e-3, 400))
+    assert p.inline_load == pytest.approx(0.5, rel=0.02)
+    # the same at 1000 fps: load 1.0, offloads within a few dozen frames and stays there
+    d = t.run(1000.0, 0.3e-3, 0.7e-3, 400)
     assert d[-1] and all(d[d.index(True):]) and d.index(True) < 80
-    # back to 500 fps: returns only while the worker is idle
-    assert all(_run_policy(p, 500.0, 0.5e-3, 300, t0=2.0, worker_idle=False))
-    d = _run_policy(p, 500.0, 0.5e-3, 300, t0=3.0, worker_idle=True)
+    assert p.inline_load == pytest.approx(1.0, rel=0.02)    # extraction counted while offloaded
+    # back to 500 fps: returns only while the worker is idle, then stays inline
+    assert all(t.run(500.0, 0.3e-3, 0.7e-3, 300, worker_idle=False))
+    d = t.run(500.0, 0.3e-3, 0.7e-3, 300)
     assert not d[-1] and not any(d[d.index(False):])
-    # between the thresholds (load 0.35) the current choice holds: no flapping
-    assert not any(_run_policy(p, 500.0, 0.7e-3, 300, t0=4.0))
+    # a busy executor thread (other nodes on it: 1.1 ms + 0.7 ms at 500 fps, load 0.9+) offloads
+    assert t.run(500.0, 1.2e-3, 0.7e-3, 300)[-1]
+
+
+def test_policy_holds_its_choice_between_the_thresholds():
+    p = OffloadPolicy(above=0.9, below=0.7)
+    t = _Thread(p)
+    assert not any(t.run(500.0, 0.9e-3, 0.7e-3, 300))            # load 0.8, inline
     p.offload = True
-    assert all(_run_policy(p, 500.0, 0.7e-3, 300, t0=4.6))
+    assert all(t.run(500.0, 0.9e-3, 0.7e-3, 300))                # load 0.8, offloaded
 
 
-def test_policy_pause_counts_as_max_interval():
-    p = OffloadPolicy(above=0.4, below=0.3, max_interval=0.1)
-    _run_policy(p, 1000.0, 0.6e-3, 200)
+def test_policy_does_not_learn_from_pauses():
+    p = OffloadPolicy(above=0.9, below=0.7, max_interval=0.1)
+    t = _Thread(p)
+    t.run(1000.0, 0.3e-3, 0.8e-3, 200)
     assert p.offload
-    p.decide(100.0, True)                          # a 99 s pause between scans
-    assert p.interval_mean < 0.1 * 0.05 + 1e-3 + 1e-9
+    before = p.interval_mean, p.thread_cpu_mean
+    t.now += 99.0                                   # a 99 s pause between scans
+    t.cpu += 0.5
+    p.decide(t.now, t.cpu, True)
+    assert (p.interval_mean, p.thread_cpu_mean) == before and p.offload
 
 
 @pytest.mark.parametrize('kwargs', [dict(above=0.3, below=0.4), dict(below=0.0),
