@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from hypothesis import settings
@@ -19,6 +20,15 @@ from hypothesis import settings
 settings.register_profile('galvoscan', deadline=None,
                           derandomize=bool(os.environ.get('CI')))
 settings.load_profile('galvoscan')
+
+
+@pytest.fixture(scope='session', autouse=True)
+def _no_zombie_shm_segments():
+    """Tests SIGKILL DDS processes on purpose; remove the shared-memory segments they leave."""
+    yield
+    from galvoscan_common.runtime import remove_zombie_shm_segments
+
+    remove_zombie_shm_segments()
 
 
 @pytest.fixture
@@ -67,3 +77,50 @@ def spawn(ros_env, tmp_path):
 @pytest.fixture
 def venv_python():
     return sys.executable
+
+
+def _owned_shm_segments(pid):
+    """The Fast DDS segments whose ``_el`` lock file process ``pid`` holds exclusively: the
+    ones it owns (a participant holds shared locks on the segments of peers it maps)."""
+    inodes = set()
+    with open('/proc/locks') as locks:
+        for line in locks:
+            f = line.split()
+            if f[1] == 'FLOCK' and f[3] == 'WRITE' and f[4] == str(pid):
+                inodes.add(int(f[5].split(':')[2]))
+    shm = '/dev/shm'
+    return [os.path.join(shm, n[:-3]) for n in sorted(os.listdir(shm))
+            if n.startswith('fastrtps_') and n.endswith('_el') and 'port' not in n
+            and os.stat(os.path.join(shm, n)).st_ino in inodes]
+
+
+@pytest.fixture
+def shm_segment_owner(ros_env):
+    """``start()`` runs a process holding a DDS participant; returns (Popen, its segments).
+
+    Each process gets a domain of its own, so that they do not map each other's segments.
+    With ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST`` rmw_fastrtps adds a shared-memory
+    transport of its own (0.5 MB segment) beside the one of galvoscan's profile.
+    """
+    from galvoscan_common.runtime import child_env
+
+    procs = []
+    code = ('import rclpy, time; rclpy.init(); n = rclpy.create_node("segment_owner"); '
+            'print("up", flush=True); time.sleep(60)')
+
+    def _start():
+        domain = str(int(ros_env['ROS_DOMAIN_ID']) + len(procs))
+        proc = subprocess.Popen([sys.executable, '-c', code],
+                                env=child_env({**ros_env, 'ROS_DOMAIN_ID': domain}),
+                                stdout=subprocess.PIPE, text=True)
+        procs.append(proc)
+        assert proc.stdout.readline().strip() == 'up'
+        segments = [Path(s) for s in _owned_shm_segments(proc.pid)]
+        assert segments
+        return proc, segments
+
+    yield _start
+    for proc in procs:
+        proc.kill()
+        proc.wait(10)
+        proc.stdout.close()

@@ -33,7 +33,7 @@ from pathlib import Path
 import yaml
 
 from galvoscan_common.executor import spin_nodes
-from galvoscan_common.runtime import child_env, tune_this_process
+from galvoscan_common.runtime import child_env, remove_zombie_shm_segments, tune_this_process
 
 log = logging.getLogger('galvoscan.bringup')
 
@@ -101,6 +101,7 @@ class Supervisor:
         self._stopping = False
 
     def start(self):
+        remove_zombies()
         for child in self.children:
             self._start_child(child)
 
@@ -165,6 +166,16 @@ class Supervisor:
             deadline = time.monotonic() + timeout
             while time.monotonic() < deadline and any(c.proc.poll() is None for c in alive):
                 time.sleep(0.05)
+            if sig == signal.SIGKILL:
+                remove_zombies()
+
+
+def remove_zombies():
+    """Remove the shared-memory segments that dead DDS participants left, and say so."""
+    removed = remove_zombie_shm_segments()
+    if removed:
+        log.info('removed %d Fast DDS shared-memory segments of processes that are gone',
+                 len(removed))
 
 
 def node_class(name):
@@ -203,6 +214,7 @@ def run_one_process(nodes, params_file=None, duration=None, args=None):
     from rclpy.executors import ExternalShutdownException
 
     tune_this_process()
+    remove_zombies()
     ros_args = ['--ros-args'] + (['--params-file', str(params_file)] if params_file else [])
     rclpy.init(args=(args or []) + ros_args)
     instances = []

@@ -1,11 +1,19 @@
 """Process settings: what children get, and that mallopt really stops the page faults."""
 
 import os
+import signal
 import subprocess
 import sys
 import textwrap
 
-from galvoscan_common.runtime import ENV, FASTDDS_PROFILE, PROFILE_VARS, child_env
+from galvoscan_common.runtime import (
+    ENV,
+    FASTDDS_PROFILE,
+    PROFILE_VARS,
+    SHM_DIR,
+    child_env,
+    remove_zombie_shm_segments,
+)
 
 # Makes three copies of a 389 kB buffer (one 720x540 image: a take, a Python bytes, a
 # message) and frees them, 300 times, and prints the minor page faults.
@@ -110,3 +118,34 @@ def test_fastdds_profile_is_valid_xml_with_a_large_shm_segment():
     root = ET.parse(FASTDDS_PROFILE).getroot()
     sizes = [int(e.text) for e in root.iterfind('.//p:transport_descriptor/p:segment_size', ns)]
     assert sizes and min(sizes) >= 16 * 389 * 1024     # room for 16 images or more
+
+
+def test_zombie_segments_of_killed_processes_are_removed_and_live_ones_kept(
+        shm_segment_owner):
+    (dead, dead_segments), (_, live_segments) = shm_segment_owner(), shm_segment_owner()
+    assert not set(dead_segments) & set(live_segments)
+    assert all(s.parent == SHM_DIR for s in dead_segments + live_segments)
+    # the profile's 32 MB segment: it reached them through child_env
+    assert max(s.stat().st_size for s in dead_segments) >= 32 * 1024 * 1024
+    assert not set(remove_zombie_shm_segments()) & set(dead_segments + live_segments)
+    dead.send_signal(signal.SIGKILL)
+    dead.wait(10)
+    assert all(s.is_file() and _lock(s).is_file() for s in dead_segments)    # left behind
+    assert set(dead_segments) <= set(remove_zombie_shm_segments())
+    assert not any(s.exists() or _lock(s).exists() for s in dead_segments)
+    assert all(s.is_file() and _lock(s).is_file() for s in live_segments)    # kept
+
+
+def _lock(segment):
+    return segment.with_name(segment.name + '_el')
+
+
+def test_zombie_cleaning_leaves_other_files_and_a_missing_directory_alone(tmp_path):
+    (tmp_path / 'fastrtps_port7411_el').write_bytes(b'')
+    (tmp_path / 'fastrtps_0123456789abcdef').write_bytes(b'x')
+    (tmp_path / 'fastrtps_0123456789abcdef_el').write_bytes(b'')
+    (tmp_path / 'unrelated_el').write_bytes(b'')
+    assert remove_zombie_shm_segments(tmp_path) == [tmp_path / 'fastrtps_0123456789abcdef']
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['fastrtps_port7411_el',
+                                                          'unrelated_el']
+    assert remove_zombie_shm_segments(tmp_path / 'missing') == []
