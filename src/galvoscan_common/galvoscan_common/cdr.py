@@ -292,21 +292,30 @@ def _fields_block(dt: np.dtype) -> bytes:
     return block
 
 
-def serialize_point_cloud(points: np.ndarray, header: Header, is_dense: bool = True) -> bytes:
+def serialize_point_cloud(points, header: Header, is_dense: bool = True) -> bytes:
     """An unorganised sensor_msgs/PointCloud2 (height 1) holding a structured array.
 
-    Every field of ``points.dtype`` becomes a PointField (count 1) at its offset; fields must be
-    little-endian scalars of a PointField type. Written in one join (a frame's cloud is
-    published at up to 1 kHz).
+    ``points`` is one structured array, or a sequence of them with one dtype (the parts of
+    an accumulated scan, written one after the other without being concatenated first).
+    Every field of the dtype becomes a PointField (count 1) at its offset; fields must be
+    little-endian scalars of a PointField type. Written in one join, the points copied
+    once (a frame's cloud is published at up to 1 kHz, a scan's can hold millions).
     """
-    fields = _fields_block(points.dtype)
+    parts = [points] if isinstance(points, np.ndarray) else list(points)
+    if not parts:
+        raise ValueError('points: an empty sequence has no dtype; pass an empty array')
+    dt = parts[0].dtype
+    if any(p.dtype != dt or p.ndim != 1 for p in parts):
+        raise ValueError('points: every part must be 1-D with the same dtype')
+    fields = _fields_block(dt)
     frame_id = header.frame_id.encode('utf-8')
     head = _struct('<4siII').pack(CDR_LE + b'\x00\x00', header.sec, header.nanosec,
                                   len(frame_id) + 1)
     pad = -(len(head) + len(frame_id) + 1 - 4) % 4
-    n, step = points.shape[0], points.dtype.itemsize
+    n, step = sum(p.shape[0] for p in parts), dt.itemsize
     # after the fields (from a 4-byte boundary): is_bigendian, padding, three uint32
     tail_pad = -(len(fields) + 1) % 4
     return b''.join((head, frame_id, bytes(1 + pad), _struct('<II').pack(1, n), fields,
                      bytes(1 + tail_pad), _struct('<III').pack(step, step * n, step * n),
-                     np.ascontiguousarray(points).tobytes(), b'\x01' if is_dense else b'\x00'))
+                     *(np.ascontiguousarray(p) for p in parts),
+                     b'\x01' if is_dense else b'\x00'))

@@ -118,6 +118,11 @@ def test_point_cloud_is_what_rclpy_reads(n, seed, frame_id):
         ('z', 8, PointField.FLOAT32, 1), ('i', 12, PointField.FLOAT64, 1),
         ('n', 20, PointField.UINT16, 1)]
     assert bytes(ros.data) == pts.tobytes()
+    # the same points in parts (an accumulated scan): the same message
+    cuts = np.sort(rng.integers(0, n + 1, 3))
+    parts = np.split(pts, cuts)
+    assert cdr.serialize_point_cloud(parts, cdr.Header(5, 6, frame_id)) == \
+        cdr.serialize_point_cloud(pts, cdr.Header(5, 6, frame_id))
 
 
 def test_point_cloud_rejects_what_point_field_cannot_describe():
@@ -125,6 +130,13 @@ def test_point_cloud_rejects_what_point_field_cannot_describe():
         cdr.serialize_point_cloud(np.zeros(3), cdr.Header())
     with pytest.raises(ValueError, match='PointField'):
         cdr.serialize_point_cloud(np.zeros(3, [('x', '>f4')]), cdr.Header())
+    xyz = np.zeros(3, [('x', '<f4'), ('y', '<f4'), ('z', '<f4')])
+    with pytest.raises(ValueError, match='same dtype'):
+        cdr.serialize_point_cloud([xyz, np.zeros(2, [('x', '<f4')])], cdr.Header())
+    with pytest.raises(ValueError, match='same dtype'):
+        cdr.serialize_point_cloud([xyz.reshape(3, 1)], cdr.Header())
+    with pytest.raises(ValueError, match='empty sequence'):
+        cdr.serialize_point_cloud([], cdr.Header())
 
 
 @settings(max_examples=300, deadline=None)
