@@ -10,7 +10,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import pytest
 from hypothesis import settings
@@ -82,16 +81,16 @@ def venv_python():
 def _owned_shm_segments(pid):
     """The Fast DDS segments whose ``_el`` lock file process ``pid`` holds exclusively: the
     ones it owns (a participant holds shared locks on the segments of peers it maps)."""
+    from galvoscan_common.runtime import SEGMENT_LOCK, SHM_DIR
+
     inodes = set()
     with open('/proc/locks') as locks:
         for line in locks:
             f = line.split()
             if f[1] == 'FLOCK' and f[3] == 'WRITE' and f[4] == str(pid):
                 inodes.add(int(f[5].split(':')[2]))
-    shm = '/dev/shm'
-    return [os.path.join(shm, n[:-3]) for n in sorted(os.listdir(shm))
-            if n.startswith('fastrtps_') and n.endswith('_el') and 'port' not in n
-            and os.stat(os.path.join(shm, n)).st_ino in inodes]
+    return [SHM_DIR / n[:-3] for n in sorted(os.listdir(SHM_DIR))
+            if SEGMENT_LOCK.match(n) and (SHM_DIR / n).stat().st_ino in inodes]
 
 
 @pytest.fixture
@@ -115,7 +114,7 @@ def shm_segment_owner(ros_env):
                                 stdout=subprocess.PIPE, text=True)
         procs.append(proc)
         assert proc.stdout.readline().strip() == 'up'
-        segments = [Path(s) for s in _owned_shm_segments(proc.pid)]
+        segments = _owned_shm_segments(proc.pid)
         assert segments
         return proc, segments
 

@@ -55,7 +55,7 @@ PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE
 SHM_DIR = Path('/dev/shm')
 #: A participant's segment ``fastrtps_<16 hex digits>`` has this lock file beside it, which the
 #: owner holds (flock) while it is alive.
-_SEGMENT_LOCK = re.compile(r'^fastrtps_[0-9a-f]{16}_el$')
+SEGMENT_LOCK = re.compile(r'^fastrtps_[0-9a-f]{16}_el$')
 
 # mallopt parameter numbers from glibc's <malloc.h>
 _M_TRIM_THRESHOLD = -1
@@ -118,7 +118,7 @@ def remove_zombie_shm_segments(shm_dir: Path = SHM_DIR) -> list[Path]:
     except OSError:
         return removed
     for name in names:
-        if not _SEGMENT_LOCK.match(name):
+        if not SEGMENT_LOCK.match(name):
             continue
         lock = Path(shm_dir) / name
         segment = lock.with_name(name[:-3])
