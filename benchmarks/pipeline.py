@@ -9,16 +9,27 @@ Arrangements:
   one process, 1000 fps
   separate processes, 500 fps   extractor and reconstructor each in its own process
 
+What the machine gives in the same run (this shared machine's speed varies with the load
+other tenants put on it, so the targets are read against these):
+  floor, 500 fps and 1000 fps   the same player and sink with a relay in place of the
+      extractor and reconstructor: it takes each image and its state (raw, the extractor's
+      QoS) and answers with an empty PointCloud2 carrying the image's stamp. What DDS and
+      rclpy alone cost per frame and lose on this machine now; no pipeline can do better.
+  extract_ms_median   single-thread time of ``stripe_extractor.extract`` on the recorded
+      frames, before the arrangements.
+
 Figures: dropped frames [%] (frames published whose cloud never arrived), the p99
 frame-to-cloud latency [ms] (cloud receipt time minus the image's publish time) and the CPU
 time per frame [ms]: of the executor thread and of the whole process (one process), or of
-all processes (separate), and where frames were lost (the extractor's counters from its
-``diagnostics``). The processes get the malloc, BLAS and Fast DDS settings of
-``galvoscan_common.runtime``, as ``galvoscan run`` gives them. The last stdout line is one
-JSON object.
+all processes (separate), where frames were lost (the extractor's counters from its
+``diagnostics``), and the steal time [%]: the share of the machine's CPU time that the
+hypervisor gave to other guests while the arrangement ran. The processes get the malloc,
+BLAS and Fast DDS settings of ``galvoscan_common.runtime``, as ``galvoscan run`` gives them.
+The last stdout line is one JSON object.
 
     .venv/bin/python benchmarks/pipeline.py [--frames 10000] [--distinct 100]
-                                            [--extraction-thread {default,true,false}]
+                                            [--extraction-thread {default,true,false,auto}]
+                                            [--only ARRANGEMENT ...]
 """
 
 from __future__ import annotations
@@ -132,9 +143,41 @@ class Bench:
             self.sent += 1
 
 
-#: name: (frame rate [1/s], one process)
-ARRANGEMENTS = {'one_process_500': (500.0, True), 'one_process_1000': (1000.0, True),
-                'separate_500': (500.0, False)}
+class Relay:
+    """The floor's stand-in for extractor + reconstructor: image and state in, empty cloud out."""
+
+    def __init__(self, node):
+        from galvoscan_msgs.msg import GalvoState
+        from rclpy.qos import (
+            HistoryPolicy,
+            QoSProfile,
+            ReliabilityPolicy,
+            qos_profile_sensor_data,
+        )
+        from sensor_msgs.msg import Image, PointCloud2
+
+        from stripe_extractor.extractor_node import IMAGE_QUEUE_DEPTH
+
+        self.empty = np.zeros(0, np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4')]))
+        self.pub = node.create_publisher(
+            PointCloud2, 'points', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        node.create_subscription(Image, 'camera/image_raw', self._on_image, QoSProfile(
+            depth=IMAGE_QUEUE_DEPTH, reliability=qos_profile_sensor_data.reliability,
+            history=HistoryPolicy.KEEP_LAST), raw=True)
+        node.create_subscription(GalvoState, 'galvo/state', lambda data: None, QoSProfile(
+            depth=50, reliability=ReliabilityPolicy.BEST_EFFORT), raw=True)
+
+    def _on_image(self, data):
+        from galvoscan_common import cdr
+
+        sec, nsec = struct.unpack_from('<iI', data, 4)
+        self.pub.publish(cdr.serialize_point_cloud(self.empty, cdr.Header(sec, nsec, 'v0')))
+
+
+#: name: (frame rate [1/s], arrangement: 'one' process, 'separate' processes or the 'floor')
+ARRANGEMENTS = {'one_process_500': (500.0, 'one'), 'one_process_1000': (1000.0, 'one'),
+                'separate_500': (500.0, 'separate'), 'floor_500': (500.0, 'floor'),
+                'floor_1000': (1000.0, 'floor')}
 
 
 def _children_cpu(procs) -> np.ndarray:
@@ -149,7 +192,13 @@ def _children_cpu(procs) -> np.ndarray:
     return out
 
 
-def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread=None):
+def _cpu_ticks() -> np.ndarray:
+    """The machine's CPU time by state since boot (the ``cpu`` line of /proc/stat)."""
+    with open('/proc/stat') as f:
+        return np.array(f.readline().split()[1:], dtype=np.int64)
+
+
+def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread=None):
     """One arrangement; ``extraction_thread`` None keeps the node's default for it."""
     import rclpy
     from rclpy.experimental import EventsExecutor
@@ -165,7 +214,12 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
     ex.add_node(node)
     procs, nodes = [], []
     try:
-        if one_process:
+        if arrangement == 'floor':
+            relay = Node('relay', context=ctx)
+            Relay(relay)
+            nodes = [relay]
+            ex.add_node(relay)
+        elif arrangement == 'one':
             from reconstructor.reconstructor_node import ReconstructorNode
             from stripe_extractor.extractor_node import StripeExtractorNode
 
@@ -209,6 +263,7 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
         bench.latency.clear()
         bench.t0 = None
         cpu0 = (time.thread_time(), time.process_time(), _children_cpu(procs))
+        ticks0 = _cpu_ticks()
         counts0 = dict(bench.extractor_counts)
         while bench.sent < bench.total:
             bench.publish_due()
@@ -218,6 +273,7 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
         t_end = time.monotonic() + 3.0
         while time.monotonic() < t_end and bench.received < total:
             ex.spin_once(timeout_sec=0.01)
+        ticks = _cpu_ticks() - ticks0
         thread_s, process_s, children_s = (b - a for a, b in zip(
             cpu0, (time.thread_time(), time.process_time(), _children_cpu(procs)),
             strict=True))
@@ -231,11 +287,15 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
                'p50_ms': float(np.percentile(lat, 50)) if lat.size else float('nan'),
                'p99_ms': float(np.percentile(lat, 99)) if lat.size else float('nan'),
                'executor_thread_cpu_ms_per_frame': 1e3 * thread_s / sent,
-               'cpu_ms_per_frame': 1e3 * (process_s + children_s.sum()) / sent}
+               'cpu_ms_per_frame': 1e3 * (process_s + children_s.sum()) / sent,
+               # the share of the machine's CPU time the hypervisor gave to other guests
+               'steal_pct': 100.0 * ticks[7] / max(ticks.sum(), 1)}
         if procs:
             out['cpu_ms_per_frame_by_process'] = dict(zip(
                 ('player_and_sink', 'stripe_extractor', 'reconstructor'),
                 (1e3 * x / sent for x in (process_s, *children_s)), strict=True))
+        if arrangement == 'floor':
+            return out
         # where frames were lost: not taken by the extractor, dropped at its queue, or later
         out['extractor'] = {k: int(bench.extractor_counts.get(k, 0)) - int(counts0.get(k, 0))
                             for k in ('images_received', 'dropped_busy', 'centers_published',
@@ -254,6 +314,22 @@ def run(frames, rate, total, one_process, cal_path, warmup=50, extraction_thread
         node.destroy_node()
         ex.shutdown()
         rclpy.try_shutdown(context=ctx)
+
+
+def extract_reference(frames, repeats=3) -> float:
+    """Median single-thread time [ms] of ``extract()`` over the recorded frames."""
+    from stripe_extractor.extractor import extract, warm_up
+    from stripe_extractor.image_msg import image_to_array, parse_image_cdr
+
+    warm_up()
+    images = [image_to_array(parse_image_cdr(bytes(img))) for img, _ in frames]
+    times = []
+    for _ in range(repeats):
+        for img in images:
+            t0 = time.perf_counter()
+            extract(img)
+            times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
 
 
 def main():
@@ -285,10 +361,12 @@ def main():
         skipped = dict.fromkeys(('drop_pct', 'p50_ms', 'p99_ms', 'cpu_ms_per_frame',
                                  'executor_thread_cpu_ms_per_frame'))
         results = dict.fromkeys(ARRANGEMENTS, skipped)
-        for key, (rate, one) in ARRANGEMENTS.items():
+        extract_ms = extract_reference(frames)
+        print(f'extract() median {extract_ms:.3f} ms per frame (single thread)', flush=True)
+        for key, (rate, arrangement) in ARRANGEMENTS.items():
             if args.only and key not in args.only:
                 continue
-            r = run(frames, rate, args.frames, one, cal, extraction_thread={
+            r = run(frames, rate, args.frames, arrangement, cal, extraction_thread={
                 'default': None, 'true': True, 'false': False, 'auto': 'auto'}[
                     args.extraction_thread])
             results[key] = r
@@ -305,9 +383,14 @@ def main():
             results['one_process_500']['executor_thread_cpu_ms_per_frame'],
         'one_process_500_cpu_ms_per_frame': results['one_process_500']['cpu_ms_per_frame'],
         'separate_500_cpu_ms_per_frame': results['separate_500']['cpu_ms_per_frame'],
+        'floor_500_p99_ms': results['floor_500']['p99_ms'],
+        'floor_1000_drop_pct': results['floor_1000']['drop_pct'],
+        'floor_1000_cpu_ms_per_frame': results['floor_1000']['cpu_ms_per_frame'],
+        'extract_ms_median': extract_ms,
         'frames_per_arrangement': args.frames,
         'extraction_thread': args.extraction_thread,
         'load_average_1min': load,
+        'steal_pct': {k: r.get('steal_pct') for k, r in results.items()},
     }
     print(json.dumps(out))
 
