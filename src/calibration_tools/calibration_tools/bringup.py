@@ -7,7 +7,9 @@ file would pass it, so the same file works with an apt ROS install.
 One process
     All nodes on one ``rclpy.experimental.EventsExecutor``, driven by ``spin_once`` (its
     ``spin()`` ignores SIGINT/SIGTERM in rclpy 7.1). ``MultiThreadedExecutor`` loses most
-    500 Hz frames here.
+    500 Hz frames here. With the driver in the process, the extractor's ``intra_process``
+    defaults to true: the driver hands it each image and state directly
+    (:mod:`galvoscan_common.intra`) and publishes them over DDS only to other subscribers.
 Separate processes
     Each node runs its own console script with ``--ros-args --params-file``, with the
     malloc, BLAS and Fast DDS settings of :mod:`galvoscan_common.runtime` in its environment
@@ -208,6 +210,13 @@ def _spin_in_thread(node):
     return thread
 
 
+def composed_defaults(name: str, nodes) -> dict:
+    """Constructor defaults of node ``name`` when ``nodes`` share its process."""
+    if name == 'stripe_extractor' and 'galvo_driver' in nodes:
+        return {'intra_process_default': True}
+    return {}
+
+
 def run_one_process(nodes, params_file=None, duration=None, args=None):
     """Run ``nodes`` in this process on one EventsExecutor until Ctrl-C or ``duration`` [s]."""
     import rclpy
@@ -221,7 +230,7 @@ def run_one_process(nodes, params_file=None, duration=None, args=None):
     try:
         on_executor = []
         for name in nodes:
-            node = node_class(name)()
+            node = node_class(name)(**composed_defaults(name, nodes))
             instances.append(node)
             if name in BLOCKING_NODES:
                 # its services wait on other nodes' services: give it its own executor

@@ -38,6 +38,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from galvo_driver import patterns
 from galvo_driver.backend import BackendError
+from galvoscan_common import cdr, intra
 from galvoscan_common.runtime import tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay')
@@ -57,9 +58,10 @@ def make_backend(name: str, params: dict):
     raise ValueError(f"backend: unknown '{name}'; known: {', '.join(BACKENDS)}")
 
 
-def _stamp(msg_stamp, frame):
+def _stamp(frame) -> tuple[int, int]:
+    """(sec, nanosec) of a frame's stamp."""
     ns = frame.stamp_ns if frame.stamp_ns is not None else int(round(frame.stamp * 1e9))
-    msg_stamp.sec, msg_stamp.nanosec = divmod(ns, 1_000_000_000)
+    return divmod(ns, 1_000_000_000)
 
 
 class GalvoDriverNode(LifecycleNode):
@@ -133,9 +135,15 @@ class GalvoDriverNode(LifecycleNode):
             self.backend = None
             return TransitionCallbackReturn.FAILURE
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self._pubs = (self.create_lifecycle_publisher(Image, 'camera/image_raw', qos),
-                      self.create_lifecycle_publisher(CameraInfo, 'camera/camera_info', qos),
-                      self.create_lifecycle_publisher(GalvoState, 'galvo/state', qos))
+        # images and states go out as CDR bytes, handed directly to in-process subscribers
+        # (galvoscan run --one-process) and over DDS to everyone else
+        bus = intra.bus_for(self.context)
+        self._pubs = (
+            intra.HandOffPublisher(self.create_lifecycle_publisher(
+                Image, 'camera/image_raw', qos), bus, self._on_handoff_error),
+            self.create_lifecycle_publisher(CameraInfo, 'camera/camera_info', qos),
+            intra.HandOffPublisher(self.create_lifecycle_publisher(
+                GalvoState, 'galvo/state', qos), bus, self._on_handoff_error))
         self._camera_info = self._make_camera_info()
         self.get_logger().info(f'configured backend {self.backend.name}')
         return TransitionCallbackReturn.SUCCESS
@@ -236,26 +244,22 @@ class GalvoDriverNode(LifecycleNode):
             self.get_logger().warning(f"sequence gap: {scan['last_seq']} -> {frame.seq}")
         scan['last_seq'] = frame.seq
         scan['done'] += 1
-        state = GalvoState()
-        _stamp(state.header.stamp, frame)
-        state.header.frame_id = self.get_parameter('output_frame_id').value
-        state.seq = int(frame.seq)
-        (state.g1_pan_voltage, state.g1_tilt_voltage,
-         state.g2_pan_voltage, state.g2_tilt_voltage) = (float(v) for v in frame.voltages)
-        state.laser_on = bool(frame.laser_on)
-        state.status = int(frame.status)
+        sec, nanosec = _stamp(frame)
+        state = cdr.GalvoState(
+            cdr.Header(sec, nanosec, self.get_parameter('output_frame_id').value),
+            int(frame.seq), *(float(v) for v in frame.voltages), bool(frame.laser_on),
+            int(frame.status))
         if frame.image is not None:
-            img = Image()
-            img.header.stamp = state.header.stamp
-            img.header.frame_id = self.get_parameter('camera_frame_id').value
-            img.height, img.width = frame.image.shape
-            img.encoding = 'mono8' if frame.image.dtype == np.uint8 else 'mono16'
-            img.step = frame.image.strides[0]
-            img.data = frame.image.tobytes()
-            img_pub.publish(img)
-            self._camera_info.header.stamp = state.header.stamp
+            img_pub.publish(cdr.serialize_image(frame.image, cdr.Header(
+                sec, nanosec, self.get_parameter('camera_frame_id').value)))
+            stamp = self._camera_info.header.stamp
+            stamp.sec, stamp.nanosec = sec, nanosec
             info_pub.publish(self._camera_info)
-        state_pub.publish(state)
+        state_pub.publish(cdr.serialize_galvo_state(state))
+
+    def _on_handoff_error(self, exc: BaseException) -> None:
+        self.get_logger().error(f'an in-process subscriber failed on a frame: {exc!r}',
+                                throttle_duration_sec=5.0)
 
     # -- services ---------------------------------------------------------------------
     def _on_start(self, req, resp):

@@ -319,3 +319,33 @@ def serialize_point_cloud(points, header: Header, is_dense: bool = True) -> byte
                      bytes(1 + tail_pad), _struct('<III').pack(step, step * n, step * n),
                      *(np.ascontiguousarray(p) for p in parts),
                      b'\x01' if is_dense else b'\x00'))
+
+
+#: sensor_msgs/Image encoding of each image dtype.
+IMAGE_ENCODINGS = {np.dtype(np.uint8): 'mono8', np.dtype(np.uint16): 'mono16'}
+
+
+def serialize_image(image: np.ndarray, header: Header) -> bytes:
+    """A mono8 / mono16 sensor_msgs/Image of a 2-D uint8 / uint16 array, pixels copied once.
+
+    ``is_bigendian`` and the pixel bytes follow the array's byte order; ``step`` is the row
+    length in bytes (rows are written without padding).
+    """
+    if not isinstance(image, np.ndarray) or image.ndim != 2:
+        raise ValueError('image must be a 2-D numpy array')
+    encoding = IMAGE_ENCODINGS.get(image.dtype.newbyteorder('='))
+    if encoding is None:
+        raise ValueError(f'image dtype must be uint8 or uint16, got {image.dtype}')
+    order = image.dtype.byteorder
+    big = order == '>' or (order == '=' and not np.little_endian)
+    h, w = image.shape
+    step = w * image.dtype.itemsize
+    frame_id = header.frame_id.encode('utf-8')
+    enc = encoding.encode()
+    head = _struct('<4siII').pack(CDR_LE + b'\x00\x00', header.sec, header.nanosec,
+                                  len(frame_id) + 1)
+    pad = -(len(frame_id) + 1) % 4     # head ends on a 4-byte boundary (counted after 4)
+    return b''.join((head, frame_id, bytes(1 + pad), _struct('<III').pack(h, w, len(enc) + 1),
+                     # encoding and its NUL, is_bigendian, padding to step's 4-byte boundary
+                     enc, b'\x00', b'\x01' if big else b'\x00', bytes(-(len(enc) + 2) % 4),
+                     _struct('<II').pack(step, step * h), np.ascontiguousarray(image)))

@@ -8,7 +8,7 @@ from galvoscan_msgs.msg import GalvoState, StripeCenters
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from rclpy.serialization import deserialize_message, serialize_message
-from sensor_msgs.msg import PointCloud2, PointField
+from sensor_msgs.msg import Image, PointCloud2, PointField
 
 from galvoscan_common import cdr
 
@@ -123,6 +123,33 @@ def test_point_cloud_is_what_rclpy_reads(n, seed, frame_id):
     parts = np.split(pts, cuts)
     assert cdr.serialize_point_cloud(parts, cdr.Header(5, 6, frame_id)) == \
         cdr.serialize_point_cloud(pts, cdr.Header(5, 6, frame_id))
+
+
+@settings(max_examples=40, deadline=None)
+@given(h=st.integers(0, 9), w=st.integers(0, 9), dtype=st.sampled_from(['u1', '<u2', '>u2']),
+       seed=st.integers(0, 10**6), frame_id=TEXT)
+def test_image_is_what_rclpy_reads(h, w, dtype, seed, frame_id):
+    img = np.random.default_rng(seed).integers(0, 2**16, (h, w)).astype(dtype)
+    ros = deserialize_message(cdr.serialize_image(img, cdr.Header(-7, 8, frame_id)), Image)
+    assert (ros.header.stamp.sec, ros.header.stamp.nanosec, ros.header.frame_id) == (
+        -7, 8, frame_id)
+    assert (ros.height, ros.width, ros.step) == (h, w, w * img.itemsize)
+    assert (ros.encoding, ros.is_bigendian) == (
+        'mono8' if img.itemsize == 1 else 'mono16', dtype == '>u2')
+    assert bytes(ros.data) == img.tobytes()
+
+
+def test_image_of_a_view_is_written_contiguous():
+    img = np.arange(60, dtype=np.uint8).reshape(6, 10)[1:5, 2:9]
+    ros = deserialize_message(cdr.serialize_image(img, cdr.Header()), Image)
+    assert (ros.height, ros.width, ros.step, bytes(ros.data)) == (4, 7, 7, img.tobytes())
+
+
+def test_image_rejects_what_mono_encodings_cannot_describe():
+    for bad in (np.zeros((2, 2), np.float32), np.zeros((2, 2, 3), np.uint8),
+                np.zeros(4, np.uint8), [[1, 2], [3, 4]]):
+        with pytest.raises(ValueError, match='image'):
+            cdr.serialize_image(bad, cdr.Header())
 
 
 def test_point_cloud_rejects_what_point_field_cannot_describe():

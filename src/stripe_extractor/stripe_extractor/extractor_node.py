@@ -39,6 +39,13 @@ Where extraction runs (parameter ``extraction_thread``):
 Composition: ``StripeExtractorNode`` does not call ``rclpy.init``; pass ``context=...`` or
 other ``Node`` keyword arguments and add it to any executor together with other nodes
 (``galvoscan run --one-process`` puts every node on one EventsExecutor).
+
+In-process hand-off (parameter ``intra_process``, read-only, default false): the node takes
+``camera/image_raw`` and ``galvo/state`` from the in-process bus of its context
+(:mod:`galvoscan_common.intra`) instead of subscribing over DDS: a driver or player in the
+same process hands it the CDR bytes directly, with no copy of the image. It then hears only
+publishers in its own process, on the executor that serves them. ``galvoscan run
+--one-process`` sets it when the driver runs in the same process.
 """
 
 from __future__ import annotations
@@ -63,7 +70,7 @@ from rclpy.qos import (
 )
 from sensor_msgs.msg import Image
 
-from galvoscan_common import cdr
+from galvoscan_common import cdr, intra
 from galvoscan_common.executor import run_node
 
 from .extractor import (
@@ -108,7 +115,8 @@ EXTRACTION_THREAD_CHOICES = (True, False, 'auto')
 class StripeExtractorNode(Node):
     """Thin adapter around :func:`stripe_extractor.extractor.extract` (see module docstring)."""
 
-    def __init__(self, extraction_thread_default: bool | str = 'auto', **kwargs):
+    def __init__(self, extraction_thread_default: bool | str = 'auto',
+                 intra_process_default: bool = False, **kwargs):
         super().__init__('stripe_extractor', **kwargs)
         defaults = ExtractorConfig()
         self.declare_parameter('method', defaults.method, ParameterDescriptor(
@@ -152,6 +160,10 @@ class StripeExtractorNode(Node):
                             'while it is busy under 70 % of the frame interval, extraction '
                             'included, on the separate thread above 90 %',
                 additional_constraints='true, false or auto'))
+        self.declare_parameter('intra_process', bool(intra_process_default), ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL, read_only=True,
+            description='Take images and galvo states from publishers in this process, handed '
+                        'over directly (galvoscan_common.intra), instead of over DDS'))
         self.declare_parameter('diagnostics_period', 1.0, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
             description='Period of the diagnostics message with the counters [s]',
@@ -196,15 +208,24 @@ class StripeExtractorNode(Node):
         if mode is not False:
             self._worker = SerialWorker(self._extract_and_publish, IMAGE_QUEUE_DEPTH,
                                         'stripe_extraction', on_error=self._skip_log_error)
-        self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
-                                 raw=True)
-        self.create_subscription(
-            GalvoState, 'galvo/state', self._on_state,
-            QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
-                       history=HistoryPolicy.KEEP_LAST), raw=True)
+        self._bus_tokens = []
+        if self.get_parameter('intra_process').value:
+            bus = intra.bus_for(self.context)
+            self._bus_tokens = [
+                bus.subscribe(self.resolve_topic_name('camera/image_raw'), self._on_image),
+                bus.subscribe(self.resolve_topic_name('galvo/state'), self._on_state)]
+        else:
+            self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
+                                     raw=True)
+            self.create_subscription(
+                GalvoState, 'galvo/state', self._on_state,
+                QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
+                           history=HistoryPolicy.KEEP_LAST), raw=True)
         self._diag_timer = self.create_timer(
             self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
-        self.get_logger().info(f'ready: {self._config}')
+        self.get_logger().info(
+            f'ready: {self._config}' + (' (images and states handed over in-process)'
+                                        if self._bus_tokens else ''))
 
     # ---- parameters -------------------------------------------------------------------
     def _config_from(self, changes: dict) -> ExtractorConfig:
@@ -323,6 +344,9 @@ class StripeExtractorNode(Node):
 
     def destroy_node(self):
         """Let the extraction thread finish what is queued, then destroy the node."""
+        for token in self._bus_tokens:
+            intra.bus_for(self.context).unsubscribe(token)
+        self._bus_tokens = []
         if self._worker is not None and not self._worker.stop():
             self.get_logger().error('extraction thread did not stop within 5 s')
         return super().destroy_node()
