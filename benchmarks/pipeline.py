@@ -5,16 +5,19 @@ and read back; a player publishes them (cycling, re-stamped with the publish tim
 fixed rate and a sink receives the PointCloud2 on ``points``.
 
 Arrangements:
-  one process, 500 fps   player, extractor, reconstructor and sink on one EventsExecutor
+  one process, 500 fps   player, extractor, reconstructor and sink on one EventsExecutor;
+      the player hands images and states to the extractor in-process, as the driver does
+      under ``galvoscan run --one-process`` (``--intra-process false``: over DDS instead)
   one process, 1000 fps
   separate processes, 500 fps   extractor and reconstructor each in its own process
 
 What the machine gives in the same run (this shared machine's speed varies with the load
 other tenants put on it, so the targets are read against these):
-  floor, 500 fps and 1000 fps   the same player and sink with a relay in place of the
-      extractor and reconstructor: it takes each image and its state (raw, the extractor's
-      QoS) and answers with an empty PointCloud2 carrying the image's stamp. What DDS and
-      rclpy alone cost per frame and lose on this machine now; no pipeline can do better.
+  floor, 500 fps and 1000 fps   the one-process arrangement with a relay in place of the
+      extractor and reconstructor: it takes each image and its state (the same way) and
+      answers with an empty PointCloud2 carrying the image's stamp. What the player, the
+      executor, rclpy and DDS alone cost per frame and lose on this machine now; no
+      pipeline can do better.
   extract_ms_median   single-thread time of ``stripe_extractor.extract`` on the recorded
       frames, before the arrangements.
 
@@ -97,7 +100,7 @@ def load_frames(path):
 class Bench:
     """Player + sink node: publishes re-stamped CDR frames, measures clouds."""
 
-    def __init__(self, node, frames, rate, total):
+    def __init__(self, node, frames, rate, total, hand_off=False):
         from diagnostic_msgs.msg import DiagnosticArray
         from galvoscan_msgs.msg import GalvoState
         from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -107,6 +110,12 @@ class Bench:
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         self.pub_img = node.create_publisher(Image, 'camera/image_raw', qos)
         self.pub_state = node.create_publisher(GalvoState, 'galvo/state', qos)
+        if hand_off:    # as the driver publishes: handed over in-process, DDS if heard there
+            from galvoscan_common import intra
+
+            bus = intra.bus_for(node.context)
+            self.pub_img = intra.HandOffPublisher(self.pub_img, bus)
+            self.pub_state = intra.HandOffPublisher(self.pub_state, bus)
         # raw: the sink reads only the stamp, so its own cost stays out of the figures
         node.create_subscription(PointCloud2, 'points', self._on_cloud,
                                  QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
@@ -146,7 +155,7 @@ class Bench:
 class Relay:
     """The floor's stand-in for extractor + reconstructor: image and state in, empty cloud out."""
 
-    def __init__(self, node):
+    def __init__(self, node, hand_off=False):
         from galvoscan_msgs.msg import GalvoState
         from rclpy.qos import (
             HistoryPolicy,
@@ -161,6 +170,13 @@ class Relay:
         self.empty = np.zeros(0, np.dtype([('x', '<f4'), ('y', '<f4'), ('z', '<f4')]))
         self.pub = node.create_publisher(
             PointCloud2, 'points', QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
+        if hand_off:
+            from galvoscan_common import intra
+
+            bus = intra.bus_for(node.context)
+            bus.subscribe(node.resolve_topic_name('camera/image_raw'), self._on_image)
+            bus.subscribe(node.resolve_topic_name('galvo/state'), lambda data: None)
+            return
         node.create_subscription(Image, 'camera/image_raw', self._on_image, QoSProfile(
             depth=IMAGE_QUEUE_DEPTH, reliability=qos_profile_sensor_data.reliability,
             history=HistoryPolicy.KEEP_LAST), raw=True)
@@ -198,11 +214,18 @@ def _cpu_ticks() -> np.ndarray:
         return np.array(f.readline().split()[1:], dtype=np.int64)
 
 
-def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread=None):
-    """One arrangement; ``extraction_thread`` None keeps the node's default for it."""
+def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread=None,
+        intra_process=True):
+    """One arrangement; ``extraction_thread`` None keeps the node's default for it.
+
+    ``intra_process``: in the one-process arrangements and the floor, images and states
+    are handed over in-process (as ``galvoscan run --one-process`` does), else sent over DDS.
+    """
     import rclpy
     from rclpy.experimental import EventsExecutor
     from rclpy.node import Node
+
+    hand_off = intra_process and arrangement != 'separate'
 
     domain = random.randint(101, 230)
     os.environ['ROS_DOMAIN_ID'] = str(domain)
@@ -216,14 +239,14 @@ def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread
     try:
         if arrangement == 'floor':
             relay = Node('relay', context=ctx)
-            Relay(relay)
+            Relay(relay, hand_off)
             nodes = [relay]
             ex.add_node(relay)
         elif arrangement == 'one':
             from reconstructor.reconstructor_node import ReconstructorNode
             from stripe_extractor.extractor_node import StripeExtractorNode
 
-            ext = StripeExtractorNode(context=ctx, **(
+            ext = StripeExtractorNode(context=ctx, intra_process_default=hand_off, **(
                 {} if extraction_thread is None
                 else {'extraction_thread_default': extraction_thread}))
             rec = ReconstructorNode(context=ctx, parameter_overrides=[
@@ -244,7 +267,7 @@ def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread
                  f'calibration_file:={cal_path}', '-p', 'marker_period:=0.0'], env=env,
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         # warm-up: until clouds come back (discovery, JIT)
-        bench = Bench(node, frames, 50.0, 10 ** 9)
+        bench = Bench(node, frames, 50.0, 10 ** 9, hand_off)
         t_end = time.monotonic() + 60
         while bench.received < warmup and time.monotonic() < t_end:
             bench.publish_due()
@@ -340,6 +363,10 @@ def main():
                         default='default',
                         help="the extractor's extraction_thread parameter (default: the "
                              "node's own default, auto)")
+    parser.add_argument('--intra-process', choices=('true', 'false'), default='true',
+                        help='one process and floor: hand images and states over in-process '
+                             '(as galvoscan run --one-process does; default) or send them over '
+                             'DDS')
     parser.add_argument('--only', choices=ARRANGEMENTS, action='append',
                         help='run only this arrangement (repeatable); the JSON then holds '
                              'null for the others')
@@ -368,7 +395,7 @@ def main():
                 continue
             r = run(frames, rate, args.frames, arrangement, cal, extraction_thread={
                 'default': None, 'true': True, 'false': False, 'auto': 'auto'}[
-                    args.extraction_thread])
+                    args.extraction_thread], intra_process=args.intra_process == 'true')
             results[key] = r
             print(f'{key}: {r}', flush=True)
         load = os.getloadavg()[0]
@@ -389,6 +416,7 @@ def main():
         'extract_ms_median': extract_ms,
         'frames_per_arrangement': args.frames,
         'extraction_thread': args.extraction_thread,
+        'intra_process': args.intra_process == 'true',
         'load_average_1min': load,
         'steal_pct': {k: r.get('steal_pct') for k, r in results.items()},
     }
