@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from galvoscan_common.runtime import child_env
+from galvoscan_common.runtime import child_env, freeze_startup_heap
 
 
 def make_bag(path, n, seed=0):
@@ -285,6 +285,7 @@ def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread
         bench.received = 0
         bench.latency.clear()
         bench.t0 = None
+        freeze_startup_heap()     # as spin_nodes does for galvoscan run
         cpu0 = (time.thread_time(), time.process_time(), _children_cpu(procs))
         ticks0 = _cpu_ticks()
         counts0 = dict(bench.extractor_counts)

@@ -39,7 +39,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from galvo_driver import patterns
 from galvo_driver.backend import BackendError
 from galvoscan_common import cdr, intra
-from galvoscan_common.runtime import tune_this_process
+from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay')
 
@@ -339,6 +339,7 @@ def main(args=None):
     node = GalvoDriverNode()
     executor = rclpy.executors.SingleThreadedExecutor()
     executor.add_node(node)
+    freeze_startup_heap()
     try:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):

@@ -21,15 +21,21 @@ SPIN_TIMEOUT_S = 0.1
 def spin_nodes(nodes, context=None, duration: float | None = None) -> None:
     """Spin ``nodes`` on one EventsExecutor until shutdown, SIGINT/SIGTERM or ``duration`` [s].
 
+    The objects alive when it starts are exempted from garbage collection
+    (:func:`~galvoscan_common.runtime.freeze_startup_heap`).
+
     Returns normally in every case; the caller destroys the nodes and shuts rclpy down.
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.experimental import EventsExecutor
 
+    from galvoscan_common.runtime import freeze_startup_heap
+
     executor = EventsExecutor(context=context)
     for node in nodes:
         executor.add_node(node)
+    freeze_startup_heap()
     t_end = None if duration is None else time.monotonic() + duration
     try:
         while rclpy.ok(context=context) and (t_end is None or time.monotonic() < t_end):

@@ -149,3 +149,24 @@ def test_zombie_cleaning_leaves_other_files_and_a_missing_directory_alone(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ['fastrtps_port7411_el',
                                                           'unrelated_el']
     assert remove_zombie_shm_segments(tmp_path / 'missing') == []
+
+
+def test_the_startup_heap_is_frozen_out_of_full_collections():
+    """After freeze_startup_heap a full collection no longer walks what start-up made."""
+    code = textwrap.dedent('''
+        import gc
+        from galvoscan_common.runtime import freeze_startup_heap
+        keep = [[i] for i in range(200_000)]                # long-lived, like rclpy's
+        gc.collect()
+        before = len(gc.get_objects(generation=2))
+        frozen = freeze_startup_heap()
+        after = len(gc.get_objects(generation=2))
+        late = [[i] for i in range(10)]                     # made after: still collected
+        gc.collect()
+        print(before, frozen, after, len(gc.get_objects(generation=2)) - after)
+    ''')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         check=True).stdout.split()
+    before, frozen, after, late = map(int, out)
+    assert before > 200_000 and frozen > 200_000
+    assert after == 0 and late >= 10

@@ -37,7 +37,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
-from galvoscan_common.runtime import tune_this_process
+from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 from .ros_messages import import_message_class, qos_to_rosbags, split_ros_args
 from .writer import ROSBAGS_CHUNK_LIMIT, BagWriter
@@ -300,6 +300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         executor = EventsExecutor()
         executor.add_node(node)
+        freeze_startup_heap()
         deadline = None if args.duration is None else time.monotonic() + args.duration
         while rclpy.ok() and not node.done:
             executor.spin_once(timeout_sec=0.1)

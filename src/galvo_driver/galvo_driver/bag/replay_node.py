@@ -20,7 +20,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import ReliabilityPolicy
 
-from galvoscan_common.runtime import tune_this_process
+from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 from .reader import BagReadError, read_messages, read_topics
 from .ros_messages import import_message_class, qos_from_rosbags, split_ros_args
@@ -197,6 +197,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             args.wait_subscribers, args.wait_timeout
         ):
             node.get_logger().warning('not every topic has its subscribers yet; playing anyway')
+        freeze_startup_heap()
         end = time.monotonic() + args.delay
         while rclpy.ok() and time.monotonic() < end:
             time.sleep(min(0.05, max(0.0, end - time.monotonic())))
