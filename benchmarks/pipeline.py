@@ -32,6 +32,7 @@ The last stdout line is one JSON object.
 
     .venv/bin/python benchmarks/pipeline.py [--frames 10000] [--distinct 100]
                                             [--extraction-thread {default,true,false,auto}]
+                                            [--intra-process {true,false}]
                                             [--only ARRANGEMENT ...]
 """
 

@@ -208,10 +208,10 @@ class StripeExtractorNode(Node):
         if mode is not False:
             self._worker = SerialWorker(self._extract_and_publish, IMAGE_QUEUE_DEPTH,
                                         'stripe_extraction', on_error=self._skip_log_error)
-        self._bus_tokens = []
+        self._bus_subs = []
         if self.get_parameter('intra_process').value:
             bus = intra.bus_for(self.context)
-            self._bus_tokens = [
+            self._bus_subs = [
                 bus.subscribe(self.resolve_topic_name('camera/image_raw'), self._on_image),
                 bus.subscribe(self.resolve_topic_name('galvo/state'), self._on_state)]
         else:
@@ -225,7 +225,7 @@ class StripeExtractorNode(Node):
             self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
         self.get_logger().info(
             f'ready: {self._config}' + (' (images and states handed over in-process)'
-                                        if self._bus_tokens else ''))
+                                        if self._bus_subs else ''))
 
     # ---- parameters -------------------------------------------------------------------
     def _config_from(self, changes: dict) -> ExtractorConfig:
@@ -344,9 +344,9 @@ class StripeExtractorNode(Node):
 
     def destroy_node(self):
         """Let the extraction thread finish what is queued, then destroy the node."""
-        for token in self._bus_tokens:
-            intra.bus_for(self.context).unsubscribe(token)
-        self._bus_tokens = []
+        for sub in self._bus_subs:
+            intra.bus_for(self.context).unsubscribe(sub)
+        self._bus_subs = []
         if self._worker is not None and not self._worker.stop():
             self.get_logger().error('extraction thread did not stop within 5 s')
         return super().destroy_node()
