@@ -148,25 +148,25 @@ def column_peaks(img, excl, cand, sec):
         (the largest one found at the odd rows, climbed to its local maximum), or -1 if there
         is none or if it is only the main peak's flank rising into the zone.
     """
+    if img.itemsize == 1 and img.shape[0] <= 32767:
+        _column_peaks_as(img, excl, cand, sec, np.empty(0, np.int16))  # 9 * 255 and rows fit
+    else:
+        _column_peaks_as(img, excl, cand, sec, np.empty(0, np.int32))
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_peaks_as(img, excl, cand, sec, like):
+    """:func:`column_peaks` with the box sums and rows kept in ``like``'s integer type."""
     H, W = img.shape
     nb = (H + BLOCK_ROWS - 1) // BLOCK_ROWS
-    if img.itemsize == 1 and H <= 32767:
-        # 9 * 255 and the row numbers fit int16
-        best = np.empty(W, np.int16)
-        c16 = np.empty(W, np.int16)
-        bmax = np.empty((nb, W), np.int16)
-        barg = np.empty((nb, W), np.int16)
-        _box_maxima(img, best, c16, bmax, barg, np.empty(W, np.int16), np.empty(W, np.int16),
-                    np.empty(W, np.int16))
-        cand[:] = c16
-        _secondaries(img, excl, cand, sec, bmax, barg)
-    else:
-        best = np.empty(W, np.int32)
-        bmax = np.empty((nb, W), np.int32)
-        barg = np.empty((nb, W), np.int32)
-        _box_maxima(img, best, cand, bmax, barg, np.empty(W, np.int32), np.empty(W, np.int32),
-                    np.empty(W, np.int32))
-        _secondaries(img, excl, cand, sec, bmax, barg)
+    t = like.dtype
+    rows = np.empty(W, t)
+    bmax = np.empty((nb, W), t)
+    barg = np.empty((nb, W), t)
+    _box_maxima(img, np.empty(W, t), rows, bmax, barg, np.empty(W, t), np.empty(W, t),
+                np.empty(W, t))
+    cand[:] = rows
+    _secondaries(img, excl, cand, sec, bmax, barg)
 
 
 def find_candidates(img: np.ndarray, excl: int) -> tuple[np.ndarray, np.ndarray]:

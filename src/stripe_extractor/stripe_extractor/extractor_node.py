@@ -208,12 +208,12 @@ class StripeExtractorNode(Node):
         if mode is not False:
             self._worker = SerialWorker(self._extract_and_publish, IMAGE_QUEUE_DEPTH,
                                         'stripe_extraction', on_error=self._skip_log_error)
-        self._bus_subs = []
+        self._bus, self._bus_subs = intra.bus_for(self.context), []
         if self.get_parameter('intra_process').value:
-            bus = intra.bus_for(self.context)
             self._bus_subs = [
-                bus.subscribe(self.resolve_topic_name('camera/image_raw'), self._on_image),
-                bus.subscribe(self.resolve_topic_name('galvo/state'), self._on_state)]
+                self._bus.subscribe(self.resolve_topic_name('camera/image_raw'),
+                                    self._on_image),
+                self._bus.subscribe(self.resolve_topic_name('galvo/state'), self._on_state)]
         else:
             self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
                                      raw=True)
@@ -345,7 +345,7 @@ class StripeExtractorNode(Node):
     def destroy_node(self):
         """Let the extraction thread finish what is queued, then destroy the node."""
         for sub in self._bus_subs:
-            intra.bus_for(self.context).unsubscribe(sub)
+            self._bus.unsubscribe(sub)
         self._bus_subs = []
         if self._worker is not None and not self._worker.stop():
             self.get_logger().error('extraction thread did not stop within 5 s')
