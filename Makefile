@@ -19,7 +19,7 @@ PYTEST_ARGS ?=
 .PHONY: setup test lint pytest demo clean distclean
 
 setup: $(STAMP_SRC)
-	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvoscan_common, galvo_driver, stripe_extractor, reconstructor, calibration_tools' \
+	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan' \
 	  || { echo "[setup] the venv is broken: run 'make distclean' and try again"; exit 1; }
 
 $(STAMP_DEPS): requirements.txt constraints.txt tools/setup_venv.sh

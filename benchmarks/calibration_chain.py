@@ -3,14 +3,14 @@ plans of ``calibration_tools.capture_plans``.
 
 Run: ``.venv/bin/python benchmarks/calibration_chain.py [--rig NAME] [--seed N] [--no-quick]``
 
-Starting from the rig's design values (``stage_runner.nominal_calibration``), every stage in
+Starting from the rig's design values (``simulated_rig.nominal_calibration``), every stage in
 order: plan (with the calibration so far) -> render as the driver's sim backend would
-(``sim_captures.execute_in_process``) -> compute -> merge. Once with the quick plans (the CI
+(``simulated_rig.execute_in_process``) -> compute -> merge. Once with the quick plans (the CI
 end-to-end run), once with the full plans. Per stage: capture steps, frames (board frames
 at the calibration exposure / stripe frames), render and compute seconds, residuals.
 
 The calibrated model is then scored against the simulator's physics
-(``calibration_tools.sim_scores``), next to the design values and the simulator's
+(``galvoscan.sim_scores``), next to the design values and the simulator's
 model-equivalent "true" parameters:
 
 - reconstruction: the true stripe pixels of a wall at 650 mm, scanned at 5 x 5 G1 positions
@@ -35,12 +35,12 @@ import json
 import logging
 import time
 
-from calibration_tools import sim_scores, stage_runner
+from calibration_tools import stage_runner
 from calibration_tools.capture_plans import plan, total_frames
-from calibration_tools.sim_captures import execute_in_process
 from calibration_tools.stages import STAGES, apply_result
-from calibration_tools.truth import truth_model
-from galvo_driver.sim import Simulator, load_rig, load_scene
+from galvoscan import sim_scores, simulated_rig
+from galvoscan.simulated_rig import execute_in_process, truth_model
+from galvoscan_sim import Simulator, load_rig, load_scene
 from reconstructor import calibration_file
 
 PAPER = {'transfer_matrix_rmse_mm': 1.231, 'joint_error1_mm': 4.928, 'joint_error3_mm': 5.475,
@@ -50,7 +50,7 @@ PAPER = {'transfer_matrix_rmse_mm': 1.231, 'joint_error1_mm': 4.928, 'joint_erro
 def run_chain(rig_name: str, quick: bool, seed: int):
     rig = load_rig(rig_name)
     sim = Simulator(rig, load_scene('plane'), seed=seed)
-    cal = stage_runner.nominal_calibration(rig_name)
+    cal = simulated_rig.nominal_calibration(rig_name)
     stages = {}
     for stage in STAGES:
         t0 = time.perf_counter()
@@ -116,7 +116,7 @@ def main(argv=None):
     rig = load_rig(args.rig)
     t_start = time.perf_counter()
     out = {'rig': args.rig, 'seed': args.seed, 'paper': PAPER}
-    out['design_values'] = figures(stage_runner.nominal_calibration(args.rig).model, rig)
+    out['design_values'] = figures(simulated_rig.nominal_calibration(args.rig).model, rig)
     out['simulator_model_equivalent'] = figures(truth_model(rig), rig)
     print(f'design values: {fmt(out["design_values"])}')
     print(f'simulator model-equivalent parameters: {fmt(out["simulator_model_equivalent"])}')

@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python benchmarks/calibration_dynamic_camera.py [--quick]``
 
-With the simulator (``galvo_driver.sim``) as the judge, for the ``ideal`` and ``reference``
+With the simulator (``galvoscan_sim``) as the judge, for the ``ideal`` and ``reference``
 rigs:
 
 1. intrinsics: Zhang on 30 simulated checkerboard frames at U1 = 0 (board tilted ~34 deg
@@ -50,9 +50,9 @@ from calibration_tools.dynamic_camera import (
 )
 from calibration_tools.intrinsics import run_intrinsics
 from calibration_tools.stages import CaptureView, apply_result
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import SCENE_DIR, load_scene, load_scene_text
-from galvo_driver.sim.simulator import Simulator
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import SCENE_DIR, load_scene, load_scene_text
+from galvoscan_sim.simulator import Simulator
 from reconstructor.calibration_file import Calibration
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel, rigid_inverse
 

@@ -2,7 +2,7 @@
 
 Run: ``.venv/bin/python benchmarks/calibration_laser.py [--seeds N] [--quick]``
 
-For the ``ideal`` and the ``reference`` rig (``galvo_driver.sim``), with the simulator as the
+For the ``ideal`` and the ``reference`` rig (``galvoscan_sim``), with the simulator as the
 judge:
 
 1. laser plane at U2 = 0 (16 circle-grid poses) -> normal and offset errors;
@@ -38,12 +38,12 @@ from calibration_tools.board_layout import CircleGrid
 from calibration_tools.joint_correction import run_joint_correction
 from calibration_tools.laser_axis import run_laser_axis
 from calibration_tools.laser_plane import run_laser_plane
-from calibration_tools.sim_captures import board_poses_on_laser, sphere_g1_grid
-from calibration_tools.sim_scores import stripe_point_errors
 from calibration_tools.stages import apply_result
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
+from galvoscan.sim_scores import stripe_point_errors
+from galvoscan.simulated_rig import board_poses_on_laser, sphere_g1_grid
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene
+from galvoscan_sim.simulator import Simulator
 from reconstructor import calibration_file as cf
 from reconstructor.correction import CorrectionTable
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
@@ -187,7 +187,7 @@ def joint_local(rig, cal, seed):
 
 def joint_wide(rig, cal, seed, laterals, u2s, step=0.1, reach=(0.3, 0.3), held_per_position=3):
     """Sphere at several positions, chained. G1 nodes on one global grid of ``step`` V."""
-    from calibration_tools.sim_captures import aim_g1
+    from calibration_tools.placement import aim_g1
     from reconstructor.model import laser_plane_v0
 
     sim = Simulator(rig, load_scene('sphere'), seed=seed)

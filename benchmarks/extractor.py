@@ -162,11 +162,11 @@ def accuracy(frames, fn):
 
 
 def simulator_report() -> dict:
-    """RMS against the physical simulator's ground truth (galvo_driver.sim), if present."""
+    """RMS against the physical simulator's ground truth (galvoscan_sim), if present."""
     try:
-        from galvo_driver.sim.rig import load_rig
-        from galvo_driver.sim.scene import load_scene
-        from galvo_driver.sim.simulator import Simulator
+        from galvoscan_sim.rig import load_rig
+        from galvoscan_sim.scene import load_scene
+        from galvoscan_sim.simulator import Simulator
     except ImportError as exc:
         print(f'simulator not available ({exc}); no simulator figures')
         return {}

@@ -61,8 +61,8 @@ def make_bag(path, n, seed=0):
     from rclpy.serialization import serialize_message
     from sensor_msgs.msg import Image
 
-    from galvo_driver.bag.writer import BagWriter
-    from galvo_driver.sim import Simulator, load_rig, load_scene, patterns
+    from galvoscan_bag.writer import BagWriter
+    from galvoscan_sim import Simulator, load_rig, load_scene, patterns
 
     rig = load_rig('reference')
     sim = Simulator(rig, load_scene('stair_block'), seed=seed)
@@ -90,7 +90,7 @@ def make_bag(path, n, seed=0):
 
 def load_frames(path):
     """(image CDR, state CDR) pairs from the bag, in order."""
-    from galvo_driver.bag.reader import read_messages
+    from galvoscan_bag.reader import read_messages
 
     images, states = [], []
     for m in read_messages(path):
@@ -373,7 +373,7 @@ def main():
                         help='run only this arrangement (repeatable); the JSON then holds '
                              'null for the others')
     args = parser.parse_args()
-    from calibration_tools.truth import truth_calibration
+    from galvoscan.simulated_rig import truth_calibration
     from galvoscan_common.runtime import tune_this_process
     from reconstructor import calibration_file
 

@@ -1,4 +1,4 @@
-"""Benchmark of the rig simulator (galvo_driver.sim), single-threaded.
+"""Benchmark of the rig simulator (galvoscan_sim), single-threaded.
 
 Measures
 - stripe frames: the reference rig (every imperfection on: noise, speckle, blur, ambient
@@ -22,7 +22,7 @@ import time  # noqa: E402
 
 import cv2  # noqa: E402
 
-from galvo_driver.sim import Simulator, load_rig, load_scene, patterns  # noqa: E402
+from galvoscan_sim import Simulator, load_rig, load_scene, patterns  # noqa: E402
 
 cv2.setNumThreads(1)
 

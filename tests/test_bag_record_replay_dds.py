@@ -29,9 +29,9 @@ from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from galvo_driver.bag.reader import BagReadError, read_messages, read_topics
-from galvo_driver.bag.recover import recover_bag
-from galvo_driver.bag.ros_messages import write_ros_bag
+from galvoscan_bag.reader import BagReadError, read_messages, read_topics
+from galvoscan_bag.recover import recover_bag
+from galvoscan_bag.ros_messages import write_ros_bag
 
 pytestmark = pytest.mark.dds
 
@@ -190,7 +190,7 @@ def wait_until(condition, timeout, what, executor=None, children=(), watch=()):
 
 def start_recorder(tmp_path, env, children, bag, *args):
     child = Child(
-        'galvo_driver.bag.record_node', ['-o', str(bag), *args], env, tmp_path / 'rec.log'
+        'galvoscan_bag.record_node', ['-o', str(bag), *args], env, tmp_path / 'rec.log'
     )
     children.append(child)
     return child
@@ -262,7 +262,7 @@ def test_record_then_replay_identical_bytes(ros, tmp_path):
             lambda data, topic=topic: received[topic].append(data), QOS, raw=True,
         )
     player = Child(
-        'galvo_driver.bag.replay_node',
+        'galvoscan_bag.replay_node',
         [str(bag), '--rate', '2', '--wait-subscribers', '1',
          '--remap', 'galvo/state:=/replayed/galvo_state'],
         env, tmp_path / 'play.log',
@@ -328,7 +328,7 @@ def test_sigterm_stops_a_looping_player_and_a_recorder_cleanly(ros, tmp_path):
     received = []
     node.create_subscription(GalvoState, '/galvo/state', received.append, QOS, raw=True)
     player = Child(
-        'galvo_driver.bag.replay_node', [str(source), '--loop', '--wait-subscribers', '2'],
+        'galvoscan_bag.replay_node', [str(source), '--loop', '--wait-subscribers', '2'],
         env, tmp_path / 'play.log',
     )
     children.append(player)

@@ -14,7 +14,7 @@ from galvoscan_msgs.srv import (
 )
 from rclpy.node import Node
 
-from galvo_driver.sim import load_rig
+from galvoscan_sim import load_rig
 from reconstructor import calibration_file
 
 pytestmark = pytest.mark.dds
@@ -26,10 +26,9 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
     params.write_text(yaml.safe_dump({
         'galvo_driver': {'ros__parameters': {'backend': 'sim', 'rig': 'reference', 'seed': 3}},
         'calibration': {'ros__parameters': {'calibration_file': str(cal_path), 'quick': True,
-                                            'data_dir': str(tmp_path / 'data'),
-                                            'rig': 'reference'}},
+                                            'data_dir': str(tmp_path / 'data')}},
     }))
-    proc = spawn([sys.executable, '-m', 'calibration_tools.cli', 'run', '--params', params,
+    proc = spawn([sys.executable, '-m', 'galvoscan.cli', 'run', '--params', params,
                   '--nodes', 'galvo_driver,calibration'], name='graph')
     ctx = rclpy.Context()
     rclpy.init(context=ctx, domain_id=int(ros_env['ROS_DOMAIN_ID']))

@@ -17,7 +17,7 @@ DISTANCES = ('100', '200', '350', '400', '650', '1000')
 
 def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     out = tmp_path / 'out'
-    proc = subprocess.run([sys.executable, '-m', 'calibration_tools.cli', 'evaluate',
+    proc = subprocess.run([sys.executable, '-m', 'galvoscan.cli', 'evaluate',
                            '--quick', '--out', str(out), '--seed', '1'],
                           env=ros_env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]

@@ -16,8 +16,8 @@ from galvoscan_msgs.srv import GetScanProgress, StartScan
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from calibration_tools.truth import truth_calibration
-from galvo_driver.sim import Simulator, load_rig, load_scene, patterns
+from galvoscan.simulated_rig import truth_calibration
+from galvoscan_sim import Simulator, load_rig, load_scene, patterns
 from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE
 
@@ -47,7 +47,7 @@ def test_scan_through_the_graph(spawn, ros_env, tmp_path, one_process):
         'reconstructor': {'ros__parameters': {'calibration_file': str(cal),
                                               'scan_end_timeout': 1.0}},
     }))
-    args = [sys.executable, '-m', 'calibration_tools.cli', 'run', '--params', params]
+    args = [sys.executable, '-m', 'galvoscan.cli', 'run', '--params', params]
     proc = spawn(args + (['--one-process'] if one_process else []), name='galvoscan')
     volts = _scan_voltages(rig)
     truth = _truth(rig, volts)

@@ -21,7 +21,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
-from galvo_driver.bag.reader import read_messages
+from galvoscan_bag.reader import read_messages
 from galvoscan_common import cdr, intra
 from stripe_extractor.extractor_node import StripeExtractorNode
 from stripe_extractor.image_msg import image_to_array, parse_image_cdr
@@ -103,7 +103,7 @@ def test_frames_are_handed_over_once_and_published_only_to_dds_listeners(ctx, sp
 
     # 2. A recorder in another process subscribes: frames now also go out over DDS.
     bag = tmp_path / 'handoff_bag'
-    rec = spawn([sys.executable, '-m', 'galvo_driver.bag.record_node', '-o', bag,
+    rec = spawn([sys.executable, '-m', 'galvoscan_bag.record_node', '-o', bag,
                  'camera/image_raw', 'galvo/state'], name='recorder')
     spin_until(executor, lambda: img_pub.publisher.get_subscription_count() >= 1 and
                state_pub.publisher.get_subscription_count() >= 1, 30,

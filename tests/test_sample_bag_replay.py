@@ -13,7 +13,7 @@ from galvoscan_msgs.srv import StartScan
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
-from galvo_driver.bag.reader import deserialize, read_messages
+from galvoscan_bag.reader import deserialize, read_messages
 
 pytestmark = pytest.mark.dds
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'stair_scan'

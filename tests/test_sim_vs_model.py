@@ -9,8 +9,8 @@ pixels, reconstructs the simulator's true stripe points to within 1 um.
 import numpy as np
 import pytest
 
-from calibration_tools.truth import truth_model
-from galvo_driver.sim import Simulator, load_rig, load_scene, patterns
+from galvoscan.simulated_rig import truth_model
+from galvoscan_sim import Simulator, load_rig, load_scene, patterns
 from reconstructor.model import (
     laser_plane_v0,
     triangulate,

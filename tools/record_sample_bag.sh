@@ -12,8 +12,8 @@ trap 'kill -INT $GRAPH $REC 2>/dev/null || true; wait 2>/dev/null || true; rm -r
 export ROS_DOMAIN_ID=${ROS_DOMAIN_ID:-$((RANDOM % 100 + 101))} ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 $PY - "$TMP/truth.yaml" <<'PYEOF'
 import sys
-from calibration_tools.truth import truth_calibration
-from galvo_driver.sim import load_rig
+from galvoscan.simulated_rig import truth_calibration
+from galvoscan_sim import load_rig
 from reconstructor import calibration_file
 calibration_file.save(truth_calibration(load_rig('reference')), sys.argv[1])
 PYEOF

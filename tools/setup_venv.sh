@@ -3,7 +3,7 @@
 #
 #   tools/setup_venv.sh deps   create .venv, install pinned wheels (requirements.txt + constraints.txt)
 #   tools/setup_venv.sh msgs   build msgs/ (galvoscan_msgs) with cmake into the venv prefix
-#   tools/setup_venv.sh src    install the five src/ packages into the venv (editable)
+#   tools/setup_venv.sh src    install the src/ packages into the venv (editable)
 #
 # The Makefile calls each step only when its inputs changed. Nothing outside the
 # repository is modified.
@@ -63,7 +63,7 @@ step_msgs() {
 step_src() {
   echo "[setup] installing src packages (editable)"
   local args=()
-  for p in galvoscan_common galvo_driver stripe_extractor reconstructor calibration_tools; do
+  for p in galvoscan_common galvoscan_sim galvoscan_bag galvo_driver stripe_extractor reconstructor calibration_tools galvoscan; do
     args+=(-e "src/$p")
   done
   "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation --use-pep517 "${args[@]}"

@@ -15,12 +15,11 @@ setup(
     zip_safe=False,
     maintainer='galvoscan developers',
     maintainer_email='galvoscan-dev@example.com',
-    description='galvoscan calibration stages, bring-up and the galvoscan command',
+    description='galvoscan calibration stages, capture plans and the calibration node',
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
             'calibration_node = calibration_tools.calibration_node:main',
-            'galvoscan = calibration_tools.cli:main',
         ],
     },
 )

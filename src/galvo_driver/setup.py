@@ -11,7 +11,6 @@ setup(
         ('share/' + package_name, ['package.xml']),
     ],
     include_package_data=True,
-    package_data={'galvo_driver': ['sim/rigs/*.yaml', 'sim/scenes/*.yaml']},
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='galvoscan developers',

@@ -1,3 +1,4 @@
 """Calibration of the galvoscan rig (intrinsics, dynamic camera, laser plane and axis, joint
-correction) as ROS services and offline commands; the galvoscan command.
+correction): pure stages, targets, capture plans and the runner, plus the calibration node
+that serves them as ROS services. No simulator and no application here.
 """

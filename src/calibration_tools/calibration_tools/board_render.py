@@ -3,7 +3,7 @@
 These images are made with :mod:`reconstructor.model` (pinhole + plumb_bob through the ideal
 dynamic-camera model), not by the physical simulator. They exercise the detectors and the
 identification with exact, known ground truth; accuracy claims about the rig belong to the
-simulator (``galvo_driver.sim``).
+simulator (``galvoscan_sim``).
 
 Edges are anti-aliased analytically: each pixel centre is mapped onto the board, the signed
 distance to the nearest edge is converted to pixels with the local Jacobian of the

@@ -43,7 +43,7 @@ from sensor_msgs.msg import Image
 from calibration_tools import stage_runner
 from calibration_tools.capture_plans import plan
 from calibration_tools.stages import STAGES, apply_result
-from galvo_driver.bag.writer import BagWriter
+from galvoscan_bag.writer import BagWriter
 from reconstructor import calibration_file
 
 
@@ -79,10 +79,9 @@ class CalibrationNode(Node):
         self.declare_parameter('calibration_file', 'calibration.yaml', ParameterDescriptor(
             description='calibration YAML the stages merge into (written atomically)'))
         self.declare_parameter('initial_calibration', '', ParameterDescriptor(
-            description='starting (nominal) calibration; empty: the nominal values of the '
-                        'simulated rig named by `rig`'))
-        self.declare_parameter('rig', 'reference', ParameterDescriptor(
-            description='sim: rig whose design (nominal) values start the calibration'))
+            description='starting (nominal) calibration file: the rig\'s design values; '
+                        'empty: none until calibration/load (galvoscan run writes one for '
+                        'a simulated rig)'))
         self.declare_parameter('data_dir', 'calibration_data', ParameterDescriptor(
             description='where captured bags go'))
         self.declare_parameter('quick', False, ParameterDescriptor(
@@ -99,10 +98,13 @@ class CalibrationNode(Node):
 
     def _initial(self):
         path = self.get_parameter('initial_calibration').value
+        if not path:
+            self.get_logger().warning(
+                'no initial_calibration: load a starting calibration (calibration/load) '
+                'before capturing')
+            return None
         try:
-            if path:
-                return calibration_file.load(path)
-            return stage_runner.nominal_calibration(self.get_parameter('rig').value)
+            return calibration_file.load(path)
         except (ValueError, OSError) as exc:
             self.get_logger().error(f'no starting calibration: {exc}')
             return None

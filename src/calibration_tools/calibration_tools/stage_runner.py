@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import logging
 import re
@@ -30,89 +29,6 @@ log = logging.getLogger('galvoscan.calibration.stage_runner')
 BAG_NAME = re.compile(r'^pose(\d+)_step(\d+)$')
 #: G1 voltages closer than this are one board placement of a laser stage [V].
 VOLTAGE_TOL = 1e-3
-
-NOMINAL_NOTE = 'design values from the rig description, before calibration'
-
-
-# ----------------------------------------------------------------------------- nominal
-def _zeroed(value):
-    """The same structure with every number set to 0 (booleans and strings kept)."""
-    if isinstance(value, dict):
-        return {k: _zeroed(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_zeroed(v) for v in value]
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return value
-    return 0.0
-
-
-def nominal_rig(rig):
-    """The rig as designed: its description with every geometric imperfection zeroed.
-
-    Parameters
-    ----------
-    rig : str, Path, dict or galvo_driver.sim.Rig
-        A shipped rig name (``'reference'``), a rig YAML path, a parsed rig description, or
-        a Rig loaded from a file.
-
-    Returns
-    -------
-    galvo_driver.sim.Rig
-        Lens distortion, camera mounting, laser mounting and every mirror's zero offset,
-        gain error, nonlinearity, jitter, surface offset and axis tilt are zero; the image
-        formation settings are kept.
-    """
-    from galvo_driver.sim.config import read_yaml_file
-    from galvo_driver.sim.rig import RIG_DIR, Rig, rig_from_dict
-
-    if isinstance(rig, dict):
-        data, source = copy.deepcopy(rig), '<rig description>'
-    else:
-        if isinstance(rig, Rig):
-            path = Path(rig.source)
-            if not path.is_file():
-                raise ValueError(f"rig: '{rig.name}' was not loaded from a file ({rig.source}); "
-                                 f'pass its name, its YAML path or its parsed description')
-        else:
-            if not isinstance(rig, (str, Path)) or not str(rig):
-                raise ValueError(f'rig must be a name, a path, a dict or a Rig, got {rig!r}')
-            path = Path(rig)
-            if not path.suffix and not path.exists():
-                path = RIG_DIR / f'{rig}.yaml'
-        data, source = read_yaml_file(path), str(path)
-    imp = data.get('imperfections')
-    if not isinstance(imp, dict):
-        raise ValueError(f"rig {source}: no 'imperfections' section")
-    data['imperfections'] = {k: (v if k == 'image' else _zeroed(v)) for k, v in imp.items()}
-    return rig_from_dict(data, f'{source} (nominal: imperfections zeroed)')
-
-
-def nominal_calibration(rig):
-    """The calibration to start from: the rig's design values.
-
-    The rig description with its ``imperfections`` removed (:func:`nominal_rig`), converted
-    to a RigModel as :func:`calibration_tools.truth.truth_model` does (exact for such a rig).
-    What an operator knows before calibrating: lens data, the galvo heads' drawings and
-    datasheet gains, where the laser was mounted.
-
-    Parameters
-    ----------
-    rig : str, Path, dict or galvo_driver.sim.Rig
-        See :func:`nominal_rig`.
-
-    Returns
-    -------
-    reconstructor.calibration_file.Calibration
-        ``source: calibrated`` with a ``stages.nominal`` entry saying what it is.
-    """
-    from calibration_tools.truth import truth_model
-    from reconstructor.calibration_file import Calibration, now_iso
-
-    design = nominal_rig(rig)
-    return Calibration(model=truth_model(design), source='calibrated',
-                       stages={'nominal': {'note': NOMINAL_NOTE, 'rig': design.name,
-                                           'created': now_iso()}})
-
 
 # ----------------------------------------------------------------------------- bags
 def expand_bag_dirs(paths) -> list[Path]:
@@ -176,8 +92,8 @@ def views_from_bags(bag_dirs) -> list[CaptureView]:
         A missing or unreadable bag, or no camera frame in any bag (a bag without frames
         is skipped with a logged warning).
     """
-    from galvo_driver.bag.frames import read_frames
-    from galvo_driver.bag.reader import BagReadError
+    from galvoscan_bag.frames import read_frames
+    from galvoscan_bag.reader import BagReadError
 
     bags = expand_bag_dirs(bag_dirs)
     views, empty = [], []

@@ -13,6 +13,8 @@ A stage is a pure function ``run(views, calibration, **options) -> StageResult``
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +43,71 @@ class CaptureView:
     laser_on: bool = False
     pose_index: int = 0
     stamp: float = 0.0
+
+
+@dataclass
+class CaptureStep:
+    """One scan of a capture plan.
+
+    Attributes
+    ----------
+    pose_index : int
+        Scene / target placement the frames belong to (``CaptureView.pose_index``).
+    scene_yaml : str or None
+        Simulator scene to set before the scan (None: keep the current scene). On real
+        hardware the operator places the object described by ``note`` instead.
+    voltages : ndarray, shape (n, 4), volts
+        (U1_pan, U1_tilt, U2_pan, U2_tilt) of the n frames.
+    laser_on : bool
+        Laser frames (stripe) or laser-off frames (textured board under room light).
+    frame_rate : float, Hz
+    note : str
+        What the step captures, for logs and the operator.
+    """
+
+    pose_index: int
+    scene_yaml: str | None
+    voltages: np.ndarray
+    laser_on: bool
+    frame_rate: float = 50.0
+    note: str = ''
+
+    def __post_init__(self):
+        v = np.array(self.voltages, dtype=np.float64)
+        if v.ndim == 1 and v.shape == (4,):
+            v = v.reshape(1, 4)
+        if v.ndim != 2 or v.shape[1] != 4 or v.shape[0] < 1:
+            raise ValueError(f'voltages must have shape (n >= 1, 4), got {v.shape}')
+        if not np.all(np.isfinite(v)) or np.abs(v).max() > 10.0:
+            raise ValueError('voltages must be finite and within +-10 V')
+        try:
+            ok = not isinstance(self.pose_index, bool) and int(self.pose_index) == \
+                self.pose_index and self.pose_index >= 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f'pose_index must be an integer >= 0, got {self.pose_index!r}')
+        if isinstance(self.frame_rate, bool) or not isinstance(self.frame_rate, (int, float)) \
+                or not (math.isfinite(self.frame_rate) and self.frame_rate > 0):
+            raise ValueError(f'frame_rate must be > 0 Hz, got {self.frame_rate!r}')
+        if self.scene_yaml is not None and not isinstance(self.scene_yaml, str):
+            raise ValueError('scene_yaml must be a string or None')
+        v.flags.writeable = False
+        self.voltages = v
+        self.pose_index = int(self.pose_index)
+        self.laser_on = bool(self.laser_on)
+        self.frame_rate = float(self.frame_rate)
+
+    @property
+    def frames(self) -> int:
+        """Number of frames of the step."""
+        return int(self.voltages.shape[0])
+
+    def truncated(self, n: int) -> CaptureStep:
+        """The same step with only its first ``n`` frames (n >= 1)."""
+        if isinstance(n, bool) or int(n) != n or n < 1:
+            raise ValueError(f'n must be an integer >= 1, got {n!r}')
+        return dataclasses.replace(self, voltages=self.voltages[: int(n)].copy())
 
 
 @dataclass

@@ -21,9 +21,9 @@ from calibration_tools.board_geometry import (
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD, Checkerboard, CircleBoard
 from calibration_tools.board_render import render_circle_board
 from calibration_tools.circle_board import detect_circles, fit_ellipse, identify_view
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene
+from galvoscan_sim.simulator import Simulator
 from reconstructor.model import CameraIntrinsics, nominal_example_rig, project_points
 
 B = PAPER_CIRCLE_BOARD

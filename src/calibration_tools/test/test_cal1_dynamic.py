@@ -26,9 +26,9 @@ from calibration_tools.dynamic_camera import (
     transfer_matrix_error,
 )
 from calibration_tools.stages import CaptureView, apply_result
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene
+from galvoscan_sim.simulator import Simulator
 from reconstructor import calibration_file
 from reconstructor.model import (
     CameraIntrinsics,

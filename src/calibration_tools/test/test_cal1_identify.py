@@ -22,9 +22,9 @@ from calibration_tools.board_layout import PAPER_CIRCLE_BOARD
 from calibration_tools.circle_board import CircleDetections
 from calibration_tools.dynamic_camera import identify_views, run_dynamic_camera
 from calibration_tools.stages import CaptureView
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene
+from galvoscan_sim.simulator import Simulator
 from reconstructor import calibration_file
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 

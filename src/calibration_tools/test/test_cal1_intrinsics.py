@@ -23,9 +23,9 @@ from calibration_tools.intrinsics import (
     run_intrinsics,
 )
 from calibration_tools.stages import CaptureView, apply_result
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import SCENE_DIR, load_scene, load_scene_text
-from galvo_driver.sim.simulator import Simulator
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import SCENE_DIR, load_scene, load_scene_text
+from galvoscan_sim.simulator import Simulator
 from reconstructor import calibration_file
 from reconstructor.model import CameraIntrinsics, nominal_example_rig
 

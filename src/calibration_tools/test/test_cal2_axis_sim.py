@@ -8,11 +8,11 @@ import pytest
 
 from calibration_tools.board_layout import CircleGrid
 from calibration_tools.laser_axis import run_laser_axis
-from calibration_tools.sim_captures import board_poses_on_laser
 from calibration_tools.stages import apply_result
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
+from galvoscan.simulated_rig import board_poses_on_laser
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene
+from galvoscan_sim.simulator import Simulator
 from reconstructor import calibration_file as cf
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 

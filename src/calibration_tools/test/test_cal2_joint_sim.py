@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 
 from calibration_tools.joint_correction import run_joint_correction
-from calibration_tools.sim_captures import sphere_g1_grid
-from calibration_tools.sim_scores import stripe_point_errors
 from calibration_tools.stages import apply_result
-from galvo_driver.sim.rig import load_rig
-from galvo_driver.sim.scene import load_scene
-from galvo_driver.sim.simulator import Simulator
+from galvoscan.sim_scores import stripe_point_errors
+from galvoscan.simulated_rig import sphere_g1_grid
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene
+from galvoscan_sim.simulator import Simulator
 from reconstructor import calibration_file as cf
 from reconstructor.correction import CorrectionTable
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel

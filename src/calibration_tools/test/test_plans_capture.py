@@ -13,11 +13,10 @@ from scipy.spatial.transform import Rotation
 
 from calibration_tools import capture_plans as cp
 from calibration_tools.capture_plans import CaptureStep, plan, total_frames
-from calibration_tools.sim_captures import execute_in_process
-from calibration_tools.stage_runner import nominal_calibration
 from calibration_tools.stages import STAGES
-from galvo_driver.sim import Simulator, load_rig, load_scene
 from galvo_driver.sim_backend import SimBackend
+from galvoscan.simulated_rig import execute_in_process, nominal_calibration
+from galvoscan_sim import Simulator, load_rig, load_scene
 from reconstructor.calibration_file import Calibration
 from reconstructor.model import MirrorParams, laser_plane_v0, predict_pixels, project_points
 

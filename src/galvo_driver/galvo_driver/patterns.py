@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from galvo_driver.backend import check_voltages
+from galvoscan_common.frame import check_voltages
 
 PATTERNS = ('raster', 'g1_grid', 'g2_sweep', 'custom')
 

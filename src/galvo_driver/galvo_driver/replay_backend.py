@@ -13,8 +13,8 @@ import time
 from pathlib import Path
 
 from galvo_driver.backend import BackendError, GalvoBackend
-from galvo_driver.bag.frames import STATE_TOPIC, read_frames
-from galvo_driver.bag.reader import BagReadError, read_topics
+from galvoscan_bag.frames import STATE_TOPIC, read_frames
+from galvoscan_bag.reader import BagReadError, read_topics
 
 log = logging.getLogger(__name__)
 

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import time
 
-from galvo_driver.backend import STATUS_SETTLED, BackendError, Frame, GalvoBackend, check_voltages
+from galvo_driver.backend import BackendError, GalvoBackend
+from galvoscan_common.frame import STATUS_SETTLED, Frame, check_voltages
 
 
 class SimBackend(GalvoBackend):
@@ -34,7 +35,7 @@ class SimBackend(GalvoBackend):
         self._laser = True
 
     def open(self) -> None:
-        from galvo_driver.sim import ConfigError, Simulator, load_rig, load_scene
+        from galvoscan_sim import ConfigError, Simulator, load_rig, load_scene
 
         try:
             self.sim = Simulator(load_rig(self.rig_name), load_scene(self.scene_name),
@@ -50,7 +51,7 @@ class SimBackend(GalvoBackend):
 
     def set_scene(self, path=None, text=None) -> int:
         """Replace the scene from a file or YAML text; returns the number of objects."""
-        from galvo_driver.sim import ConfigError, load_scene, load_scene_text
+        from galvoscan_sim import ConfigError, load_scene, load_scene_text
 
         if self.sim is None:
             raise ValueError('simulator not open')

@@ -6,10 +6,11 @@ import time
 import numpy as np
 import pytest
 
-from galvo_driver.backend import STATUS_FAULT, STATUS_SETTLED, BackendError
+from galvo_driver.backend import BackendError
 from galvo_driver.serial_link import protocol as p
 from galvo_driver.serial_link.backend import SerialBackend
 from galvo_driver.serial_link.emulator import FirmwareEmulator
+from galvoscan_common.frame import STATUS_FAULT, STATUS_SETTLED
 
 LOGGER = 'galvo_driver.serial_link.backend'
 LSB = 10.0 / 32767  # independent statement of the DAC step: +-10 V over codes 1..65535

@@ -14,9 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import brentq, least_squares
 
+from galvoscan_common.frame import VOLTAGE_LIMIT
 from reconstructor.model import RigModel, laser_plane_v0, predict_pixels, v0_T_v
-
-VOLTAGE_LIMIT = 10.0
 
 
 def aim_camera(model: RigModel, target_v0) -> tuple[float, float]:

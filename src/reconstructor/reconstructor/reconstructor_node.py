@@ -46,11 +46,11 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from galvoscan_common import cdr
 from galvoscan_common.executor import run_node
+from galvoscan_common.frame import VOLTAGE_LIMIT
 from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
 
-VOLTAGE_LIMIT = 10.0
 #: Default bound of the accumulated scan cloud [points]: 20 bytes each, so 200 MB, about
 #: 28 s of continuous scanning at 500 fps with 720 points per frame.
 SCAN_MAX_POINTS = 10_000_000

@@ -1,4 +1,4 @@
-"""Stripe centres scored against the physical simulator's ground truth (galvo_driver.sim).
+"""Stripe centres scored against the physical simulator's ground truth (galvoscan_sim).
 
 The simulator ray-traces the laser sheet onto the scene and reports, per image column, the
 exact sub-pixel projection of the sheet's centre plane on the surface (``truth.stripe``).
@@ -11,9 +11,9 @@ import pytest
 
 from stripe_extractor.extractor import ExtractorConfig, extract, warm_up
 
-sim_rig = pytest.importorskip('galvo_driver.sim.rig')
-sim_scene = pytest.importorskip('galvo_driver.sim.scene')
-sim_simulator = pytest.importorskip('galvo_driver.sim.simulator')
+sim_rig = pytest.importorskip('galvoscan_sim.rig')
+sim_scene = pytest.importorskip('galvoscan_sim.scene')
+sim_simulator = pytest.importorskip('galvoscan_sim.simulator')
 
 
 @pytest.fixture(scope='module', autouse=True)

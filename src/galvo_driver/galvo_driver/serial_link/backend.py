@@ -11,7 +11,7 @@ watches that the board answers; commands are sent stop-and-wait from the caller'
 
 Frames
 ------
-One :class:`~galvo_driver.backend.Frame` per trigger EVENT, with
+One :class:`~galvoscan_common.frame.Frame` per trigger EVENT, with
 
 * ``voltages`` decoded from the DAC codes *in the CRC-checked event* (what the board output),
   never from the commanded list; if they differ from the commanded row the frame's status is
@@ -46,15 +46,9 @@ from dataclasses import dataclass
 import numpy as np
 import serial
 
-from galvo_driver.backend import (
-    STATUS_FAULT,
-    STATUS_SETTLED,
-    BackendError,
-    Frame,
-    GalvoBackend,
-    check_voltages,
-)
+from galvo_driver.backend import BackendError, GalvoBackend
 from galvo_driver.serial_link import protocol as p
+from galvoscan_common.frame import STATUS_FAULT, STATUS_SETTLED, Frame, check_voltages
 
 log = logging.getLogger(__name__)
 

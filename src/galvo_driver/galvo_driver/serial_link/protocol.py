@@ -128,6 +128,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from galvoscan_common.frame import VOLTAGE_LIMIT
+
 PROTOCOL_VERSION = 1
 
 #: DAC resolution and channel count of the board.
@@ -137,8 +139,6 @@ N_CHANNELS = 4
 CODE_ZERO = 32768
 CODE_MIN = 1
 CODE_MAX = 65535
-#: Voltage range of every channel [V].
-VOLTAGE_LIMIT = 10.0
 #: One DAC step [V].
 VOLTS_PER_CODE = VOLTAGE_LIMIT / (CODE_MAX - CODE_ZERO)
 
@@ -200,7 +200,7 @@ FAULT_OVERRUN = 2
 FAULT_NAMES = {FAULT_WATCHDOG: 'watchdog (heartbeats stopped)',
                FAULT_OVERRUN: 'trigger overrun'}
 
-# Event status (same numbers as galvo_driver.backend.STATUS_*).
+# Event status (same numbers as galvoscan_common.frame.STATUS_*).
 EVENT_SETTLED = 0
 EVENT_MOVING = 1
 EVENT_FAULT = 2

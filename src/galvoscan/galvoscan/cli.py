@@ -1,0 +1,83 @@
+"""The ``galvoscan`` command: bring-up, bags, calibration and the main job.
+
+    galvoscan run [--params FILE] [--one-process] [--nodes a,b,c] [--duration S]
+    galvoscan scan ...          (start a scan pattern on the running driver and follow it)
+    galvoscan record ...        (see galvoscan record --help)
+    galvoscan replay ...
+    galvoscan bag-recover ...
+    galvoscan calibrate STAGE ...
+    galvoscan evaluate [--rig FILE] [--seed N] [--quick] [--out DIR]
+    galvoscan demo [--out DIR]  (evaluate on the reference rig; what `make demo` runs)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+import tempfile
+
+#: sub-command -> "module:function" taking argv (the rest of the command line).
+DELEGATED = {
+    'record': 'galvoscan_bag.record_node:main',
+    'replay': 'galvoscan_bag.replay_node:main',
+    'bag-recover': 'galvoscan_bag.recover:main',
+    'calibrate': 'galvoscan.offline:main',
+    'scan': 'galvoscan.scan_client:main',
+    'evaluate': 'galvoscan.evaluate:main',
+}
+
+
+def _delegate(target, argv):
+    module, func = target.split(':')
+    return getattr(importlib.import_module(module), func)(argv)
+
+
+def _run(argv):
+    from galvoscan import bringup
+
+    parser = argparse.ArgumentParser(prog='galvoscan run',
+                                     description='Start the galvoscan graph and supervise it.')
+    parser.add_argument('--params', help='parameters YAML (node: ros__parameters: ...)')
+    parser.add_argument('--one-process', action='store_true',
+                        help='all nodes in this process on one EventsExecutor')
+    parser.add_argument('--nodes', default=','.join(bringup.DEFAULT_NODES),
+                        help='comma-separated node names (default: %(default)s)')
+    parser.add_argument('--duration', type=float, help='stop after this many seconds')
+    parser.add_argument('--respawn', action='store_true',
+                        help='restart a node that exits unexpectedly (separate processes)')
+    parser.add_argument('--log-dir', help='write each child process log here')
+    args = parser.parse_args(argv)
+    nodes = [n for n in args.nodes.split(',') if n]
+    try:
+        # refuse a bad file before starting anything
+        workdir = tempfile.mkdtemp(prefix='galvoscan-run-')
+        params = bringup.with_sim_starting_calibration(args.params, nodes, workdir)
+        if args.one_process:
+            bringup.run_one_process(nodes, params, args.duration)
+            return 0
+        sup = bringup.Supervisor(nodes, params, respawn=args.respawn, log_dir=args.log_dir)
+    except ValueError as exc:
+        print(f'galvoscan run: {exc}', file=sys.stderr)
+        return 2
+    return sup.run(args.duration)
+
+
+def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.INFO, format='[%(name)s] %(levelname)s %(message)s')
+    commands = ['run', *DELEGATED, 'demo']
+    if not argv or argv[0] in ('-h', '--help') or argv[0] not in commands:
+        print(__doc__.strip())
+        return 0 if argv and argv[0] in ('-h', '--help') else 2
+    command, rest = argv[0], argv[1:]
+    if command == 'run':
+        return _run(rest)
+    if command == 'demo':
+        return _delegate(DELEGATED['evaluate'], ['--demo', *rest])
+    return _delegate(DELEGATED[command], rest)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

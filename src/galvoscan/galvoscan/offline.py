@@ -1,0 +1,221 @@
+"""``galvoscan calibrate``: calibration stages from the command line (no rclpy).
+
+    galvoscan calibrate STAGE --bags DIR [DIR ...] --calibration FILE
+                        [--initial FILE | --rig NAME]
+    galvoscan calibrate all --sim [--rig NAME] [--seed N] [--quick] --calibration FILE
+                        [--initial FILE]
+
+STAGE is one of intrinsics, dynamic_camera, laser_plane, laser_axis, joint_correction. The
+bags are rosbag2 directories recorded by the calibration node (``poseNNN_stepMMM``), or the
+node's run folder holding them. The stage starts from FILE when it exists, else from
+``--initial FILE``, else from the design values of the simulated rig ``--rig`` (see
+:func:`galvoscan.simulated_rig.nominal_calibration`); the result is merged and FILE
+is written atomically, with the bags' paths and sha256 digests.
+
+``all --sim`` runs every stage in order on the rig simulator, in this process: each stage's
+capture plan (made with the calibration so far) is rendered as the driver's sim backend
+would, computed and merged, and FILE is written after every stage. It starts from
+``--initial FILE`` or the design values of ``--rig`` (FILE is replaced).
+
+Exit status: 0 on success, 1 on any error (the message says what is wrong).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from calibration_tools.stages import STAGES
+from galvoscan.progress import Progress
+
+PROG = 'galvoscan calibrate'
+
+
+class UsageError(ValueError):
+    """Bad command line."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise UsageError(message)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog=PROG, description=__doc__.split('\n\n')[0].strip(),
+                formatter_class=argparse.RawDescriptionHelpFormatter,
+                epilog='stages: ' + ', '.join(STAGES) + ', or all (with --sim)')
+    p.add_argument('stage', metavar='STAGE', help='calibration stage, or all (with --sim)')
+    p.add_argument('--bags', nargs='+', metavar='DIR',
+                   help='rosbag2 directories (or folders of them) captured for the stage')
+    p.add_argument('--calibration', required=True, metavar='FILE',
+                   help='calibration YAML to update (written atomically)')
+    start = p.add_mutually_exclusive_group()
+    start.add_argument('--initial', metavar='FILE',
+                       help='calibration to start from when FILE does not exist yet')
+    start.add_argument('--rig', metavar='NAME',
+                       help="simulated rig (name or YAML) whose design values start the "
+                            "calibration (default for --sim: reference)")
+    p.add_argument('--sim', action='store_true',
+                   help='all: capture every stage in-process on the rig simulator')
+    p.add_argument('--quick', action='store_true', help='all --sim: reduced capture plans')
+    p.add_argument('--seed', type=int, default=0, help='all --sim: simulator seed')
+    return p
+
+
+def _starting_calibration(args, fresh: bool):
+    """The calibration a run starts from, and a description of where it came from."""
+    from galvoscan.simulated_rig import nominal_calibration
+    from reconstructor import calibration_file
+
+    path = Path(args.calibration)
+    if not fresh and path.exists():
+        cal, origin = calibration_file.load(path), str(path)
+    elif args.initial:
+        cal, origin = calibration_file.load(args.initial), args.initial
+    elif args.rig or fresh:
+        rig = args.rig or 'reference'
+        try:
+            cal = nominal_calibration(rig)
+        except OSError as exc:
+            raise ValueError(f'rig {rig}: {exc}') from None
+        origin = f'design values of rig {rig}'
+    else:
+        raise ValueError(f'{path} does not exist: give --initial FILE or --rig NAME to '
+                         f'start from')
+    if cal.source != 'calibrated':
+        raise ValueError(f"{origin} holds source '{cal.source}', not a calibration: "
+                         f'refusing to calibrate on top of it')
+    return cal, origin
+
+
+def _progress_callback(progress: Progress, name: str, unit: str = 'items'):
+    """A stage's ``progress(done, total, message)`` shown on ``progress``."""
+    state = {'total': None, 'done': 0}
+
+    def callback(done, total, message=''):
+        if state['total'] != total:
+            state['total'], state['done'] = total, 0
+            progress.stage(name, total, unit)
+        progress.advance(max(int(done) - state['done'], 0), message)
+        state['done'] = max(int(done), state['done'])
+
+    return callback
+
+
+def _report(result, progress: Progress):
+    from calibration_tools.stage_runner import flatten
+
+    progress.log(f'{result.stage}: {result.samples_used} samples used, '
+                 f'{result.samples_rejected} rejected')
+    for reason in result.rejected[:10]:
+        progress.log(f'  rejected: {reason}')
+    if len(result.rejected) > 10:
+        progress.log(f'  ... and {len(result.rejected) - 10} more rejections')
+    for key, value in result.residuals.items():
+        progress.log(f'  residual {key} = {value:.6g}')
+    for key, value in flatten(result.updates).items():
+        progress.log(f'  {key} = {value:.9g}')
+
+
+def run_stage(args, progress: Progress) -> int:
+    from calibration_tools import stage_runner
+    from calibration_tools.stages import apply_result
+    from reconstructor import calibration_file
+
+    if not args.bags:
+        raise UsageError(f'{args.stage} needs --bags DIR [DIR ...]')
+    if args.sim:
+        raise UsageError('--sim only goes with the stage all')
+    cal, origin = _starting_calibration(args, fresh=False)
+    progress.log(f'{args.stage}: starting from {origin}')
+    bags = stage_runner.expand_bag_dirs(args.bags)
+    progress.stage('reading bags', len(bags), 'bags')
+    views = []
+    for bag in bags:
+        views += stage_runner.views_from_bags([bag])
+        progress.advance(1, bag.name)
+    progress.log(f'{len(views)} frames from {len(bags)} bag(s)')
+    t0 = time.monotonic()
+    result = stage_runner.compute(args.stage, views, cal,
+                                  progress=_progress_callback(progress, args.stage))
+    sources = [{'path': str(b.resolve()), 'sha256': stage_runner.bag_digest(b)} for b in bags]
+    new = apply_result(cal, result, sources)
+    calibration_file.save(new, args.calibration)
+    _report(result, progress)
+    progress.log(f'{args.stage}: computed in {time.monotonic() - t0:.1f} s; wrote '
+                 f'{new.path}')
+    return 0
+
+
+def run_all_sim(args, progress: Progress) -> int:
+    from calibration_tools import stage_runner
+    from calibration_tools.capture_plans import plan, total_frames
+    from calibration_tools.stages import apply_result
+    from galvoscan.simulated_rig import execute_in_process
+    from galvoscan_sim import Simulator, load_rig, load_scene_text
+    from reconstructor import calibration_file
+
+    if not args.sim:
+        raise UsageError('all needs --sim (bags are captured and computed per stage)')
+    if args.bags:
+        raise UsageError('all --sim captures its own data: no --bags')
+    cal, origin = _starting_calibration(args, fresh=True)
+    rig_name = args.rig or 'reference'
+    try:
+        rig = load_rig(rig_name)
+    except OSError as exc:
+        raise ValueError(f'rig {rig_name}: {exc}') from None
+    empty = ('format_version: 1\nname: empty\nobjects:\n  - type: plane\n    name: floor\n'
+             '    pose: {translation: [0.0, 0.0, 5.0]}\n    albedo: 0.1\n')
+    sim = Simulator(rig, load_scene_text(empty), seed=args.seed)
+    progress.log(f'calibrating the simulated rig {rig.name} (seed {args.seed}'
+                 f'{", quick plans" if args.quick else ""}), starting from {origin}')
+    for stage in STAGES:
+        t0 = time.monotonic()
+        steps = plan(stage, cal, quick=args.quick)
+        views, _ = execute_in_process(
+            sim, steps, progress=_progress_callback(progress, f'{stage}: capture', 'frames'))
+        t1 = time.monotonic()
+        result = stage_runner.compute(stage, views, cal,
+                                      progress=_progress_callback(progress, stage))
+        source = {'path': f'in-process simulator: rig {rig.name}, seed {args.seed}, '
+                          f'{len(steps)} capture steps',
+                  'sha256': stage_runner.views_digest(views)}
+        cal = apply_result(cal, result, [source])
+        calibration_file.save(cal, args.calibration)
+        _report(result, progress)
+        progress.log(f'{stage}: {total_frames(steps)} frames in {len(steps)} steps, capture '
+                     f'{t1 - t0:.1f} s, compute {time.monotonic() - t1:.1f} s')
+    progress.log(f'wrote {cal.path}')
+    return 0
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=logging.WARNING, format='[%(name)s] %(levelname)s %(message)s')
+    parser = _parser()
+    if not argv or argv[0] in ('-h', '--help'):
+        parser.print_help()
+        return 0 if argv else 1
+    progress = Progress(stream=sys.stdout)
+    try:
+        args = parser.parse_args(argv)
+        if args.stage == 'all':
+            return run_all_sim(args, progress)
+        if args.stage not in STAGES:
+            raise UsageError(f"unknown stage '{args.stage}'; one of {', '.join(STAGES)}, "
+                             f'or all (with --sim)')
+        return run_stage(args, progress)
+    except UsageError as exc:
+        print(f'{PROG}: error: {exc}\n{parser.format_usage().strip()}', file=sys.stderr)
+        return 1
+    except (ValueError, OSError, RuntimeError) as exc:
+        print(f'{PROG}: error: {exc}', file=sys.stderr)
+        return 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

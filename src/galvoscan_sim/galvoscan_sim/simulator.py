@@ -1,0 +1,587 @@
+"""Image formation and ground truth: the rig looking at a scene.
+
+One frame, for voltages (U1_pan, U1_tilt, U2_pan, U2_tilt):
+
+1. The DAC quantises the voltages; each mirror's true angle follows its (possibly
+   nonlinear) response plus a per-frame jitter draw.
+2. The laser sheet is the laser's fan traced off the two actual G2 mirrors.
+3. Ground-truth stripe: the sheet's centre plane is cut with every face and sphere of the
+   scene; for each image column the points of those curves that project exactly onto the
+   column (sub-pixel v, projection = reflection through the two actual G1 mirror planes,
+   which is exact for plane mirrors) are kept if the camera sees them (facing, not inside a
+   solid, nothing on the segment to the G1 tilt mirror) and the laser reaches them (facing,
+   inside the fan, nothing on the segment to the G2 tilt mirror).
+4. Only a window of rows around each such point is ray-traced at full resolution: pixel
+   rays are traced off the G1 mirror planes into the scene, and each hit is lit by the
+   sheet with a Gaussian profile in its distance from the sheet's centre plane, times
+   albedo, the cosine of the laser's incidence, 1/distance from the fan apex and a speckle
+   factor, if the segment to the G2 mirror is free.
+5. Room light (ambient plus a directional share) lights every surface: in board frames at
+   full resolution with anti-aliased textures; in laser frames, if enabled, from a coarse
+   grid of traced pixels, bilinearly upsampled (the background is dim and smooth there).
+6. Optical blur, full-well clipping, shot and read noise, 8-bit quantisation.
+
+Noise uses a pool of standard normal draws made once per simulator from its seed; each
+frame reads it at a random offset (independent within a frame; two frames may share
+raster-shifted noise values). ``exact_noise=True`` draws fresh values every frame.
+Everything is deterministic for a given seed and frame index.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from . import raykernels as rk
+from .rig import LaserSheet, ModelParameters, Rig
+from .scene import Hits, Scene
+from .spatial import invert_transform, normalize_plane, transform_plane
+
+_NEAR = 0.01  # [m] nearest depth considered in front of the virtual camera
+
+
+@lru_cache(maxsize=4)
+def _pixel_grid(camera, step: int) -> np.ndarray:
+    """Undistorted normalised coordinates of the pixel grid (read-only, cached)."""
+    grid = camera.normalized_grid(step)
+    grid.flags.writeable = False
+    return grid
+
+
+@lru_cache(maxsize=2)
+def _noise_pool(seed: int) -> np.ndarray:
+    """2**22 standard normal draws for a seed (read-only, cached)."""
+    pool = np.random.default_rng([seed, 0x5EED]).standard_normal(1 << 22, dtype=np.float32)
+    pool.flags.writeable = False
+    return pool
+
+
+def _reflection(n, c):
+    """4x4 reflection through the plane n . x = c (n unit; no checks, hot path)."""
+    T = np.eye(4)
+    T[:3, :3] -= 2.0 * np.outer(n, n)
+    T[:3, 3] = 2.0 * c * n
+    return T
+
+
+@dataclass
+class StripeTruth:
+    """Ground-truth stripe of one frame: one entry per (column, stripe branch).
+
+    For image column ``column``, the entry is the point on the *actual* laser sheet's
+    centre plane and on an object's surface whose projection has u == column exactly; it
+    is seen by the camera and reached by the laser.
+
+    Attributes
+    ----------
+    column : ndarray, shape (n,), int
+    u, v : ndarray, shape (n,), px
+        Exact sub-pixel projection (u equals column to ~1e-9 px).
+    points_W, points_V0 : ndarray, shape (n, 3), metres
+    normals_W : ndarray, shape (n, 3)
+        Surface normal at the point, facing the camera.
+    object_index : ndarray, shape (n,), int
+        Index into the scene's objects.
+    """
+
+    column: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    points_W: np.ndarray
+    points_V0: np.ndarray
+    normals_W: np.ndarray
+    object_index: np.ndarray
+
+    @staticmethod
+    def empty() -> StripeTruth:
+        z3 = np.zeros((0, 3))
+        return StripeTruth(np.zeros(0, int), np.zeros(0), np.zeros(0), z3, z3.copy(),
+                           z3.copy(), np.zeros(0, int))
+
+    def __len__(self):
+        return len(self.column)
+
+
+@dataclass
+class FrameTruth:
+    """Everything true about one simulated frame.
+
+    Attributes
+    ----------
+    index : int
+        Frame index (seeds the frame's random draws).
+    voltages_commanded, voltages_applied : ndarray, shape (4,), volts
+        (U1_pan, U1_tilt, U2_pan, U2_tilt) asked for and output by the DAC.
+    angles : ndarray, shape (4,), radians
+        True mechanical mirror angles theta1..theta4, jitter included.
+    W_T_V, V0_T_V, W_T_V0 : ndarray, shape (4, 4)
+        Virtual camera poses.
+    laser_on : bool
+    laser_plane_W, laser_plane_V0 : ndarray, shape (4,)
+        Centre plane of the actual sheet (unit normal); NaN when the laser is off.
+    laser_source_W : ndarray, shape (3,), metres
+        Virtual apex of the fan after both G2 mirrors.
+    exposure : float
+        [s]
+    stripe : StripeTruth
+    rig_name, scene_name : str
+    model_parameters : ModelParameters or None
+        The rig's true model-equivalent parameters (``Rig.true_model_parameters()`` at
+        U2_pan = 0), shared by all frames of a simulator.
+    """
+
+    index: int
+    voltages_commanded: np.ndarray
+    voltages_applied: np.ndarray
+    angles: np.ndarray
+    W_T_V: np.ndarray
+    V0_T_V: np.ndarray
+    W_T_V0: np.ndarray
+    laser_on: bool
+    laser_plane_W: np.ndarray
+    laser_plane_V0: np.ndarray
+    laser_source_W: np.ndarray
+    exposure: float
+    stripe: StripeTruth
+    rig_name: str = ''
+    scene_name: str = ''
+    model_parameters: ModelParameters | None = None
+
+    def as_dict(self) -> dict:
+        """Plain dict (arrays kept as numpy arrays), e.g. for a driver Frame's truth."""
+        out = {k: v for k, v in self.__dict__.items()
+               if k not in ('stripe', 'model_parameters')}
+        out['stripe'] = dict(self.stripe.__dict__)
+        if self.model_parameters is not None:
+            out['model_parameters'] = self.model_parameters.as_dict()
+        return out
+
+
+@dataclass
+class SimFrame:
+    """One simulated camera image with its ground truth.
+
+    Attributes
+    ----------
+    image : ndarray, shape (height, width), uint8
+    truth : FrameTruth
+    """
+
+    image: np.ndarray
+    truth: FrameTruth
+
+
+@dataclass
+class _Geometry:
+    angles: np.ndarray
+    W_T_V: np.ndarray
+    V_T_W: np.ndarray
+    W_T_G: np.ndarray
+    center: np.ndarray           # virtual camera centre, W
+    cam_mirror: np.ndarray       # G1 tilt mirror plane, W
+    sheet: LaserSheet | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class Simulator:
+    """The rig (:class:`~galvoscan_sim.rig.Rig`) scanning a scene.
+
+    Parameters
+    ----------
+    rig : Rig
+    scene : Scene
+    seed : int
+        Seeds every random draw (jitter, noise, speckle); same seed, same frames.
+    exact_noise : bool
+        Draw fresh normal deviates for every frame instead of reading the seeded pool.
+    coarse_step : int
+        Pixel step of the traced grid for the room-light background of laser frames.
+    """
+
+    def __init__(self, rig: Rig, scene: Scene, seed: int = 0, *, exact_noise: bool = False,
+                 coarse_step: int = 10):
+        self.rig = rig
+        self.scene = scene
+        self.seed = int(seed)
+        self.exact_noise = exact_noise
+        cam = rig.camera
+        self.coarse_step = int(coarse_step)
+        self._grid = _pixel_grid(cam, 1)
+        self._coarse = _pixel_grid(cam, self.coarse_step).reshape(-1, 2)
+        gx, gy = self._grid[..., 0], self._grid[..., 1]
+        mx, my = 2.0 / cam.fx, 2.0 / cam.fy  # two pixels of margin around the image
+        self._bounds = (float(gx.min()) - mx, float(gx.max()) + mx, float(gy.min()) - my,
+                        float(gy.max()) + my)
+        self._pool = None
+        if rig.image.noisy and not exact_noise:
+            self._pool = _noise_pool(self.seed)
+        self._next_index = 0
+        self._intr = self._intrinsics()
+        def mirror(m):
+            return np.concatenate((m.axis_point, m.reference_normal, m._binormal,
+                                   (m.surface_offset,)))
+
+        L = rig.laser
+        self._g2_pack = (mirror(rig.g2.pan), mirror(rig.g2.tilt),
+                         np.concatenate((L.position, L.direction, L.fan_normal,
+                                         L.spread_direction)),
+                         np.ascontiguousarray(rig.W_T_G @ rig.G_T_G2))
+        self._cam_const = np.concatenate((rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3],
+                                          rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]))
+        #: The rig's true model-equivalent parameters (see Rig.true_model_parameters).
+        self.model_parameters = rig.true_model_parameters()
+        self.W_T_V0 = rig.W_T_V0
+        self.V0_T_W = invert_transform(self.W_T_V0)
+
+    # ------------------------------------------------------------- helpers
+    def set_scene(self, scene: Scene) -> None:
+        """Replace the scene (the rig and the seed stay)."""
+        self.scene = scene
+
+    def _rng(self, index: int) -> np.random.Generator:
+        return np.random.default_rng([self.seed, int(index)])
+
+    def geometry(self, angles, laser_on: bool = True) -> _Geometry:
+        """Camera and laser geometry for true mirror angles (4,) [rad]."""
+        rig = self.rig
+        th = np.asarray(angles, dtype=np.float64)
+        if th.shape != (4,):
+            raise ValueError(f'angles: expected shape (4,), got {th.shape}')
+        (n1, c1), (n2, c2) = rig.g1_planes(th[0], th[1])
+        G_T_V = _reflection(n2, c2) @ (_reflection(n1, c1) @ rig.G_T_C)
+        W_T_G = rig.W_T_G
+        W_T_V = W_T_G @ G_T_V
+        V_T_W = np.eye(4)
+        V_T_W[:3, :3] = W_T_V[:3, :3].T
+        V_T_W[:3, 3] = -W_T_V[:3, :3].T @ W_T_V[:3, 3]
+        # the G1 tilt mirror n2 . x = c2 in W (W_T_G is rigid)
+        nW = W_T_G[:3, :3] @ n2
+        cam_mirror = np.array([nW[0], nW[1], nW[2], float(nW @ W_T_G[:3, 3]) - c2])
+        center = W_T_V[:3, 3].copy()
+        geo = _Geometry(th, W_T_V, V_T_W, W_T_G, center, cam_mirror)
+        geo.extra['cam'] = np.concatenate((self._cam_const[:12], n1, (c1,), n2, (c2,),
+                                           self._cam_const[12:], center))
+        if laser_on:
+            pack = np.empty(20)
+            pan, tilt, laser, W_T_G2 = self._g2_pack
+            if not rk.laser_sheet(pan, tilt, laser, 0.5 * rig.laser.fan_angle, W_T_G2,
+                                  float(th[2]), float(th[3]), pack):
+                raise ValueError(f'rig {rig.name}: the laser beam misses a G2 mirror at '
+                                 f'angles {th[2:]}')
+            geo.sheet = LaserSheet(pack[0:4], pack[4:7], pack[17:20], pack[7:13].reshape(2, 3),
+                                   pack[13:17], 0.5 * rig.laser.fan_angle)
+            geo.extra['sheet'] = pack[:17]
+        return geo
+
+    def project_points(self, points_W, angles) -> np.ndarray:
+        """Pixel coordinates of world points seen through the G1 mirrors.
+
+        Parameters
+        ----------
+        points_W : array_like, shape (n, 3), metres
+        angles : array_like, shape (4,), radians
+            True mirror angles (only theta1, theta2 matter).
+
+        Returns
+        -------
+        ndarray, shape (n, 2), px (NaN behind the virtual camera)
+        """
+        P = np.asarray(points_W, dtype=np.float64)
+        if P.ndim != 2 or P.shape[1] != 3:
+            raise ValueError(f'points_W: expected shape (n, 3), got {P.shape}')
+        geo = self.geometry(angles, laser_on=False)
+        return self.rig.camera.project(P @ geo.V_T_W[:3, :3].T + geo.V_T_W[:3, 3])
+
+    def trace_pixels(self, uv, angles) -> Hits:
+        """Trace pixel rays off the G1 mirrors into the scene.
+
+        Parameters
+        ----------
+        uv : array_like, shape (n, 2), px
+        angles : array_like, shape (4,), radians
+
+        Returns
+        -------
+        Hits
+            World-frame hits.
+        """
+        uv = np.asarray(uv, dtype=np.float64)
+        if uv.ndim != 2 or uv.shape[1] != 2:
+            raise ValueError(f'uv: expected shape (n, 2), got {uv.shape}')
+        th = np.asarray(angles, dtype=np.float64)
+        if th.shape != (4,):
+            raise ValueError(f'angles: expected shape (4,), got {th.shape}')
+        xy = self.rig.camera.pixel_to_normalized(uv)
+        return self._trace_xy(xy, th)
+
+    def _trace_xy(self, xy, th) -> Hits:
+        rig = self.rig
+        o, d = rig.trace_camera_rays(xy, th[0], th[1])
+        R, t = rig.W_T_G[:3, :3], rig.W_T_G[:3, 3]
+        return self.scene.intersect(o @ R.T + t, d @ R.T)
+
+    # ------------------------------------------------------ stripe truth
+    def _half_spaces(self, geo: _Geometry) -> np.ndarray:
+        R = geo.W_T_V[:3, :3]
+        C = geo.center
+        x0, x1, y0, y1 = self._bounds
+        hs = [(C, R @ np.array([1.0, 0.0, -x0])), (C, R @ np.array([-1.0, 0.0, x1])),
+              (C, R @ np.array([0.0, 1.0, -y0])), (C, R @ np.array([0.0, -1.0, y1])),
+              (C + _NEAR * R[:, 2], R[:, 2])]
+        sh = geo.sheet
+        hs += [(sh.source, sh.edge_normals[0]), (sh.source, sh.edge_normals[1])]
+        return np.array([np.array(h) for h in hs])
+
+    def _intrinsics(self) -> np.ndarray:
+        cam = self.rig.camera
+        return np.concatenate([[cam.fx, cam.fy, cam.cx, cam.cy], cam.distortion,
+                               [cam.width, cam.height]]).astype(np.float64)
+
+    def _stripe_crossings(self, geo: _Geometry):
+        """True stripe points (see StripeTruth), sorted by column then v, or None."""
+        sheet = geo.sheet
+        cam = self.rig.camera
+        hs = self._half_spaces(geo)
+        A, B, nrm, obj, two = self.scene.sheet_segments(sheet.plane, hs, geo.center,
+                                                        sheet.source)
+        circles = self.scene.sheet_circles(sheet.plane)
+        cap = (len(A) + 2 * len(circles)) * cam.width + 16
+        X = np.empty((cap, 3))
+        N = np.empty((cap, 3))
+        ob = np.empty(cap, np.int64)
+        cl = np.empty(cap, np.int64)
+        u = np.empty(cap)
+        v = np.empty(cap)
+        ptype, _, R, T, prm = self.scene.packed()
+        intr = self._intr
+        psheet = geo.extra['sheet']
+        VTW = np.ascontiguousarray(geo.V_T_W)
+        m = 0
+        if len(A):
+            m = rk.segment_crossings(ptype, R, T, prm, VTW, intr, geo.center, geo.cam_mirror,
+                                     psheet, A, B, nrm, two, obj.astype(np.int64), _NEAR, X,
+                                     N, ob, cl, u, v)
+        for k, cc, rho, e1, e2, sc, _ in circles:
+            dist = float(np.linalg.norm(cc - geo.center))
+            samples = int(np.clip(2 * np.pi * rho * cam.fx / max(dist, 1e-3) / 4, 64, 4096))
+            m += rk.circle_crossings(ptype, R, T, prm, VTW, intr, geo.center, geo.cam_mirror,
+                                     psheet, cc, rho, e1, e2, sc, samples, k, _NEAR, X[m:],
+                                     N[m:], ob[m:], cl[m:], u[m:], v[m:])
+        if m == 0:
+            return None
+        X, N, ob, cl, u, v = X[:m], N[:m], ob[:m], cl[:m], u[:m], v[:m]
+        order = np.lexsort((v, cl))
+        X, N, ob, cl, u, v = X[order], N[order], ob[order], cl[order], u[order], v[order]
+        dup = np.zeros(m, bool)
+        dup[1:] = (cl[1:] == cl[:-1]) & (np.abs(np.diff(v)) < 1e-6)
+        if np.any(dup):
+            keep = ~dup
+            X, N, ob, cl, u, v = X[keep], N[keep], ob[keep], cl[keep], u[keep], v[keep]
+        return X, N, ob, cl, u, v
+
+    def stripe_truth(self, geo: _Geometry) -> StripeTruth:
+        """Ground-truth stripe for a frame geometry (see :class:`StripeTruth`)."""
+        if geo.sheet is None:
+            return StripeTruth.empty()
+        res = self._stripe_crossings(geo)
+        if res is None:
+            return StripeTruth.empty()
+        X, N, ob, cl, u, v = res
+        R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
+        return StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
+
+    # ------------------------------------------------------------ images
+    def _background(self, geo, exposure, full: bool) -> np.ndarray:
+        """Room-light signal [e-]: every pixel (full) or the coarse grid, float32."""
+        rig, cam = self.rig, self.rig.camera
+        im = rig.image
+        step = 1 if full else self.coarse_step
+        xy = self._grid.reshape(-1, 2) if full else self._coarse
+        ptype, pobj, R, T, prm = self.scene.packed()
+        tex, oR, oT = self.scene.texture_table
+        out = np.empty(len(xy), np.float32)
+        rk.ambient_pixels(ptype, R, T, prm, pobj, geo.extra['cam'], xy, step / cam.fx,
+                          geo.center, self.scene.albedo_table, tex, oR, oT,
+                          im.ambient_rate * exposure, im.light_direction,
+                          im.directional_fraction, out)
+        return out.reshape(cam.height // step, cam.width // step)
+
+    def _laser_layer(self, geo, crossings, energy, rng):
+        """The laser stripe (electrons) in windows around the true points.
+
+        Returns
+        -------
+        tuple (ndarray shape (rows, width) float32, int)
+            The band of image rows holding the stripe and its first row.
+        """
+        rig, cam, sheet = self.rig, self.rig.camera, geo.sheet
+        X, N, _, col, _, v = crossings
+        sigma = rig.laser.sigma
+        half = np.empty(len(col), np.int64)
+        rk.window_halves(X, N, col, v, np.ascontiguousarray(geo.W_T_V[:3, :3]), geo.center,
+                         sheet.plane, sigma, rig.image.psf_sigma, self._intr, half)
+        v0 = np.rint(v).astype(np.int64)
+        psf = rig.image.psf_sigma
+        pad = int(np.ceil(3 * psf)) + 1 if psf > 0 else 0
+        b0 = max(int((v0 - half).min()) - pad, 0)
+        b1 = min(int((v0 + half).max()) + 1 + pad, cam.height)
+        if b1 <= b0:
+            return np.zeros((0, cam.width), np.float32), 0
+        band = np.zeros((b1 - b0, cam.width), np.float32)
+        c = rig.image.speckle_contrast
+        if c > 0 and self._pool is not None:
+            z, zoff = self._pool, int(rng.integers(0, len(self._pool)))
+        elif c > 0:
+            z, zoff = rng.standard_normal(int(np.sum(2 * half + 1))), 0
+        else:
+            z, zoff = np.zeros(1, np.float32), 0
+        ptype, pobj, Rp, Tp, prm = self.scene.packed()
+        tex, oR, oT = self.scene.texture_table
+        scale = energy * rig.laser.reference_distance
+        rk.laser_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table, tex, oR, oT,
+                         geo.extra['cam'], self._grid, col, v0, half,
+                         geo.extra['sheet'], sigma, scale, c, z, zoff, band, b0, 1.0 / cam.fx)
+        if psf > 0:
+            # blur each cluster of window rows on its own: the rows between clusters are
+            # empty and farther apart than the kernel, so this equals blurring the band
+            order = np.argsort(v0 - half)
+            lo = (v0 - half)[order] - pad - b0
+            hi = np.maximum.accumulate((v0 + half)[order] + 1 + pad - b0)
+            cut = np.flatnonzero(lo[1:] > hi[:-1] + pad) + 1
+            for a, b in zip(np.r_[0, cut], np.r_[cut, len(lo)], strict=True):
+                self._blur_rows(band, lo[a], hi[b - 1], psf)
+        return band, b0
+
+    @staticmethod
+    def _blur_rows(band, start, end, psf):
+        start, end = max(int(start), 0), min(int(end), band.shape[0])
+        if end > start:
+            band[start:end] = cv2.GaussianBlur(band[start:end], (0, 0), psf,
+                                               borderType=cv2.BORDER_CONSTANT)
+
+    def _sensor(self, bg, band, b0, rng) -> np.ndarray:
+        """Background (None, coarse or full) + stripe band -> noisy 8-bit image."""
+        im, cam = self.rig.image, self.rig.camera
+        n = cam.width * cam.height
+        if im.noisy:
+            if self._pool is not None:
+                off = int(rng.integers(0, len(self._pool) - n))
+                z = self._pool[off:off + n]
+            else:
+                z = rng.standard_normal(n, dtype=np.float32)
+        else:
+            z = np.zeros(0, np.float32)
+        if bg is None:
+            bg = np.zeros((0, 0), np.float32)
+        elif bg.shape != (cam.height, cam.width):
+            bg = cv2.resize(bg, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
+        out = np.empty((cam.height, cam.width), np.uint8)
+        rk.sensor(bg, band, b0, z, float(im.full_well), bool(im.shot_noise),
+                  float(im.read_noise ** 2), 1.0 / im.electrons_per_dn, float(im.black_level),
+                  float((1 << im.bit_depth) - 1), out)
+        return out
+
+    def render(self, voltages, *, laser_on: bool = True, background: str = 'coarse',
+               exposure: float | None = None, laser_power: float = 1.0,
+               frame_index: int | None = None) -> SimFrame:
+        """Simulate one camera frame.
+
+        Parameters
+        ----------
+        voltages : array_like, shape (4,), volts
+            Commanded (U1_pan, U1_tilt, U2_pan, U2_tilt).
+        laser_on : bool
+        background : {'coarse', 'full'}
+            Room light from a coarse traced grid (laser frames) or every pixel with
+            anti-aliased textures (board frames).
+        exposure : float, optional
+            [s]; the rig's laser-frame exposure by default.
+        laser_power : float
+            Laser power relative to the rig's [1].
+        frame_index : int, optional
+            Seeds this frame's draws; by default the next index of this simulator.
+
+        Returns
+        -------
+        SimFrame
+        """
+        if background not in ('coarse', 'full'):
+            raise ValueError(f"background: expected 'coarse' or 'full', got {background!r}")
+        if not laser_power >= 0:
+            raise ValueError(f'laser_power: expected >= 0, got {laser_power}')
+        rig = self.rig
+        U = np.asarray(voltages, dtype=np.float64)
+        if U.shape != (4,):
+            raise ValueError(f'voltages: expected shape (4,), got {U.shape}')
+        applied = rig.applied_voltages(U)
+        if frame_index is None:
+            frame_index = self._next_index
+        self._next_index = int(frame_index) + 1
+        rng = self._rng(frame_index)
+        angles = rig.mirror_angles(applied, rng.standard_normal(4))
+        exposure = rig.image.exposure if exposure is None else float(exposure)
+        if not exposure > 0:
+            raise ValueError(f'exposure: expected > 0 s, got {exposure}')
+        geo = self.geometry(angles, laser_on)
+        full = background == 'full'
+        ambient = full or not laser_on or rig.image.ambient_in_laser_frames
+        bg = None
+        if ambient:
+            bg = self._background(geo, exposure, full)
+            if full and rig.image.psf_sigma > 0:
+                bg = cv2.GaussianBlur(bg, (0, 0), rig.image.psf_sigma)
+        stripe = StripeTruth.empty()
+        band, b0 = np.zeros((0, rig.camera.width), np.float32), 0
+        if laser_on:
+            res = self._stripe_crossings(geo)
+            if res is not None:
+                energy = rig.laser.peak_rate * exposure * laser_power
+                band, b0 = self._laser_layer(geo, res, energy, rng)
+                X, N, ob, cl, u, v = res
+                R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
+                stripe = StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
+        image = self._sensor(bg, band, b0, rng)
+        nan4 = np.full(4, np.nan)
+        plane_W = geo.sheet.plane if laser_on else nan4
+        truth = FrameTruth(
+            int(frame_index), U.copy(), applied, angles, geo.W_T_V,
+            self.V0_T_W @ geo.W_T_V, self.W_T_V0.copy(), laser_on, plane_W,
+            normalize_plane(transform_plane(self.V0_T_W, plane_W)) if laser_on else nan4,
+            geo.sheet.source if laser_on else np.full(3, np.nan), exposure, stripe,
+            rig.name, self.scene.name, self.model_parameters)
+        return SimFrame(image, truth)
+
+    def calibration_frame(self, voltages, *, laser_on: bool = False,
+                          exposure: float | None = None, laser_power: float | None = None,
+                          frame_index: int | None = None) -> SimFrame:
+        """A fully textured board frame under room light, optionally with the stripe.
+
+        The exposure defaults to the rig's ``calibration_exposure``; the laser power
+        defaults to the value that gives the stripe the same signal as in a laser frame.
+        """
+        rig = self.rig
+        exposure = rig.image.calibration_exposure if exposure is None else exposure
+        if laser_power is None:
+            laser_power = rig.image.exposure / exposure
+        return self.render(voltages, laser_on=laser_on, background='full', exposure=exposure,
+                           laser_power=laser_power, frame_index=frame_index)
+
+    def scan(self, voltages: Iterable, **render_kwargs) -> Iterator[SimFrame]:
+        """Frames for a list of voltages, produced one by one.
+
+        Parameters
+        ----------
+        voltages : array_like, shape (n, 4), volts
+        **render_kwargs
+            Passed to :meth:`render` (not ``frame_index``).
+        """
+        U = np.asarray(voltages, dtype=np.float64)
+        if U.ndim != 2 or U.shape[1] != 4:
+            raise ValueError(f'voltages: expected shape (n, 4), got {U.shape}')
+        self.rig.dac.quantize(U)  # range check before the first frame
+        for row in U:
+            yield self.render(row, **render_kwargs)
