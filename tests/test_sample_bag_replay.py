@@ -64,8 +64,13 @@ def test_sample_bag_replays_to_the_recorded_centres(spawn, ros_env):
             assert m.galvo.seq == ref.galvo.seq
             assert m.galvo.g1_tilt_voltage == ref.galvo.g1_tilt_voltage
             assert m.galvo.g2_tilt_voltage == ref.galvo.g2_tilt_voltage
-            np.testing.assert_array_equal(np.asarray(m.u), np.asarray(ref.u))
-            np.testing.assert_array_equal(np.asarray(m.v), np.asarray(ref.v))
+            # The same pixels give the same centres up to float32 rounding: the kernels are
+            # compiled with fastmath for the CPU at hand, and another CPU (seen: AMD EPYC
+            # against the recording machine) rounds one centre in 720 differently, by 1e-6 px.
+            # 1e-4 px is 150x below the extraction's own error (0.015 px).
+            np.testing.assert_array_equal(np.isnan(m.u), np.isnan(ref.u))
+            np.testing.assert_allclose(np.asarray(m.u), np.asarray(ref.u), rtol=0, atol=1e-4)
+            np.testing.assert_allclose(np.asarray(m.v), np.asarray(ref.v), rtol=0, atol=1e-4)
     finally:
         ex.shutdown()
         node.destroy_node()

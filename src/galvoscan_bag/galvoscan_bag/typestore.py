@@ -27,8 +27,8 @@ def msg_dir_candidates() -> list[Path]:
         if prefix:
             candidates.append(Path(prefix) / 'share' / MSGS_PACKAGE / 'msg')
     candidates.append(Path(sys.prefix) / 'share' / MSGS_PACKAGE / 'msg')
-    # src/galvoscan_bag/galvoscan_bag/typestore.py -> repository root is parents[4].
-    candidates.append(Path(__file__).resolve().parents[4] / 'msgs' / 'msg')
+    # src/galvoscan_bag/galvoscan_bag/typestore.py -> repository root is parents[3].
+    candidates.append(Path(__file__).resolve().parents[3] / 'msgs' / 'msg')
     return candidates
 
 
