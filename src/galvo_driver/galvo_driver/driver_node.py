@@ -39,9 +39,15 @@ from sensor_msgs.msg import CameraInfo, Image
 from galvo_driver import patterns
 from galvo_driver.backend import BackendError
 from galvoscan_common import cdr, intra
+from galvoscan_common.boundary import CallbackErrors, guard_service
 from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay')
+#: Poll period of the backend while a scan runs [s] (frames at up to 1 kHz).
+SCAN_POLL_PERIOD = 0.001
+#: Poll period while no scan runs [s]: backend faults are still seen within 0.1 s, and an
+#: idle driver costs next to no CPU.
+IDLE_POLL_PERIOD = 0.1
 
 
 def make_backend(name: str, params: dict):
@@ -82,18 +88,28 @@ class GalvoDriverNode(LifecycleNode):
         d('camera_frame_id', 'camera_optical', 'frame_id of images and camera info')
         d('output_frame_id', 'v0', 'frame_id of galvo states (the fixed output frame)')
         d('autostart', True, 'configure and activate at start-up')
+        d('max_scan_frames', patterns.MAX_SCAN_FRAMES,
+          'largest scan accepted [frames]; the voltage table takes 32 bytes per frame',
+          ints=(1, 100_000_000))
+        d('max_scan_duration', patterns.MAX_SCAN_DURATION,
+          'longest scan accepted at its frame rate [s]', floats=(1.0, 7 * 86400.0))
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.backend = None
         self._pubs = ()
         self._timer = None
+        self._poll_period = None
+        self.callback_errors = CallbackErrors()
         self._scan = {'scan_id': '', 'state': 'idle', 'total': 0, 'done': 0, 'dropped': 0,
                       't0': 0.0, 'last_seq': None}
         self._scan_count = 0
-        self.create_service(StartScan, 'scan/start', self._on_start)
-        self.create_service(StopScan, 'scan/stop', self._on_stop)
-        self.create_service(GetScanProgress, 'scan/progress', self._on_progress)
-        self.create_service(SetScene, 'sim/set_scene', self._on_set_scene)
+        for srv_type, name, callback in (
+                (StartScan, 'scan/start', self._on_start),
+                (StopScan, 'scan/stop', self._on_stop),
+                (GetScanProgress, 'scan/progress', self._on_progress),
+                (SetScene, 'sim/set_scene', self._on_set_scene)):
+            self.create_service(srv_type, name, guard_service(
+                name, callback, self.get_logger(), self.callback_errors))
         if self.get_parameter('autostart').value:
             self.trigger_configure()
             if self.backend is not None:
@@ -150,7 +166,7 @@ class GalvoDriverNode(LifecycleNode):
 
     def on_activate(self, state):
         self.backend.arm()
-        self._timer = self.create_timer(0.001, self._tick)
+        self._set_poll_period(IDLE_POLL_PERIOD)
         self.get_logger().info('active')
         return super().on_activate(state)
 
@@ -177,6 +193,15 @@ class GalvoDriverNode(LifecycleNode):
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
+            self._poll_period = None
+
+    def _set_poll_period(self, period: float) -> None:
+        """Poll the backend every ``period`` seconds (fast while scanning, slow when idle)."""
+        if self._timer is not None and self._poll_period == period:
+            return
+        self._stop_timer()
+        self._timer = self.create_timer(period, self._tick)
+        self._poll_period = period
 
     def _close(self):
         if self.backend is not None:
@@ -234,6 +259,9 @@ class GalvoDriverNode(LifecycleNode):
             self.get_logger().info(
                 f"scan {self._scan['scan_id']} done: {self._scan['done']} frames, "
                 f"{self._scan['dropped']} dropped")
+        if self._scan['state'] != 'running' and not self.backend.running \
+                and self._timer is not None:
+            self._set_poll_period(IDLE_POLL_PERIOD)
 
     def _publish(self, frame):
         img_pub, info_pub, state_pub = self._pubs
@@ -270,10 +298,13 @@ class GalvoDriverNode(LifecycleNode):
             resp.success, resp.message = False, f"scan {self._scan['scan_id']} still running"
             return resp
         try:
-            voltages = patterns.from_request(req)
             rate = req.frame_rate or self.get_parameter('frame_rate').value
             if not (np.isfinite(rate) and 0 < rate <= 2000):
                 raise ValueError(f'frame_rate: {rate} Hz outside (0, 2000]')
+            # sized before anything is allocated
+            patterns.check_scan_size(req, rate, self.get_parameter('max_scan_frames').value,
+                                     self.get_parameter('max_scan_duration').value)
+            voltages = patterns.from_request(req)
             total = self.backend.start(voltages, rate, bool(req.laser_on))
         except (ValueError, BackendError) as exc:
             resp.success, resp.message = False, f'scan refused: {exc}'
@@ -283,6 +314,7 @@ class GalvoDriverNode(LifecycleNode):
         scan_id = req.scan_id or f'scan{self._scan_count:04d}'
         self._scan.update(scan_id=scan_id, state='running', total=total, done=0, dropped=0,
                           t0=time.monotonic(), last_seq=None)
+        self._set_poll_period(SCAN_POLL_PERIOD)
         resp.success, resp.scan_id, resp.frames_total = True, scan_id, total
         resp.expected_duration = total / rate
         resp.message = f"{req.pattern} scan '{scan_id}': {total} frames at {rate:g} Hz"
@@ -314,6 +346,8 @@ class GalvoDriverNode(LifecycleNode):
         left = max(scan['total'] - scan['done'], 0)
         resp.remaining = left / rate if rate > 0 else float('nan') if left else 0.0
         resp.message = f"{scan['state']}: {scan['done']}/{scan['total']} frames"
+        if self.callback_errors.total:
+            resp.message += f'; {self.callback_errors.total} failed service calls'
         return resp
 
     def _on_set_scene(self, req, resp):

@@ -82,8 +82,73 @@ def custom(voltages):
     return check_voltages(arr)
 
 
+#: Default limits of one scan, the driver's parameters ``max_scan_frames`` and
+#: ``max_scan_duration``: 2 million frames hold a 64 MB voltage table and last 67 min at
+#: 500 fps; a longer job is several scans.
+MAX_SCAN_FRAMES = 2_000_000
+MAX_SCAN_DURATION = 4 * 3600.0
+
+
+def frame_count(req) -> int:
+    """Frames a ``StartScan`` request would produce, computed without building the table.
+
+    Raises
+    ------
+    ValueError
+        An unknown pattern, or a step count below 1.
+    """
+    pattern = req.pattern
+    if pattern == 'raster' or pattern == 'g1_grid':
+        return _steps('steps_pan', req.steps_pan) * _steps('steps_tilt', req.steps_tilt)
+    if pattern == 'g2_sweep':
+        return _steps('steps_tilt', req.steps_tilt)
+    if pattern == 'custom':
+        n = len(req.voltages)
+        if n == 0 or n % 4:
+            raise ValueError(f'voltages: need a non-empty multiple of 4 values, got {n}')
+        return n // 4
+    raise ValueError(f"pattern: unknown '{pattern}'; known: {', '.join(PATTERNS)}")
+
+
+def check_scan_size(req, frame_rate: float, max_frames: int = MAX_SCAN_FRAMES,
+                    max_duration: float = MAX_SCAN_DURATION) -> int:
+    """The frame count of a request, refused before anything is allocated when too large.
+
+    Parameters
+    ----------
+    req : galvoscan_msgs/StartScan request (duck-typed)
+    frame_rate : float, Hz
+    max_frames : int
+    max_duration : float, seconds
+
+    Returns
+    -------
+    int
+        The number of frames.
+
+    Raises
+    ------
+    ValueError
+        A bad pattern or step count, or a scan over ``max_frames`` frames or
+        ``max_duration`` seconds (the message names the limit).
+    """
+    n = frame_count(req)
+    if n > max_frames:
+        raise ValueError(f'{n} frames exceed the limit of {max_frames} frames per scan '
+                         f'(parameter max_scan_frames); split the job into several scans')
+    duration = n / frame_rate
+    if duration > max_duration:
+        raise ValueError(f'{n} frames at {frame_rate:g} Hz take {duration:.0f} s, over the '
+                         f'limit of {max_duration:.0f} s per scan (parameter '
+                         f'max_scan_duration)')
+    return n
+
+
 def from_request(req):
-    """Build the voltage list of a ``galvoscan_msgs/StartScan`` request (duck-typed)."""
+    """Build the voltage list of a ``galvoscan_msgs/StartScan`` request (duck-typed).
+
+    Size the request with :func:`check_scan_size` first: this allocates the whole table.
+    """
     pattern = req.pattern
     if pattern == 'raster':
         return raster((req.g1_pan_min, req.g1_pan_max), (req.g1_tilt_min, req.g1_tilt_max),
