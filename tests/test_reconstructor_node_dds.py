@@ -222,3 +222,76 @@ def test_scan_cloud_is_bounded_by_scan_max_points(rig):
     np.testing.assert_array_equal(got['intensity'], np.tile(np.arange(300), 7))
     assert r.log().count('reached scan_max_points') == 2
     assert r.log().count('scan ended: 300 points') == 1
+
+
+def _broken_calibrations(tmp_path, good_text):
+    """20 calibration files a user could hand the node by mistake, each with its reason."""
+    cases = [
+        ('l: 0.08345', 'l: 83.45', 'model.l'),                        # millimetres
+        ('format_version: 1', 'format_version: 7', 'format_version'),
+        ('l: 0.08345', 'l: .nan', 'l'),
+        ('d: 0.02214', 'd: 22.14', 'model.d'),
+        ('format_version: 1\n', '', 'format_version'),                # key missing
+    ]
+    files = []
+    for i, (old, new, reason) in enumerate(cases):
+        assert old in good_text, old
+        files.append((tmp_path / f'broken{i}.yaml', good_text.replace(old, new, 1), reason))
+    files.append((tmp_path / 'binary.yaml', b'\x89PNG\r\n\x1a\n\x00\x00', 'not UTF-8'))
+    files.append((tmp_path / 'utf16.yaml', good_text.encode('utf-16'), 'UTF-16'))
+    files.append((tmp_path / 'yaml.yaml', 'model: [unclosed', 'not valid YAML'))
+    files.append((tmp_path / 'list.yaml', '- 1\n- 2\n', 'mapping'))
+    files.append((tmp_path / 'missing.yaml', None, 'cannot read'))
+    out = []
+    for k in range(20):
+        path, content, reason = files[k % len(files)]
+        path = path.with_name(f'{k:02d}_{path.name}')
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        elif content is not None:
+            path.write_text(content)
+        out.append((path, reason))
+    return out
+
+
+def test_alternating_broken_and_good_reloads(rig, tmp_path):
+    """20 broken and 20 good reloads, alternating: each broken one is refused with its reason,
+    each good one taken, the node lives, and the clouds use the last good calibration."""
+    r = rig()
+    good_text = r.cal_path.read_text()
+    assert 'l: 0.08345' in good_text and 'd: 0.02214' in good_text
+    reload = r.node.create_client(LoadCalibration, 'reconstructor/reload_calibration')
+    assert reload.wait_for_service(timeout_sec=10)
+
+    def call(path):
+        fut = reload.call_async(LoadCalibration.Request(path=str(path)))
+        r.ex.spin_until_future_complete(fut, timeout_sec=10)
+        assert fut.result() is not None, 'no answer:\n' + r.log()
+        return fut.result()
+
+    goods = []
+    for k, ls in enumerate(np.linspace(0.080, 0.086, 20)):
+        path = tmp_path / f'good{k:02d}.yaml'
+        path.write_text(good_text.replace('l: 0.08345', f'l: {ls:.6f}', 1))
+        goods.append((path, ls))
+    for (bad, reason), (good, _) in zip(_broken_calibrations(tmp_path, good_text), goods,
+                                        strict=True):
+        resp = call(bad)
+        assert not resp.success and reason in resp.message, (bad.name, resp.message)
+        resp = call(good)
+        assert resp.success, (good.name, resp.message)
+        assert r.proc.poll() is None, r.log()
+    # the last good one (l = 0.086) is in use after one more broken reload
+    assert not call(tmp_path / 'no_such_file.yaml').success
+    import dataclasses
+
+    last = dataclasses.replace(r.model, l=float(goods[-1][1]))
+    volts = (3.0, -2.0, 0.0, -1.5)
+    pts = stripe_points(last, volts)
+    r.pub.publish(centers_msg(last, volts, 0, pts))
+    r.spin_until(lambda: r.clouds, 10)
+    assert r.clouds, r.log()
+    got = cloud_points(r.clouds[-1])
+    np.testing.assert_allclose(np.column_stack([got['x'], got['y'], got['z']]), pts, atol=2e-5)
+    assert r.proc.poll() is None
+    assert 'Logger severity' not in r.log() and 'Traceback' not in r.log()

@@ -137,6 +137,11 @@ def validate(data, origin='calibration') -> Calibration:
     if max(abs(float(v)) for v in point) > _MAX_AXIS_POINT_M:
         raise ValueError(f'{origin}: model.laser_axis_point {point} is more than '
                          f'{_MAX_AXIS_POINT_M:g} m from V0; it looks like millimetres')
+    offset = float(model_dict['laser_plane_v0'][3])
+    if abs(offset) > _MAX_AXIS_POINT_M:
+        raise ValueError(f'{origin}: model.laser_plane_v0[3] = {offset:g} puts the laser plane '
+                         f'more than {_MAX_AXIS_POINT_M:g} m from V0 (it is the plane offset '
+                         f'in metres); it looks like millimetres')
     stages = data.get('stages', {}) or {}
     if not isinstance(stages, dict):
         raise ValueError(f"{origin}: 'stages' must be a mapping of stage name to metadata")
@@ -157,9 +162,16 @@ def load(path) -> Calibration:
     """Read and validate a calibration file; errors name the file and the key."""
     path = Path(path)
     try:
-        text = path.read_text()
+        raw = path.read_bytes()
     except OSError as exc:
         raise ValueError(f'{path}: cannot read calibration file: {exc.strerror}') from None
+    try:
+        text = raw.decode('utf-8')
+    except UnicodeDecodeError as exc:
+        raise ValueError(f'{path}: not a calibration file: not UTF-8 text (byte {exc.start}: '
+                         f'{exc.reason}); is it binary, or saved as UTF-16?') from None
+    if '\x00' in text:
+        raise ValueError(f'{path}: not a calibration file: it holds NUL bytes (binary data)')
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:

@@ -45,6 +45,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from galvoscan_common import cdr
+from galvoscan_common.boundary import CallbackErrors, guard_service
 from galvoscan_common.executor import run_node
 from galvoscan_common.frame import VOLTAGE_LIMIT
 from reconstructor import calibration_file
@@ -92,8 +93,7 @@ class ReconstructorNode(Node):
         self.calibration = None
         path = self.get_parameter('calibration_file').value
         if path:
-            ok, message = self._load(path)
-            (self.get_logger().info if ok else self.get_logger().error)(message)
+            self._log_outcome(*self._load(path))
         else:
             self.get_logger().error('no calibration_file given: frames are skipped until '
                                     'reconstructor/reload_calibration loads one')
@@ -114,8 +114,12 @@ class ReconstructorNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._pub_scan = self.create_publisher(PointCloud2, 'points/scan', latched)
         self._pub_markers = self.create_publisher(MarkerArray, 'markers', 10)
-        self.create_service(LoadCalibration, 'reconstructor/reload_calibration', self._on_reload)
-        self.create_service(SaveScan, 'reconstructor/save_scan', self._on_save)
+        self.callback_errors = CallbackErrors()
+        for srv_type, name, callback in (
+                (LoadCalibration, 'reconstructor/reload_calibration', self._on_reload),
+                (SaveScan, 'reconstructor/save_scan', self._on_save)):
+            self.create_service(srv_type, name, guard_service(
+                name, callback, self.get_logger(), self.callback_errors))
         self.create_timer(0.05, self._check_scan_end)
 
     # -- configuration ----------------------------------------------------------------
@@ -139,6 +143,14 @@ class ReconstructorNode(Node):
         self.calibration, self.model = cal, cal.model
         note = ' (SIMULATOR TRUTH, not a calibration)' if cal.source == 'simulator_truth' else ''
         return True, f'calibration loaded from {cal.path}{note}'
+
+    def _log_outcome(self, ok: bool, message: str) -> None:
+        # one call site per severity: rclpy refuses a second severity from one line
+        # ("Logger severity cannot be changed between calls")
+        if ok:
+            self.get_logger().info(message)
+        else:
+            self.get_logger().error(message)
 
     def _skip(self, cause, detail=''):
         skipped = self.counters['skipped']
@@ -278,7 +290,7 @@ class ReconstructorNode(Node):
             resp.success, resp.message = False, 'no path given and no calibration_file set'
             return resp
         ok, message = self._load(path)  # on failure the previous calibration stays active
-        (self.get_logger().info if ok else self.get_logger().error)(message)
+        self._log_outcome(ok, message)
         resp.success, resp.message = ok, message
         if ok:
             resp.path, resp.content_hash = self.calibration.path, self.calibration.content_hash
