@@ -49,6 +49,8 @@ def test_round_trip_keeps_every_parameter(tmp_path):
     (lambda d: d['model']['g1_pan'].__setitem__('theta0', 45.0), r'g1_pan\.theta0 .* degrees'),
     (lambda d: d['model'].__setitem__('laser_axis_point', [0, -195.9, 258.0]),
      r'laser_axis_point .* millimetres'),
+    (lambda d: d['model']['laser_plane_v0'].__setitem__(3, -272.4),
+     r'laser_plane_v0\[3\] = -272\.4 .* millimetres'),
     (lambda d: d['model']['intrinsics'].__setitem__('dist', [0, 0, 0]), r'intrinsics\.dist'),
     (lambda d: d.__setitem__('source', 'guess'), r'source must be one of'),
 ])
@@ -68,6 +70,15 @@ def test_unreadable_and_non_yaml_files(tmp_path):
     bad.write_text('model: [unclosed\n')
     with pytest.raises(ValueError, match='not valid YAML'):
         cf.load(bad)
+    for name, data, message in (('bin.yaml', bytes(range(256)), 'not UTF-8'),
+                                ('utf16.yaml', 'format_version: 1\n'.encode('utf-16'),
+                                 'not UTF-8'),
+                                ('nul.yaml', b'format_version: 1\x00\n', 'NUL bytes')):
+        path = tmp_path / name
+        path.write_bytes(data)
+        with pytest.raises(ValueError, match=message) as info:
+            cf.load(path)
+        assert str(path) in str(info.value)
 
 
 def test_save_refuses_what_load_would_refuse_and_keeps_the_old_file(tmp_path):
