@@ -212,15 +212,21 @@ class GalvoDriverNode(LifecycleNode):
                 self.get_logger().error(f'closing backend: {exc}')
             self.backend = None
 
-    def make_safe(self):
-        """Galvos to 0 V, laser off. Safe to call at any time, never raises."""
+    def make_safe(self) -> bool:
+        """Galvos to 0 V, laser off. Safe to call at any time, never raises.
+
+        Returns False when the backend could not be put in its safe state (logged).
+        """
+        ok = True
         if self.backend is not None:
             try:
                 self.backend.safe()
             except Exception as exc:  # noqa: BLE001 - the safe path must not raise
                 self.get_logger().error(f'safe state failed: {exc}')
+                ok = False
         if self._scan['state'] == 'running':
             self._scan['state'] = 'stopped'
+        return ok
 
     # -- frames -----------------------------------------------------------------------
     def _make_camera_info(self):
@@ -379,7 +385,8 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.make_safe()
+        if node.make_safe():
+            node.get_logger().info('shutting down in the safe state: galvos at 0 V, laser off')
         node._close()
         node.destroy_node()
         rclpy.try_shutdown()

@@ -35,7 +35,12 @@ from pathlib import Path
 import yaml
 
 from galvoscan_common.executor import spin_nodes
-from galvoscan_common.runtime import child_env, remove_zombie_shm_segments, tune_this_process
+from galvoscan_common.runtime import (
+    child_env,
+    die_with_parent,
+    remove_zombie_shm_segments,
+    tune_this_process,
+)
 
 log = logging.getLogger('galvoscan.bringup')
 
@@ -153,8 +158,11 @@ class Supervisor:
         if self.log_dir:
             self.log_dir.mkdir(parents=True, exist_ok=True)
             out = open(self.log_dir / f'{child.name}.log', 'ab')  # noqa: SIM115
+        # a supervisor killed with SIGKILL takes its nodes with it: each gets SIGTERM and
+        # runs its safe-state shutdown (the driver leaves the galvos at 0 V, laser off)
         child.proc = subprocess.Popen(child.argv, env=self.env, stdout=out,
-                                      stderr=subprocess.STDOUT if out else None)
+                                      stderr=subprocess.STDOUT if out else None,
+                                      preexec_fn=die_with_parent(signal.SIGTERM))
         child.started = time.monotonic()
         log.info('started %s (pid %d)', child.name, child.proc.pid)
 

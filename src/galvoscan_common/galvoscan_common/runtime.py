@@ -32,6 +32,7 @@ import fcntl
 import gc
 import os
 import re
+import signal
 from pathlib import Path
 
 #: Blocks at least this large come from mmap [bytes]: above any image we handle.
@@ -101,6 +102,31 @@ def tune_this_process() -> bool:
     mallopt.restype = ctypes.c_int
     ok = mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES) == 1
     return mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES) == 1 and ok
+
+
+#: prctl option: the signal a process gets when its parent dies (linux/prctl.h).
+_PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent(signum: int = signal.SIGTERM):
+    """A ``preexec_fn`` for ``subprocess.Popen``: the child gets ``signum`` when its parent dies.
+
+    A supervisor killed with SIGKILL cannot stop its children; with this, Linux sends them
+    ``signum`` (SIGTERM: a node's normal shutdown, which runs its safe-state ``finally``).
+    Linux only (``prctl(PR_SET_PDEATHSIG)``); elsewhere the function does nothing.
+    If the parent died before the child got there, the child signals itself at once.
+    """
+    parent = os.getpid()
+    name = ctypes.util.find_library('c')
+
+    def preexec() -> None:
+        if not name:
+            return
+        libc = ctypes.CDLL(name, use_errno=True)
+        if libc.prctl(_PR_SET_PDEATHSIG, int(signum), 0, 0, 0) == 0 and os.getppid() != parent:
+            os.kill(os.getpid(), signum)
+
+    return preexec
 
 
 def freeze_startup_heap() -> int:
