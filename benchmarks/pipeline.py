@@ -343,8 +343,8 @@ def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread
 
 def extract_reference(frames, repeats=3) -> float:
     """Median single-thread time [ms] of ``extract()`` over the recorded frames."""
+    from galvoscan_common.cdr import image_to_array, parse_image_cdr
     from stripe_extractor.extractor import extract, warm_up
-    from stripe_extractor.image_msg import image_to_array, parse_image_cdr
 
     warm_up()
     images = [image_to_array(parse_image_cdr(bytes(img))) for img, _ in frames]

@@ -44,8 +44,10 @@ def _call(node, ex, srv_type, name, request, timeout=20.0):
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
 def test_driver_scan_then_signal_leaves_board_safe(spawn, ros_env, tmp_path, sig):
     emu_log = tmp_path / 'emu.jsonl'
+    # 0.5 s: ten heartbeat periods. At 0.15 s a busy 2-core machine (a full test run beside
+    # other work) starved the heartbeat thread long enough to trip it in mid-scan.
     emu = spawn([sys.executable, '-m', 'galvo_driver.serial_link.emulator', '--pty',
-                 '--watchdog', '0.15', '--log', emu_log], name='emulator')
+                 '--watchdog', '0.5', '--log', emu_log], name='emulator')
     port = _wait_line(emu.log_path)
     driver = spawn([sys.executable, '-m', 'galvo_driver.driver_node', '--ros-args',
                     '-p', 'backend:=serial', '-p', f'serial_port:={port}'], name='driver')

@@ -23,8 +23,8 @@ from sensor_msgs.msg import Image
 
 from galvoscan_bag.reader import read_messages
 from galvoscan_common import cdr, intra
+from galvoscan_common.cdr import image_to_array, parse_image_cdr
 from stripe_extractor.extractor_node import StripeExtractorNode
-from stripe_extractor.image_msg import image_to_array, parse_image_cdr
 from stripe_extractor.synthetic import StripeSpec, render, score
 
 pytestmark = pytest.mark.dds

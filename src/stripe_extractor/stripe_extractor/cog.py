@@ -1,11 +1,11 @@
 """Centre-of-gravity stripe centres: the simple baseline, sharing Steger's ROI and candidates.
 
 No rclpy here. Per column: candidate row and region of interest as in :mod:`.steger`; the
-Gaussian-smoothed column profile gives the integer peak ``r0``, the background ``bg`` (the
-smaller of its two ROI-end values) and the strength (its maximum minus ``bg``). The centre is
-the intensity-weighted mean row of the raw pixels ``r0 - h .. r0 + h`` with weights
-``max(I - bg, 0)``, ``h = max(2, ceil(line_width_px))``; the width is 2.3548 times the
-weighted standard deviation. ``u`` is the integer column.
+Gaussian-smoothed column profile (:func:`.profile.roi_profile_peak`) gives the integer peak
+``r0``, the background ``bg`` (the smaller of its two ROI-end values) and the strength (its
+maximum minus ``bg``). The centre is the intensity-weighted mean row of the raw pixels
+``r0 - h .. r0 + h`` with weights ``max(I - bg, 0)``, ``h = max(2, ceil(line_width_px))``;
+the width is 2.3548 times the weighted standard deviation. ``u`` is the integer column.
 """
 
 from __future__ import annotations
@@ -16,14 +16,22 @@ import numba
 import numpy as np
 
 from .candidates import column_peaks
-from .extractor import FWHM_PER_SIGMA, ExtractorConfig, stacked_kernels
-from .steger import is_secondary, roi_profile_peak
+from .config import FWHM_PER_SIGMA
+from .profile import is_secondary, roi_profile_peak, roi_rows
+
+
+def cog_half_window(line_width_px: float) -> int:
+    """Half window ``h = max(2, ceil(line_width_px))`` of the weighted mean [px]."""
+    return max(2, int(math.ceil(line_width_px)))
 
 
 @numba.njit(cache=True, nogil=True)
 def cog_columns(img, R, kern, h, min_strength, out):
-    """Centre of gravity of every column; arguments as :func:`.steger.steger_columns`, plus
-    the half window ``h`` [px]. Returns (n, rejected_secondary)."""
+    """Centre of gravity of every column; arguments as :func:`.steger.steger_columns`, but
+    the half window ``h`` [px] (:func:`cog_half_window`) in place of ``sigma``.
+
+    Returns (n, rejected_secondary).
+    """
     H, W = img.shape
     g0 = kern[0]
     K = kern.shape[1] - 1
@@ -33,12 +41,10 @@ def cog_columns(img, R, kern, h, min_strength, out):
     n = 0
     nsec = 0
     for c in range(W):
-        p = cand[c]
-        a = max(p - R, K + 1)
-        b = min(p + R, H - 2 - K)
+        a, b = roi_rows(cand[c], R, K, H)
         if b < a:
             continue
-        r0, peak, bg = roi_profile_peak(img, c, p, a, b, K, g0)
+        r0, peak, bg = roi_profile_peak(img, c, cand[c], a, b, K, g0)
         strength = peak - bg
         if strength < min_strength:
             continue
@@ -65,22 +71,3 @@ def cog_columns(img, R, kern, h, min_strength, out):
             nsec += 1
     return n, nsec
 
-
-def extract_columns(img: np.ndarray, config: ExtractorConfig):
-    """Centre-of-gravity centres of a C-contiguous uint8/uint16 image, one per column at most.
-
-    Parameters
-    ----------
-    img : ndarray, shape (H, W), uint8 or uint16, DN
-    config : ExtractorConfig
-
-    Returns
-    -------
-    u, v, width, strength : ndarray, shape (n,), float32
-    rejected_secondary : int
-    """
-    h = max(2, int(math.ceil(config.line_width_px)))
-    out = np.empty((4, img.shape[1]), np.float32)
-    n, nsec = cog_columns(img, config.roi_half_height, stacked_kernels(config.sigma), h,
-                          config.min_strength, out)
-    return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec

@@ -1,8 +1,10 @@
-"""Common configuration, result type and entry point of the stripe-centre extractors.
+"""Result type and entry point of the stripe-centre extractors.
 
-No rclpy here. ``extract(image, config)`` dispatches to the Steger (:mod:`.steger`) or the
-centre-of-gravity (:mod:`.cog`) method. Both share the per-column candidate search of
-:mod:`.candidates` and return one :class:`StripeResult`.
+No rclpy here. ``extract(image, config)`` runs the numba kernel of the Steger
+(:mod:`.steger`) or the centre-of-gravity (:mod:`.cog`) method. Both share the per-column
+candidate search of :mod:`.candidates` and the smoothed column profile of :mod:`.profile`,
+and return one :class:`StripeResult`. The parameters (:class:`~.config.ExtractorConfig`) and
+kernels live in :mod:`.config` and are re-exported here.
 
 Conventions
 -----------
@@ -11,8 +13,7 @@ Conventions
   centre per column. ``'vertical'``: the stripe runs along the columns, at most one centre per
   row (the image is transposed internally; ``u``/``v`` are always image column/row).
 - ``line_width_px`` is the expected stripe FWHM [px]; it sets the Gaussian derivative scale
-  ``sigma = max(line_width_px / 2.3548, 1.0)`` (the matched filter for a Gaussian profile,
-  floored at 1 px so that the sampled derivative kernels stay accurate).
+  ``sigma`` (:attr:`.config.ExtractorConfig.sigma`).
 - ``strength`` is the peak of the Gaussian-smoothed profile above the local background [DN];
   ``width`` is the FWHM-equivalent ``2.3548 * s`` of the stripe profile [px], ``s`` being its
   standard deviation as sampled by the pixels.
@@ -20,88 +21,29 @@ Conventions
 
 from __future__ import annotations
 
-import functools
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
-#: FWHM of a Gaussian in units of its standard deviation, 2 sqrt(2 ln 2).
-FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+from .cog import cog_columns, cog_half_window
+from .config import (
+    FWHM_PER_SIGMA,
+    LINE_WIDTH_RANGE_PX,
+    METHODS,
+    MIN_STRENGTH_RANGE_DN,
+    ORIENTATIONS,
+    ROI_HALF_HEIGHT_RANGE_PX,
+    SUPPORTED_DTYPES,
+    ExtractorConfig,
+    gaussian_kernels,
+    stacked_kernels,
+)
+from .steger import steger_columns
 
-METHODS = ('steger', 'center_of_gravity')
-ORIENTATIONS = ('horizontal', 'vertical')
-SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
-
-#: Ranges accepted by :class:`ExtractorConfig` (the node's parameter descriptors reuse them).
-LINE_WIDTH_RANGE_PX = (0.5, 30.0)
-MIN_STRENGTH_RANGE_DN = (0.0, 65535.0)
-ROI_HALF_HEIGHT_RANGE_PX = (3, 200)
-
-
-@dataclass(frozen=True)
-class ExtractorConfig:
-    """Parameters of one extraction; validated on construction (``ValueError`` naming the field).
-
-    Attributes
-    ----------
-    method : str
-        ``'steger'`` (Hessian, sub-pixel along the stripe normal) or ``'center_of_gravity'``.
-    line_width_px : float
-        Expected stripe FWHM [px], 0.5..30; sets :attr:`sigma`.
-    min_strength : float
-        Weakest accepted peak of the smoothed profile above background [DN].
-    roi_half_height : int
-        Half height of the window searched around each column's candidate peak [px]; also the
-        half size of the zone around the chosen peak in which no secondary peak is counted.
-        Must be at least ``ceil(line_width_px)`` so the window ends see background.
-    orientation : str
-        ``'horizontal'`` (one centre per column) or ``'vertical'`` (one centre per row).
-    """
-
-    method: str = 'steger'
-    line_width_px: float = 4.7
-    min_strength: float = 20.0
-    roi_half_height: int = 12
-    orientation: str = 'horizontal'
-
-    def __post_init__(self):
-        if self.method not in METHODS:
-            raise ValueError(f'method must be one of {METHODS}, got {self.method!r}')
-        if self.orientation not in ORIENTATIONS:
-            raise ValueError(
-                f'orientation must be one of {ORIENTATIONS}, got {self.orientation!r}')
-        lw = float(self.line_width_px)
-        if not (LINE_WIDTH_RANGE_PX[0] <= lw <= LINE_WIDTH_RANGE_PX[1]):
-            raise ValueError(
-                f'line_width_px must be in {LINE_WIDTH_RANGE_PX} px, got {self.line_width_px}')
-        ms = float(self.min_strength)
-        if not (MIN_STRENGTH_RANGE_DN[0] <= ms <= MIN_STRENGTH_RANGE_DN[1]):
-            raise ValueError(
-                f'min_strength must be in {MIN_STRENGTH_RANGE_DN} DN, got {self.min_strength}')
-        if isinstance(self.roi_half_height, bool) or int(self.roi_half_height) != \
-                self.roi_half_height:
-            raise ValueError(f'roi_half_height must be an integer, got {self.roi_half_height!r}')
-        rh = int(self.roi_half_height)
-        if not (ROI_HALF_HEIGHT_RANGE_PX[0] <= rh <= ROI_HALF_HEIGHT_RANGE_PX[1]):
-            raise ValueError(f'roi_half_height must be in {ROI_HALF_HEIGHT_RANGE_PX} px, '
-                             f'got {self.roi_half_height}')
-        if rh < math.ceil(lw):
-            raise ValueError(f'roi_half_height ({rh} px) must be >= ceil(line_width_px) '
-                             f'({math.ceil(lw)} px)')
-        object.__setattr__(self, 'line_width_px', lw)
-        object.__setattr__(self, 'min_strength', ms)
-        object.__setattr__(self, 'roi_half_height', rh)
-
-    @property
-    def sigma(self) -> float:
-        """Gaussian derivative scale [px]: the stripe's expected standard deviation, >= 1."""
-        return max(self.line_width_px / FWHM_PER_SIGMA, 1.0)
-
-    @property
-    def kernel_radius(self) -> int:
-        """Half length of the sampled Gaussian kernels [px]: ceil(3 sigma)."""
-        return int(math.ceil(3.0 * self.sigma))
+__all__ = ['FWHM_PER_SIGMA', 'LINE_WIDTH_RANGE_PX', 'METHODS', 'MIN_STRENGTH_RANGE_DN',
+           'ORIENTATIONS', 'ROI_HALF_HEIGHT_RANGE_PX', 'SUPPORTED_DTYPES', 'ExtractorConfig',
+           'StripeResult', 'check_image', 'extract', 'extract_columns', 'gaussian_kernels',
+           'stacked_kernels', 'warm_up']
 
 
 @dataclass(frozen=True)
@@ -143,46 +85,6 @@ class StripeResult:
         return self.config.sigma
 
 
-def gaussian_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Half kernels (index k = 0..K) of the sampled Gaussian and its first two derivatives.
-
-    Used as correlations: ``f'(x) ~ sum_k d1[|k|] sign(k) f(x + k)`` over k = -K..K, likewise
-    ``f ~ sum g0[|k|] f(x + k)`` and ``f'' ~ sum d2[|k|] f(x + k)``. The kernels are normalised
-    so they are exact on constants (g0), linear ramps (d1) and parabolas (d2).
-
-    Parameters
-    ----------
-    sigma : float
-        Gaussian standard deviation [px], > 0.
-
-    Returns
-    -------
-    g0, d1, d2 : ndarray, shape (K + 1,), float64
-        K = ceil(3 sigma).
-    """
-    if not (sigma > 0 and math.isfinite(sigma)):
-        raise ValueError(f'sigma must be a positive finite number, got {sigma}')
-    K = int(math.ceil(3.0 * sigma))
-    k = np.arange(-K, K + 1, dtype=np.float64)
-    g = np.exp(-0.5 * (k / sigma) ** 2)
-    g0 = g / g.sum()
-    d1 = k * g
-    d1 /= np.sum(k * d1)                      # sum k d1 = 1: exact on f = x
-    d2 = (k * k / sigma**2 - 1.0) * g
-    d2 -= g0 * d2.sum()                       # sum d2 = 0: blind to constants
-    d2 /= 0.5 * np.sum(k * k * d2)            # sum k^2 d2 / 2 = 1: exact on f = x^2
-    return (np.ascontiguousarray(g0[K:]), np.ascontiguousarray(d1[K:]),
-            np.ascontiguousarray(d2[K:]))
-
-
-@functools.lru_cache(maxsize=32)
-def stacked_kernels(sigma: float) -> np.ndarray:
-    """``gaussian_kernels(sigma)`` stacked to shape (3, K + 1), float32, read-only (cached)."""
-    kern = np.ascontiguousarray(np.stack(gaussian_kernels(sigma)), dtype=np.float32)
-    kern.setflags(write=False)
-    return kern
-
-
 def check_image(image) -> np.ndarray:
     """Return ``image`` as a C-contiguous 2-D uint8/uint16 array or raise ``ValueError``."""
     if not isinstance(image, np.ndarray):
@@ -196,6 +98,32 @@ def check_image(image) -> np.ndarray:
     if not image.dtype.isnative:
         image = image.astype(image.dtype.newbyteorder('='))
     return np.ascontiguousarray(image)
+
+
+def extract_columns(img: np.ndarray, config: ExtractorConfig):
+    """Centres of a checked image, one per column at most, by the method of ``config``.
+
+    Parameters
+    ----------
+    img : ndarray, shape (H, W), uint8 or uint16, DN
+        Already validated and C-contiguous (see :func:`check_image`); the stripe runs along
+        the rows.
+    config : ExtractorConfig
+
+    Returns
+    -------
+    u, v, width, strength : ndarray, shape (n,), float32
+        Column [px], row [px], FWHM [px], strength [DN].
+    rejected_secondary : int
+    """
+    if config.method == 'steger':
+        columns, method_arg = steger_columns, config.sigma
+    else:
+        columns, method_arg = cog_columns, cog_half_window(config.line_width_px)
+    out = np.empty((4, img.shape[1]), np.float32)
+    n, nsec = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
+                      config.min_strength, out)
+    return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec
 
 
 def extract(image: np.ndarray, config: ExtractorConfig | None = None) -> StripeResult:
@@ -221,10 +149,6 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None) -> StripeR
     vertical = config.orientation == 'vertical'
     if vertical:
         img = np.ascontiguousarray(img.T)
-    if config.method == 'steger':
-        from .steger import extract_columns
-    else:
-        from .cog import extract_columns
     a, b, w, s, nsec = extract_columns(img, config)
     u, v = (b, a) if vertical else (a, b)
     return StripeResult(u=u, v=v, width=w, strength=s, rejected_secondary=int(nsec),

@@ -16,9 +16,9 @@ stamp); either may arrive first (:class:`~stripe_extractor.pairing.StampPairer`)
 are logged once per cause, counted and skipped; the node never dies on input.
 
 Data path: the image and state subscriptions are raw, and the serialised CDR is read in place
-(:func:`~stripe_extractor.image_msg.parse_image_cdr`, :mod:`galvoscan_common.cdr`), with no
-rclpy Image and no copy of the pixels; the centres are written as CDR and published as bytes
-(a malformed state is counted as ``skipped_malformed_state``).
+(:mod:`galvoscan_common.cdr`: ``parse_image_cdr``, ``image_to_array``, ``parse_galvo_state``),
+with no rclpy Image and no copy of the pixels; the centres are written as CDR and published
+as bytes (a malformed state is counted as ``skipped_malformed_state``).
 
 Where extraction runs (parameter ``extraction_thread``):
 - ``true``: every paired frame goes to one extraction thread
@@ -73,17 +73,15 @@ from sensor_msgs.msg import Image
 from galvoscan_common import cdr, intra
 from galvoscan_common.executor import run_node
 
-from .extractor import (
+from .config import (
     LINE_WIDTH_RANGE_PX,
     METHODS,
     MIN_STRENGTH_RANGE_DN,
     ORIENTATIONS,
     ROI_HALF_HEIGHT_RANGE_PX,
     ExtractorConfig,
-    extract,
-    warm_up,
 )
-from .image_msg import CAUSES, BadImageError, image_to_array, parse_image_cdr
+from .extractor import extract, warm_up
 from .pairing import StampPairer
 from .worker import OffloadPolicy, SerialWorker
 
@@ -118,6 +116,43 @@ class StripeExtractorNode(Node):
     def __init__(self, extraction_thread_default: bool | str = 'auto',
                  intra_process_default: bool = False, **kwargs):
         super().__init__('stripe_extractor', **kwargs)
+        self._declare_extractor_parameters()
+        self._declare_node_parameters(extraction_thread_default, intra_process_default)
+
+        self._config = self._config_from({})
+        self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
+        # written by the executor thread
+        self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0,
+                        'frames_offloaded': 0}
+        self._counts.update({f'skipped_{c}': 0
+                             for c in (*cdr.BAD_IMAGE_CAUSES, 'malformed_state')})
+        # written only by the extracting thread
+        self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
+                                'rejected_secondary': 0, 'extraction_errors': 0,
+                                'publish_errors': 0}
+        self._logged_causes: set[str] = set()
+        self._extract_s = 0.0
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        warm_up()       # compile / load the numba kernels before the first frame arrives
+
+        self._pub = self.create_publisher(
+            StripeCenters, 'stripe/centers',
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
+                       history=HistoryPolicy.KEEP_LAST))
+        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
+        self._start_extraction_thread(self.get_parameter('extraction_thread').value)
+        self._subscribe_inputs()
+        self._diag_timer = self.create_timer(
+            self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
+        self.get_logger().info(
+            f'ready: {self._config}' + (' (images and states handed over in-process)'
+                                        if self._bus_subs else ''))
+
+    # ---- construction steps -----------------------------------------------------------
+    def _declare_extractor_parameters(self) -> None:
+        """Declare the parameters of :class:`ExtractorConfig`, its defaults and ranges."""
         defaults = ExtractorConfig()
         self.declare_parameter('method', defaults.method, ParameterDescriptor(
             type=ParameterType.PARAMETER_STRING,
@@ -147,6 +182,10 @@ class StripeExtractorNode(Node):
             description='Stripe direction in the image: horizontal = one centre per column, '
                         'vertical = one centre per row',
             additional_constraints=f'one of: {", ".join(ORIENTATIONS)}'))
+
+    def _declare_node_parameters(self, extraction_thread_default: bool | str,
+                                 intra_process_default: bool) -> None:
+        """Declare the node's own parameters: pairing, threading, hand-off, diagnostics."""
         self.declare_parameter('pairing_buffer_size', 50, ParameterDescriptor(
             type=ParameterType.PARAMETER_INTEGER,
             description='Frames and states each kept waiting for their partner [1]',
@@ -171,34 +210,12 @@ class StripeExtractorNode(Node):
                 from_value=DIAGNOSTICS_PERIOD_RANGE_S[0],
                 to_value=DIAGNOSTICS_PERIOD_RANGE_S[1])]))
 
-        self._config = self._config_from({})
-        self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
-        # written by the executor thread
-        self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0,
-                        'frames_offloaded': 0}
-        self._counts.update({f'skipped_{c}': 0 for c in (*CAUSES, 'malformed_state')})
-        # written only by the extracting thread
-        self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
-                                'rejected_secondary': 0, 'extraction_errors': 0,
-                                'publish_errors': 0}
-        self._logged_causes: set[str] = set()
-        self._extract_s = 0.0
-        self.add_on_set_parameters_callback(self._validate_parameters)
-        self.add_post_set_parameters_callback(self._apply_parameters)
+    def _start_extraction_thread(self, mode) -> None:
+        """Set where frames are extracted (``extraction_thread`` true, false or 'auto').
 
-        warm_up()       # compile / load the numba kernels before the first frame arrives
-
-        self._pub = self.create_publisher(
-            StripeCenters, 'stripe/centers',
-            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE,
-                       history=HistoryPolicy.KEEP_LAST))
-        self._diag_pub = self.create_publisher(DiagnosticArray, 'diagnostics', 10)
-        # sensor-data QoS (best effort, volatile) with room for a burst of frames
-        image_qos = QoSProfile(depth=IMAGE_QUEUE_DEPTH,
-                               reliability=qos_profile_sensor_data.reliability,
-                               durability=qos_profile_sensor_data.durability,
-                               history=HistoryPolicy.KEEP_LAST)
-        mode = self.get_parameter('extraction_thread').value
+        Starts the extraction thread unless ``mode`` is false; 'auto' also makes the
+        :class:`OffloadPolicy` that chooses per frame.
+        """
         if mode not in EXTRACTION_THREAD_CHOICES or isinstance(mode, (int, float)) and \
                 not isinstance(mode, bool):
             raise ValueError(f'extraction_thread must be true, false or auto, got {mode!r}')
@@ -208,6 +225,13 @@ class StripeExtractorNode(Node):
         if mode is not False:
             self._worker = SerialWorker(self._extract_and_publish, IMAGE_QUEUE_DEPTH,
                                         'stripe_extraction', on_error=self._skip_log_error)
+
+    def _subscribe_inputs(self) -> None:
+        """Take images and galvo states from the in-process bus or from raw DDS subscriptions.
+
+        Over DDS the images come with sensor-data QoS (best effort, volatile) with room for a
+        burst of ``IMAGE_QUEUE_DEPTH`` frames.
+        """
         self._bus, self._bus_subs = intra.bus_for(self.context), []
         if self.get_parameter('intra_process').value:
             self._bus_subs = [
@@ -215,17 +239,16 @@ class StripeExtractorNode(Node):
                                     self._on_image),
                 self._bus.subscribe(self.resolve_topic_name('galvo/state'), self._on_state)]
         else:
+            image_qos = QoSProfile(depth=IMAGE_QUEUE_DEPTH,
+                                   reliability=qos_profile_sensor_data.reliability,
+                                   durability=qos_profile_sensor_data.durability,
+                                   history=HistoryPolicy.KEEP_LAST)
             self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
                                      raw=True)
             self.create_subscription(
                 GalvoState, 'galvo/state', self._on_state,
                 QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
                            history=HistoryPolicy.KEEP_LAST), raw=True)
-        self._diag_timer = self.create_timer(
-            self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
-        self.get_logger().info(
-            f'ready: {self._config}' + (' (images and states handed over in-process)'
-                                        if self._bus_subs else ''))
 
     # ---- parameters -------------------------------------------------------------------
     def _config_from(self, changes: dict) -> ExtractorConfig:
@@ -269,9 +292,9 @@ class StripeExtractorNode(Node):
     def _on_image(self, data: bytes) -> None:
         self._counts['images_received'] += 1
         try:
-            raw = parse_image_cdr(data)
-            img = image_to_array(raw)
-        except BadImageError as exc:
+            raw = cdr.parse_image_cdr(data)
+            img = cdr.image_to_array(raw)
+        except cdr.BadImageError as exc:
             self._skip(exc.cause, str(exc))
             return
         pair = self._pairer.add_frame(raw.stamp_ns, (raw, img))

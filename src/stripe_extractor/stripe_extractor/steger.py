@@ -5,8 +5,8 @@ No rclpy here. For each column (stripe mostly horizontal; the caller transposes 
 1. The candidate row ``p`` from :mod:`.candidates` (largest 3x3 box sum of the column).
 2. Region of interest: rows ``p - R .. p + R`` of this column, ``R = roi_half_height``. The
    column profile smoothed by the Gaussian ``g_sigma`` is climbed from ``p`` to its maximum,
-   the pixel ``r0``; the smaller of its values at the two ROI ends is the background. A
-   column whose smoothed peak is below ``min_strength`` has no stripe.
+   the pixel ``r0``; the smaller of its values at the two ROI ends is the background
+   (:mod:`.profile`). A column whose smoothed peak is below ``min_strength`` has no stripe.
 3. At ``r0`` the Hessian ``H = [[r_uu, r_uv], [r_uv, r_vv]]`` and the gradient ``(r_u, r_v)``
    are computed from separable Gaussian-derivative kernels (scale sigma) on the
    ``(2K+1) x (2K+1)`` pixels around it (K = ceil(3 sigma)). The stripe normal ``n`` is the
@@ -39,80 +39,9 @@ import math
 import numba
 import numpy as np
 
-from .candidates import box3, column_peaks
-from .extractor import FWHM_PER_SIGMA, ExtractorConfig, stacked_kernels
-
-
-@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
-def smooth_column(img, r, c, K, g0):
-    """Column profile at (r, c) smoothed by the 1-D Gaussian g0 (rows r-K..r+K must exist)."""
-    s = g0[0] * img[r, c]
-    for k in range(1, K + 1):
-        s += g0[k] * (np.float32(img[r + k, c]) + np.float32(img[r - k, c]))
-    return s
-
-
-@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
-def roi_profile_peak(img, c, p, a, b, K, g0):
-    """Peak of the Gaussian-smoothed profile of column c inside the ROI rows a..b.
-
-    Climbs the smoothed profile from the candidate row p (clamped to a..b) to its local
-    maximum. Returns (row of the maximum, smoothed value there, background), the background
-    being the smaller of the smoothed values at the ROI ends a and b.
-    """
-    r0 = min(max(p, a), b)
-    best = smooth_column(img, r0, c, K, g0)
-    step = 0
-    if r0 < b:
-        nxt = smooth_column(img, r0 + 1, c, K, g0)
-        if nxt > best:
-            best = nxt
-            r0 += 1
-            step = 1
-    if step == 0 and r0 > a:
-        prv = smooth_column(img, r0 - 1, c, K, g0)
-        if prv > best:
-            best = prv
-            r0 -= 1
-            step = -1
-    if step != 0:
-        while a <= r0 + step <= b:
-            nxt = smooth_column(img, r0 + step, c, K, g0)
-            if nxt <= best:
-                break
-            best = nxt
-            r0 += step
-    bg = min(smooth_column(img, a, c, K, g0), smooth_column(img, b, c, K, g0))
-    return r0, best, bg
-
-
-@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
-def smooth_at(img, r, c, K, g0):
-    """2-D Gaussian-smoothed value at pixel (r, c); indices clamped at the image borders."""
-    H, W = img.shape
-    s = np.float32(0.0)
-    for j in range(-K, K + 1):
-        rr = min(max(r + j, 0), H - 1)
-        h = np.float32(0.0)
-        for k in range(-K, K + 1):
-            cc = min(max(c + k, 0), W - 1)
-            h += g0[abs(k)] * img[rr, cc]
-        s += g0[abs(j)] * h
-    return s
-
-
-@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
-def is_secondary(img, q, c, K, g0, bg, min_strength):
-    """True if row q (-1: none) of column c holds a peak of strength >= min_strength.
-
-    The 3x3 box mean, which attenuates a peak less than the Gaussian, screens first so the
-    (2K+1)^2 smoothing runs only for plausible peaks.
-    """
-    if q < 0:
-        return False
-    if box3(img, q, c) / 9.0 - bg < 0.5 * min_strength:
-        return False
-    return smooth_at(img, q, c, K, g0) - bg >= min_strength
+from .candidates import column_peaks
+from .config import FWHM_PER_SIGMA
+from .profile import is_secondary, roi_profile_peak, roi_rows
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
@@ -198,6 +127,105 @@ def _filter_row(img, r, c, K, g0, d1, d2):
     return s0, s1, s2
 
 
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def _filter_rows(img, r0, c, K, g0, d1, d2, h0, h1, h2):
+    """Rows r0-K .. r0+K around column c filtered by :func:`_filter_row` into slots 1..2K+1.
+
+    Slot j of ``h0``/``h1``/``h2`` (length 2K+3) holds row ``r0 - K - 1 + j``; slots 0 and
+    2K+2 are left for a step to a neighbouring row (:func:`_neighbour_line_point`).
+    """
+    for j in range(1, 2 * K + 2):
+        h0[j], h1[j], h2[j] = _filter_row(img, r0 - K - 1 + j, c, K, g0, d1, d2)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def _neighbour_line_point(img, r0, r1, c, full, K, g0, d1, d2, h0, h1, h2):
+    """Steger at pixel (r1, c), r1 = r0 +- 1, after :func:`_filter_rows` at r0 if ``full``.
+
+    ``full``: the 2-D estimate, filtering the one row it needs beyond those of r0; else the
+    column-only one. Returns (t*n_u, t*n_v, lambda, smoothed value) as :func:`_line_point`.
+    """
+    if full:
+        if r1 > r0:
+            h0[2 * K + 2], h1[2 * K + 2], h2[2 * K + 2] = _filter_row(
+                img, r0 + K + 1, c, K, g0, d1, d2)
+        else:
+            h0[0], h1[0], h2[0] = _filter_row(img, r0 - K - 1, c, K, g0, d1, d2)
+        return _line_point(h0, h1, h2, r1 - r0 + K + 1, K, g0, d1, d2)
+    return _line_point_1d(img, r1, c, K, g0, d1, d2)
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _neighbour_point(img, r0, c, full, du, dv, lam, val, K, g0, d1, d2, h0, h1, h2):
+    """Steger's point of column c when the estimate (du, dv, lam, val) at its peak row r0
+    lies outside pixel (r0, c): tries once the neighbouring row the offset points to.
+
+    The rare path, so not inlined: inlined, it slows the loop of :func:`steger_columns`.
+
+    Returns
+    -------
+    found : bool
+        False if neither pixel holds the line point.
+    du, dv : float
+        Offset of the point from pixel (r, c) [px].
+    lam : float
+        Most negative Hessian eigenvalue there [DN/px^2].
+    val : float
+        Smoothed value at the point [DN].
+    r : int
+        Row of the pixel the point was found in.
+    """
+    if abs(dv) <= 0.5:
+        return False, du, dv, lam, val, r0
+    r1 = r0 + 1 if dv > 0 else r0 - 1
+    if r1 < K + 1 or r1 > img.shape[0] - 2 - K:
+        return False, du, dv, lam, val, r0
+    du1, dv1, lam1, val1 = _neighbour_line_point(img, r0, r1, c, full, K, g0, d1, d2,
+                                                 h0, h1, h2)
+    if lam1 >= 0.0:
+        return False, du, dv, lam, val, r0
+    if abs(du1) <= 0.5 and abs(dv1) <= 0.5:
+        return True, du1, dv1, lam1, val1, r1
+    if dv1 * dv > 0.0 or abs(dv1) > 1.0 or abs(du1) > 1.0:
+        return False, du, dv, lam, val, r0
+    if abs(dv1) > abs(dv):
+        # The point lies between the two pixels, whose sampled estimates straddle the
+        # boundary: keep the nearer one.
+        return not abs(du) > 1.0, du, dv, lam, val, r0
+    return True, du1, dv1, lam1, val1, r1
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def _profile_peaks(img, cand, R, K, g0, min_strength, r0s, bgs, present):
+    """Pass 1: peak row, background and presence of the stripe in every column's profile.
+
+    Fills ``r0s`` (int32), ``bgs`` (float32) and ``present`` (bool), each of shape (W,) and
+    zero on entry; columns whose ROI is empty keep the zeros.
+    """
+    H, W = img.shape
+    for c in range(W):
+        a, b = roi_rows(cand[c], R, K, H)
+        if b < a:
+            continue
+        r0, peak, bg = roi_profile_peak(img, c, cand[c], a, b, K, g0)
+        r0s[c] = r0
+        bgs[c] = bg
+        present[c] = peak - bg >= min_strength
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
+def _continuous_footprint(present, r0s, c, K):
+    """True if the stripe is present in columns c-K..c+K (all inside the image) with peak
+    rows that differ from column c's by at most ``|dc| + 2``: the 2-D kernels apply."""
+    if not K <= c < present.shape[0] - K:
+        return False
+    r0 = r0s[c]
+    for k in range(-K, K + 1):
+        if not present[c + k] or abs(r0s[c + k] - r0) > abs(k) + 2:
+            return False
+    return True
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def steger_columns(img, R, kern, sigma, min_strength, out):
     """Steger centre of every column (see module docstring).
@@ -205,7 +233,7 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
     ``kern`` stacks the half kernels (g0, d1, d2), shape (3, K + 1); ``out`` (shape (4, W))
     receives u, v, width, strength in its first n columns. Returns (n, rejected_secondary).
     """
-    H, W = img.shape
+    W = img.shape[1]
     g0 = kern[0]
     d1 = kern[1]
     d2 = kern[2]
@@ -213,45 +241,26 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
     cand = np.empty(W, np.int32)
     sec = np.empty(W, np.int32)
     column_peaks(img, R, cand, sec)
-    # Pass 1: peak row, peak value and background of every column's smoothed profile.
     r0s = np.zeros(W, np.int32)
     bgs = np.zeros(W, np.float32)
     present = np.zeros(W, np.bool_)
-    for c in range(W):
-        p = cand[c]
-        a = max(p - R, K + 1)
-        b = min(p + R, H - 2 - K)
-        if b < a:
-            continue
-        r0, peak, bg = roi_profile_peak(img, c, p, a, b, K, g0)
-        r0s[c] = r0
-        bgs[c] = bg
-        present[c] = peak - bg >= min_strength
+    _profile_peaks(img, cand, R, K, g0, min_strength, r0s, bgs, present)
     # Pass 2: Steger at each column with a stripe. The 2-D kernels are used where the stripe
     # is present and continuous over the whole footprint c-K..c+K; elsewhere (line ends,
     # occlusion edges, jumps, left/right borders) the column-only case.
     n = 0
     nsec = 0
-    L = 2 * K + 3
-    h0 = np.empty(L, np.float32)
-    h1 = np.empty(L, np.float32)
-    h2 = np.empty(L, np.float32)
+    h0 = np.empty(2 * K + 3, np.float32)
+    h1 = np.empty(2 * K + 3, np.float32)
+    h2 = np.empty(2 * K + 3, np.float32)
     for c in range(W):
         if not present[c]:
             continue
         r0 = r0s[c]
         bg = bgs[c]
-        full = K <= c < W - K
+        full = _continuous_footprint(present, r0s, c, K)
         if full:
-            for k in range(-K, K + 1):
-                if not present[c + k] or abs(r0s[c + k] - r0) > abs(k) + 2:
-                    full = False
-                    break
-        if full:
-            # Horizontal Gaussian-derivative filtering of rows r0-K .. r0+K at column c
-            # (slot j holds row r0 - K - 1 + j; slots 0 and L-1 are filled on a step).
-            for j in range(1, L - 1):
-                h0[j], h1[j], h2[j] = _filter_row(img, r0 - K - 1 + j, c, K, g0, d1, d2)
+            _filter_rows(img, r0, c, K, g0, d1, d2, h0, h1, h2)
             du, dv, lam, val = _line_point(h0, h1, h2, K + 1, K, g0, d1, d2)
         else:
             du, dv, lam, val = _line_point_1d(img, r0, c, K, g0, d1, d2)
@@ -259,35 +268,10 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
             continue
         r = r0
         if not (abs(du) <= 0.5 and abs(dv) <= 0.5):
-            if abs(dv) <= 0.5:
+            found, du, dv, lam, val, r = _neighbour_point(img, r0, c, full, du, dv, lam, val,
+                                                          K, g0, d1, d2, h0, h1, h2)
+            if not found:
                 continue
-            # Try the neighbouring pixel the offset points to.
-            r1 = r0 + 1 if dv > 0 else r0 - 1
-            if r1 < K + 1 or r1 > H - 2 - K:
-                continue
-            if full:
-                if r1 > r0:
-                    h0[L - 1], h1[L - 1], h2[L - 1] = _filter_row(
-                        img, r0 + K + 1, c, K, g0, d1, d2)
-                else:
-                    h0[0], h1[0], h2[0] = _filter_row(img, r0 - K - 1, c, K, g0, d1, d2)
-                du1, dv1, lam1, val1 = _line_point(h0, h1, h2, r1 - r0 + K + 1, K, g0, d1, d2)
-            else:
-                du1, dv1, lam1, val1 = _line_point_1d(img, r1, c, K, g0, d1, d2)
-            if lam1 >= 0.0:
-                continue
-            if abs(du1) <= 0.5 and abs(dv1) <= 0.5:
-                pass
-            elif dv1 * dv > 0.0 or abs(dv1) > 1.0 or abs(du1) > 1.0:
-                continue
-            elif abs(dv1) > abs(dv):
-                # The point lies between the two pixels, whose sampled estimates straddle
-                # the boundary: keep the nearer one.
-                if abs(du) > 1.0:
-                    continue
-                du1, dv1, lam1, val1 = du, dv, lam, val
-                r1 = r0
-            du, dv, lam, val, r = du1, dv1, lam1, val1, r1
         strength = val - bg
         if strength < min_strength:
             continue
@@ -300,25 +284,3 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
         if is_secondary(img, sec[c], c, K, g0, bg, min_strength):
             nsec += 1
     return n, nsec
-
-
-def extract_columns(img: np.ndarray, config: ExtractorConfig):
-    """Steger centres of a C-contiguous uint8/uint16 image, one per column at most.
-
-    Parameters
-    ----------
-    img : ndarray, shape (H, W), uint8 or uint16, DN
-        Already validated and C-contiguous (see :func:`.extractor.check_image`).
-    config : ExtractorConfig
-
-    Returns
-    -------
-    u, v, width, strength : ndarray, shape (n,), float32
-        Column [px], row [px], FWHM [px], strength [DN].
-    rejected_secondary : int
-    """
-    sigma = config.sigma
-    out = np.empty((4, img.shape[1]), np.float32)
-    n, nsec = steger_columns(img, config.roi_half_height, stacked_kernels(sigma), sigma,
-                             config.min_strength, out)
-    return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec

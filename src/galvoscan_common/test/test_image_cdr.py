@@ -1,6 +1,7 @@
 """Reading sensor_msgs/Image straight from CDR: same fields as rclpy, clear errors otherwise."""
 
 import struct
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from hypothesis import strategies as st
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 
-from stripe_extractor.image_msg import BadImageError, image_to_array, parse_image_cdr
+from galvoscan_common.cdr import BadImageError, image_to_array, parse_image_cdr
 
 
 def _image(h, w, encoding, frame_id, big, pad, seed):
@@ -108,3 +109,39 @@ def test_malformed_cdr_is_named(data, match):
     with pytest.raises(BadImageError, match=match) as exc:
         parse_image_cdr(data)
     assert exc.value.cause == 'malformed_cdr'
+
+
+def _msg(**kw):
+    base = dict(height=4, width=5, encoding='mono8', is_bigendian=0, step=5,
+                data=bytes(range(20)))
+    base.update(kw)
+    return SimpleNamespace(**base)
+
+
+def test_image_decoding_respects_step_and_endianness():
+    a = np.arange(4 * 5, dtype=np.uint16).reshape(4, 5) * 300
+    padded = np.zeros((4, 7), np.uint16)
+    padded[:, :5] = a
+    for big in (0, 1):
+        raw = padded.astype('>u2' if big else '<u2').tobytes()
+        out = image_to_array(_msg(encoding='mono16', step=14, data=raw, is_bigendian=big))
+        np.testing.assert_array_equal(out, a)
+    out = image_to_array(_msg())
+    np.testing.assert_array_equal(out, np.arange(20, dtype=np.uint8).reshape(4, 5))
+
+
+@pytest.mark.parametrize(('kw', 'cause'), [
+    ({'encoding': 'rgb8'}, 'unsupported_encoding'),
+    ({'encoding': 'bgr8', 'data': b''}, 'unsupported_encoding'),
+    ({'height': 0, 'width': 0, 'step': 0, 'data': b''}, 'zero_size'),
+    ({'width': 0}, 'zero_size'),
+    ({'step': 4}, 'step_too_small'),
+    ({'encoding': 'mono16', 'step': 9, 'data': bytes(36)}, 'step_too_small'),
+    ({'data': bytes(19)}, 'data_length'),
+    ({'data': bytes(21)}, 'data_length'),
+    ({'height': 2, 'data': bytes(10)}, 'too_small'),
+])
+def test_bad_images_name_their_cause(kw, cause):
+    with pytest.raises(BadImageError) as exc:
+        image_to_array(_msg(**kw))
+    assert exc.value.cause == cause

@@ -1,0 +1,136 @@
+"""Parameters of the stripe-centre extractors and the Gaussian kernels they imply.
+
+No rclpy, no numba here. :class:`ExtractorConfig` is validated on construction (its ranges
+are also the node's parameter ranges); :func:`gaussian_kernels` samples the Gaussian and its
+first two derivatives at the scale ``config.sigma`` that both extractors
+(:mod:`.steger`, :mod:`.cog`) smooth the column profiles with.
+
+- ``line_width_px`` is the expected stripe FWHM [px]; it sets the Gaussian derivative scale
+  ``sigma = max(line_width_px / 2.3548, 1.0)`` (the matched filter for a Gaussian profile,
+  floored at 1 px so that the sampled derivative kernels stay accurate).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: FWHM of a Gaussian in units of its standard deviation, 2 sqrt(2 ln 2).
+FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+METHODS = ('steger', 'center_of_gravity')
+ORIENTATIONS = ('horizontal', 'vertical')
+SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+
+#: Ranges accepted by :class:`ExtractorConfig` (the node's parameter descriptors reuse them).
+LINE_WIDTH_RANGE_PX = (0.5, 30.0)
+MIN_STRENGTH_RANGE_DN = (0.0, 65535.0)
+ROI_HALF_HEIGHT_RANGE_PX = (3, 200)
+
+
+@dataclass(frozen=True)
+class ExtractorConfig:
+    """Parameters of one extraction; validated on construction (``ValueError`` naming the field).
+
+    Attributes
+    ----------
+    method : str
+        ``'steger'`` (Hessian, sub-pixel along the stripe normal) or ``'center_of_gravity'``.
+    line_width_px : float
+        Expected stripe FWHM [px], 0.5..30; sets :attr:`sigma`.
+    min_strength : float
+        Weakest accepted peak of the smoothed profile above background [DN].
+    roi_half_height : int
+        Half height of the window searched around each column's candidate peak [px]; also the
+        half size of the zone around the chosen peak in which no secondary peak is counted.
+        Must be at least ``ceil(line_width_px)`` so the window ends see background.
+    orientation : str
+        ``'horizontal'`` (one centre per column) or ``'vertical'`` (one centre per row).
+    """
+
+    method: str = 'steger'
+    line_width_px: float = 4.7
+    min_strength: float = 20.0
+    roi_half_height: int = 12
+    orientation: str = 'horizontal'
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise ValueError(f'method must be one of {METHODS}, got {self.method!r}')
+        if self.orientation not in ORIENTATIONS:
+            raise ValueError(
+                f'orientation must be one of {ORIENTATIONS}, got {self.orientation!r}')
+        lw = float(self.line_width_px)
+        if not (LINE_WIDTH_RANGE_PX[0] <= lw <= LINE_WIDTH_RANGE_PX[1]):
+            raise ValueError(
+                f'line_width_px must be in {LINE_WIDTH_RANGE_PX} px, got {self.line_width_px}')
+        ms = float(self.min_strength)
+        if not (MIN_STRENGTH_RANGE_DN[0] <= ms <= MIN_STRENGTH_RANGE_DN[1]):
+            raise ValueError(
+                f'min_strength must be in {MIN_STRENGTH_RANGE_DN} DN, got {self.min_strength}')
+        if isinstance(self.roi_half_height, bool) or int(self.roi_half_height) != \
+                self.roi_half_height:
+            raise ValueError(f'roi_half_height must be an integer, got {self.roi_half_height!r}')
+        rh = int(self.roi_half_height)
+        if not (ROI_HALF_HEIGHT_RANGE_PX[0] <= rh <= ROI_HALF_HEIGHT_RANGE_PX[1]):
+            raise ValueError(f'roi_half_height must be in {ROI_HALF_HEIGHT_RANGE_PX} px, '
+                             f'got {self.roi_half_height}')
+        if rh < math.ceil(lw):
+            raise ValueError(f'roi_half_height ({rh} px) must be >= ceil(line_width_px) '
+                             f'({math.ceil(lw)} px)')
+        object.__setattr__(self, 'line_width_px', lw)
+        object.__setattr__(self, 'min_strength', ms)
+        object.__setattr__(self, 'roi_half_height', rh)
+
+    @property
+    def sigma(self) -> float:
+        """Gaussian derivative scale [px]: the stripe's expected standard deviation, >= 1."""
+        return max(self.line_width_px / FWHM_PER_SIGMA, 1.0)
+
+    @property
+    def kernel_radius(self) -> int:
+        """Half length of the sampled Gaussian kernels [px]: ceil(3 sigma)."""
+        return int(math.ceil(3.0 * self.sigma))
+
+
+def gaussian_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half kernels (index k = 0..K) of the sampled Gaussian and its first two derivatives.
+
+    Used as correlations: ``f'(x) ~ sum_k d1[|k|] sign(k) f(x + k)`` over k = -K..K, likewise
+    ``f ~ sum g0[|k|] f(x + k)`` and ``f'' ~ sum d2[|k|] f(x + k)``. The kernels are normalised
+    so they are exact on constants (g0), linear ramps (d1) and parabolas (d2).
+
+    Parameters
+    ----------
+    sigma : float
+        Gaussian standard deviation [px], > 0.
+
+    Returns
+    -------
+    g0, d1, d2 : ndarray, shape (K + 1,), float64
+        K = ceil(3 sigma).
+    """
+    if not (sigma > 0 and math.isfinite(sigma)):
+        raise ValueError(f'sigma must be a positive finite number, got {sigma}')
+    K = int(math.ceil(3.0 * sigma))
+    k = np.arange(-K, K + 1, dtype=np.float64)
+    g = np.exp(-0.5 * (k / sigma) ** 2)
+    g0 = g / g.sum()
+    d1 = k * g
+    d1 /= np.sum(k * d1)                      # sum k d1 = 1: exact on f = x
+    d2 = (k * k / sigma**2 - 1.0) * g
+    d2 -= g0 * d2.sum()                       # sum d2 = 0: blind to constants
+    d2 /= 0.5 * np.sum(k * k * d2)            # sum k^2 d2 / 2 = 1: exact on f = x^2
+    return (np.ascontiguousarray(g0[K:]), np.ascontiguousarray(d1[K:]),
+            np.ascontiguousarray(d2[K:]))
+
+
+@functools.lru_cache(maxsize=32)
+def stacked_kernels(sigma: float) -> np.ndarray:
+    """``gaussian_kernels(sigma)`` stacked to shape (3, K + 1), float32, read-only (cached)."""
+    kern = np.ascontiguousarray(np.stack(gaussian_kernels(sigma)), dtype=np.float32)
+    kern.setflags(write=False)
+    return kern
