@@ -16,7 +16,7 @@ SRC_META := $(wildcard src/*/setup.py src/*/setup.cfg src/*/package.xml)
 DEMO_OUT ?= out
 PYTEST_ARGS ?=
 
-.PHONY: setup test lint pytest demo clean distclean
+.PHONY: setup test lint pytest explore demo clean distclean
 
 setup: $(STAMP_SRC)
 	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan' \
@@ -43,6 +43,11 @@ pytest: setup
 	  if [ $$rc -eq 5 ]; then echo "ERROR: pytest collected no tests"; fi; exit $$rc
 
 test: lint pytest
+
+# Random hypothesis exploration (not repeatable, not part of `make test`): new examples on
+# every run; whatever it finds is pinned as a deterministic test case.
+explore: setup
+	HYPOTHESIS_PROFILE=explore $(PY) -m pytest -m 'not dds' $(PYTEST_ARGS)
 
 demo: setup
 	$(VENV)/bin/galvoscan demo --out $(DEMO_OUT)

@@ -14,11 +14,13 @@ import time
 import pytest
 from hypothesis import settings
 
-# The machine is shared and noisy: no per-example deadlines. Under CI, the examples are
-# derived from a fixed seed so that a run is repeatable.
-settings.register_profile('galvoscan', deadline=None,
-                          derandomize=bool(os.environ.get('CI')))
-settings.load_profile('galvoscan')
+# The machine is shared and noisy: no per-example deadlines. Every `make test` derives its
+# examples from a fixed seed, so that a user's run is as repeatable as CI's. The random
+# exploration is a separate command, `make explore` (profile 'explore': fresh random
+# examples, ten times as many), whose finds become fixed test cases.
+settings.register_profile('galvoscan', deadline=None, derandomize=True)
+settings.register_profile('explore', deadline=None, derandomize=False, max_examples=1000)
+settings.load_profile(os.environ.get('HYPOTHESIS_PROFILE', 'galvoscan'))
 
 
 @pytest.fixture(scope='session', autouse=True)

@@ -116,7 +116,7 @@ def render(shape: tuple[int, int], spec: StripeSpec, *, background: float = 12.0
     -------
     ndarray, shape (H, W), dtype
     """
-    rng = np.random.default_rng() if rng is None else rng
+    rng = np.random.default_rng(0) if rng is None else rng  # repeatable by default
     img = stripe_profile(shape, spec, columns)
     if speckle_contrast > 0.0:
         img *= speckle_field(shape, speckle_grain_px, speckle_contrast, rng)
