@@ -65,9 +65,19 @@ def test_undistort_matches_opencv_telephoto(dist, seed):
 @settings(max_examples=40, deadline=None)
 @given(wide_dist, st.integers(0, 2**32 - 1))
 def test_undistort_matches_opencv_wide(dist, seed):
+    """Where OpenCV's iteration reaches a true inverse (its answer re-projects), ours is the
+    same; where it does not (beyond the fold of a strong barrel distortion OpenCV returns a
+    point that re-projects elsewhere), ours is NaN or re-projects exactly."""
     intr = CameraIntrinsics(dist=dist, **WIDE)
     uv = image_points(np.random.default_rng(seed), intr, 300)
-    np.testing.assert_allclose(undistort_points(intr, uv), cv_undistort(intr, uv), atol=1e-12)
+    ours, cv = undistort_points(intr, uv), cv_undistort(intr, uv)
+    cv_error = np.abs(project_points(intr, np.column_stack([cv, np.ones(len(cv))])) - uv)
+    inverted = cv_error.max(axis=1) < 1e-6
+    np.testing.assert_allclose(ours[inverted], cv[inverted], atol=1e-12)
+    rest = ours[~inverted]
+    finite = np.isfinite(rest).all(axis=1)
+    back = project_points(intr, np.column_stack([rest[finite], np.ones(finite.sum())]))
+    np.testing.assert_allclose(back, uv[~inverted][finite], atol=1e-9)
 
 
 @settings(max_examples=60, deadline=None)
@@ -157,3 +167,26 @@ def test_shape_errors_name_the_argument():
     with pytest.raises(ValueError, match="p_C"):
         project_points(intr, np.zeros((4, 2)))
     assert undistort_points(intr, np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_undistort_strong_barrel_corner_is_inverted():
+    """Pinned (hypothesis found it): the corner (720, 0) of a wide lens with strong barrel
+    distortion was NaN although OpenCV inverts it and its answer re-projects exactly."""
+    intr = CameraIntrinsics(dist=(-0.2988, -0.0469, 0.0, 0.0, 0.0), **WIDE)
+    uv = np.array([[720.0, 0.0], [0.0, 0.0], [720.0, 540.0], [0.0, 540.0]])
+    ours = undistort_points(intr, uv)
+    assert np.isfinite(ours).all()
+    np.testing.assert_allclose(ours, cv_undistort(intr, uv), atol=1e-12)
+    reprojected = project_points(intr, np.column_stack([ours, np.ones(len(ours))]))
+    np.testing.assert_allclose(reprojected, uv, atol=1e-9)
+
+
+def test_undistort_is_nan_only_where_no_inverse_exists():
+    """Beyond the fold of the radial polynomial no ray maps to the pixel: NaN, and OpenCV's
+    answer there does not re-project to it either."""
+    intr = CameraIntrinsics(dist=(-0.2988, -0.0469, 0.0, 0.0, 0.0), **WIDE)
+    uv = np.array([[3000.0, 275.0], [355.0 - 2500.0, 275.0 + 2000.0]])
+    assert np.isnan(undistort_points(intr, uv)).all()
+    cv = cv_undistort(intr, uv)
+    reprojected = project_points(intr, np.column_stack([cv, np.ones(len(cv))]))
+    assert (np.abs(reprojected - uv).max(axis=1) > 1.0).all()

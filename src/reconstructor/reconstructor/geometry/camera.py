@@ -211,9 +211,62 @@ def _iterate_until_converged(plan, xd, max_iter):
             x[:, active] = x_new
             done = step <= UNDISTORT_STEP_TOL
             converged[active[done]] = True
-            # Drop converged columns and columns that blew up (no preimage).
+            # Drop converged columns and columns that blew up.
             active = active[~done & np.isfinite(step)]
+    left = np.flatnonzero(~converged)
+    if left.size:
+        # slow or oscillating near the fold: Newton, from the last iterate where it is finite
+        start = x[:, left]
+        start = np.where(np.isfinite(start), start, xd[:, left])
+        x_n, ok = _newton_inverse(plan, xd[:, left], start)
+        x[:, left[ok]] = x_n[:, ok]
+        converged[left[ok]] = True
     return x, converged
+
+
+def _distortion_jacobian(plan: SimpleNamespace, x: np.ndarray) -> np.ndarray:
+    """d distort(x) / dx of plumb_bob at ``x`` shape (2, n); returns shape (n, 2, 2)."""
+    a, b = x
+    r2 = a * a + b * b
+    radial = 1.0 + r2 * (plan.k1 + r2 * (plan.k2 + r2 * plan.k3))
+    d_radial = plan.k1 + r2 * (2.0 * plan.k2 + 3.0 * r2 * plan.k3)
+    p2, p1 = plan.p_col[:, 0]
+    cross = 2.0 * a * b * d_radial + 2.0 * p1 * a + 2.0 * p2 * b
+    J = np.empty((x.shape[1], 2, 2))
+    J[:, 0, 0] = radial + 2.0 * a * a * d_radial + 2.0 * p1 * b + 6.0 * p2 * a
+    J[:, 0, 1] = cross
+    J[:, 1, 0] = cross
+    J[:, 1, 1] = radial + 2.0 * b * b * d_radial + 6.0 * p1 * b + 2.0 * p2 * a
+    return J
+
+
+def _newton_inverse(plan: SimpleNamespace, xd: np.ndarray, x0: np.ndarray, max_iter: int = 50):
+    """Solve ``distort(x) = xd`` by Newton from ``x0`` (both shape (2, n)).
+
+    The fixed-point iteration (OpenCV's) contracts slowly or oscillates near the corners of
+    strongly distorted lenses, where a true inverse still exists. A point counts as inverted
+    when the distortion of the answer reproduces ``xd`` to ``UNDISTORT_TARGET_ERROR`` and the
+    distortion map's Jacobian is positive definite there (the answer lies before the fold, on
+    the branch the lens really images, not on a mirrored one). Returns (x, ok).
+    """
+    x = x0.copy()
+    with np.errstate(all="ignore"):
+        for _ in range(max_iter):
+            r = _distort(plan, x) - xd
+            J = _distortion_jacobian(plan, x)
+            det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+            dx = np.stack([(J[:, 1, 1] * r[0] - J[:, 0, 1] * r[1]) / det,
+                           (J[:, 0, 0] * r[1] - J[:, 1, 0] * r[0]) / det])
+            x = x - np.where(np.isfinite(dx), dx, 0.0)
+            if np.all(np.abs(dx) <= UNDISTORT_STEP_TOL):
+                break
+        J = _distortion_jacobian(plan, x)
+        det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+        residual = np.abs(_distort(plan, x) - xd).max(axis=0)
+        # J is symmetric: positive definite = before the fold, not on a mirrored branch
+        ok = (residual <= UNDISTORT_TARGET_ERROR * 100.0) & (det > 0.0) & (J[:, 0, 0] > 0.0) \
+            & np.isfinite(x).all(0)
+    return x, ok
 
 
 def _grid_steps(plan: SimpleNamespace, xd: np.ndarray, x: np.ndarray):
