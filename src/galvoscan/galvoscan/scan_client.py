@@ -17,18 +17,44 @@ from pathlib import Path
 
 import numpy as np
 
+#: StartScan's step counts are uint32; a larger number would wrap around silently.
+MAX_STEPS = 2**32 - 1
+
+
+def _steps(text: str) -> int:
+    """argparse type of a step count: a whole number from 1 to MAX_STEPS."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a whole number') from None
+    if not 1 <= n <= MAX_STEPS:
+        raise argparse.ArgumentTypeError(f'{n} is outside 1..{MAX_STEPS}')
+    return n
+
+
+def _finite(text: str) -> float:
+    """argparse type of a finite float."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    if not np.isfinite(x):
+        raise argparse.ArgumentTypeError(f'{text} is not finite')
+    return x
+
 
 def build_parser():
     p = argparse.ArgumentParser(prog='galvoscan scan', description=__doc__.split('\n')[0])
     p.add_argument('--pattern', default='raster', choices=('raster', 'g1_grid', 'g2_sweep',
                                                              'custom'))
     for name in ('g1-pan', 'g1-tilt', 'g2-tilt'):
-        p.add_argument(f'--{name}', nargs=2, type=float, default=(0.0, 0.0),
+        p.add_argument(f'--{name}', nargs=2, type=_finite, default=(0.0, 0.0),
                        metavar=('MIN', 'MAX'), help=f'{name} range [V]')
-    p.add_argument('--steps-pan', type=int, default=1)
-    p.add_argument('--steps-tilt', type=int, default=10)
+    p.add_argument('--steps-pan', type=_steps, default=1, help='steps along pan (>= 1)')
+    p.add_argument('--steps-tilt', type=_steps, default=10, help='steps along tilt (>= 1)')
     p.add_argument('--voltages', help='custom: CSV file of rows U1_pan,U1_tilt,U2_pan,U2_tilt [V]')
-    p.add_argument('--rate', type=float, default=0.0, help='frame rate [Hz] (0: driver default)')
+    p.add_argument('--rate', type=_finite, default=0.0,
+                   help='frame rate [Hz] (0: driver default)')
     p.add_argument('--laser-off', action='store_true')
     p.add_argument('--scene', help='sim backend: scene YAML to set first')
     p.add_argument('--scan-id', default='')
