@@ -68,6 +68,9 @@ def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     logging.basicConfig(level=logging.INFO, format='[%(name)s] %(levelname)s %(message)s')
     commands = ['run', *DELEGATED, 'demo']
+    if argv and argv[0] not in commands and argv[0] not in ('-h', '--help'):
+        print(f"galvoscan: unknown command '{argv[0]}'; one of {', '.join(commands)}\n",
+              file=sys.stderr)
     if not argv or argv[0] in ('-h', '--help') or argv[0] not in commands:
         print(__doc__.strip())
         return 0 if argv and argv[0] in ('-h', '--help') else 2

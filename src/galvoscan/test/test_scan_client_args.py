@@ -24,3 +24,12 @@ def test_bad_arguments_are_refused_by_name(capsys, args, message):
 def test_limits_are_accepted():
     args = build_parser().parse_args(['--steps-pan', str(MAX_STEPS), '--steps-tilt', '1'])
     assert args.steps_pan == MAX_STEPS and args.steps_tilt == 1
+
+
+def test_unknown_command_is_named(capsys):
+    from galvoscan.cli import main
+
+    assert main(['nosuch']) == 2
+    assert "unknown command 'nosuch'" in capsys.readouterr().err
+    assert main(['--help']) == 0
+    assert 'unknown command' not in capsys.readouterr().err
