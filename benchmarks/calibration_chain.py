@@ -36,7 +36,8 @@ import logging
 import time
 
 from calibration_tools import stage_runner
-from calibration_tools.capture_plans import plan, total_frames
+from calibration_tools.capture_plans import total_frames
+from calibration_tools.registry import plan
 from calibration_tools.stages import STAGES, apply_result
 from galvoscan import sim_scores, simulated_rig
 from galvoscan.simulated_rig import execute_in_process, truth_model

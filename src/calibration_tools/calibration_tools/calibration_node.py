@@ -41,9 +41,10 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image
 
 from calibration_tools import stage_runner
-from calibration_tools.capture_plans import plan
+from calibration_tools.registry import plan
 from calibration_tools.stages import STAGES, apply_result
 from galvoscan_bag.writer import BagWriter
+from galvoscan_common.executor import call_service
 from reconstructor import calibration_file
 
 
@@ -111,14 +112,7 @@ class CalibrationNode(Node):
 
     # -- capture ----------------------------------------------------------------------
     def _call(self, name, request, timeout=60.0):
-        client = self._cap.clients_[name]
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise RuntimeError(f'service {name} is not available')
-        fut = client.call_async(request)
-        self._cap_executor.spin_until_future_complete(fut, timeout_sec=timeout)
-        if fut.result() is None:
-            raise RuntimeError(f'service {name} did not answer')
-        return fut.result()
+        return call_service(self._cap_executor, self._cap.clients_[name], request, timeout)
 
     def _record_step(self, step, bag_dir):
         cap = self._cap

@@ -41,7 +41,7 @@ import math
 import numpy as np
 
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD, Checkerboard, CircleGrid
-from calibration_tools.stages import STAGES, CaptureStep
+from calibration_tools.stages import CaptureStep
 
 #: Intrinsics target: the simulator's 12 x 9 checkerboard of 4 mm squares (inner corners).
 INTRINSICS_BOARD = Checkerboard(11, 8, 0.004)
@@ -75,7 +75,8 @@ def total_frames(steps) -> int:
 
 
 # ----------------------------------------------------------------------------- helpers
-def _model(calibration):
+def current_model(calibration):
+    """The model a plan is made with: the calibration's (or the RigModel), without correction."""
     from reconstructor.model import RigModel
 
     model = getattr(calibration, 'model', calibration)
@@ -327,34 +328,3 @@ def joint_correction_steps(model, laterals, *, reach=(0.3, 0.1), step: float = 0
         steps += s
     return steps
 
-
-def plan(stage: str, calibration, quick: bool = False) -> list[CaptureStep]:
-    """The capture plan of a calibration stage.
-
-    Parameters
-    ----------
-    stage : str
-        One of :data:`calibration_tools.stages.STAGES`.
-    calibration : reconstructor.calibration_file.Calibration or RigModel
-        The operator's current model: targets are placed and G1 is aimed with it only.
-    quick : bool
-        A reduced plan (few frames; end-to-end tests).
-
-    Returns
-    -------
-    list of CaptureStep
-    """
-    if stage not in STAGES:
-        raise ValueError(f"stage: unknown '{stage}', one of {', '.join(STAGES)}")
-    model = _model(calibration)
-    if stage == 'intrinsics':
-        return intrinsics_steps(model, 8 if quick else 30)
-    if stage == 'dynamic_camera':
-        return dynamic_camera_steps(model, [20] if quick else [40, 12, 12, 12, 12])
-    if stage == 'laser_plane':
-        return laser_plane_steps(model, 1 if quick else 2)
-    if stage == 'laser_axis':
-        return laser_axis_steps(model, quick)
-    laterals = [0.0] if quick else [0.0, 0.02, -0.02, 0.04, -0.04, 0.06, -0.06, 0.08, -0.08]
-    reach = (0.1, 0.1) if quick else (0.3, 0.1)
-    return joint_correction_steps(model, laterals, reach=reach)

@@ -5,8 +5,8 @@
 - :func:`views_from_bags`: the camera frames of rosbag2 directories recorded by the
   calibration node (``<run>/poseNNN_stepMMM``), as :class:`~calibration_tools.stages.
   CaptureView`;
-- :func:`compute`: one stage on those views, with the targets and options the capture plans
-  of :mod:`calibration_tools.capture_plans` use;
+- :func:`compute`: one stage on those views, with the solver, targets and options of its
+  entry in :mod:`calibration_tools.registry`;
 - :func:`bag_digest` and :func:`flatten` for the file's provenance and the service response.
 """
 
@@ -20,15 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration_tools import capture_plans as cp
-from calibration_tools.stages import STAGES, CaptureView, StageResult
+from calibration_tools import registry
+from calibration_tools.stages import CaptureView, StageResult
 
 log = logging.getLogger('galvoscan.calibration.stage_runner')
 
 #: Directory names written by the calibration node: one bag per capture step.
 BAG_NAME = re.compile(r'^pose(\d+)_step(\d+)$')
-#: G1 voltages closer than this are one board placement of a laser stage [V].
-VOLTAGE_TOL = 1e-3
 
 # ----------------------------------------------------------------------------- bags
 def expand_bag_dirs(paths) -> list[Path]:
@@ -171,54 +169,19 @@ def flatten(updates: dict, prefix: str = '') -> dict:
 
 
 # ----------------------------------------------------------------------------- compute
-def board_views(views: Sequence[CaptureView]) -> list[CaptureView]:
-    """Views relabelled so that every (pose_index, G1 voltages) pair is its own pose.
-
-    The laser stages' plans show several boards per scene, each at its own G1 voltages;
-    the stages expect one board per pose.
-    """
-    import dataclasses
-
-    keys: dict[tuple, int] = {}
-    out = []
-    for v in views:
-        u = np.asarray(v.voltages, dtype=np.float64)
-        key = (int(v.pose_index), int(round(u[0] / VOLTAGE_TOL)), int(round(u[1] / VOLTAGE_TOL)))
-        out.append(dataclasses.replace(v, pose_index=keys.setdefault(key, len(keys))))
-    return out
-
-
-def stage_options(stage: str) -> dict:
-    """Targets and options :func:`compute` passes to a stage (those the plans are made for)."""
-    if stage == 'intrinsics':
-        return {'board': cp.INTRINSICS_BOARD}
-    if stage == 'dynamic_camera':
-        # The reference rig's galvos are non-linear by up to ~0.02 deg: fit their cubic.
-        return {'board': cp.CIRCLE_BOARD, 'refine_poly': 2}
-    if stage == 'laser_plane':
-        return {'board': cp.LASER_BOARD}
-    if stage == 'laser_axis':
-        return {'board': cp.LASER_BOARD}
-    if stage == 'joint_correction':
-        return {'sphere_radius': cp.SPHERE_RADIUS}
-    raise ValueError(f"stage: unknown '{stage}', one of {', '.join(STAGES)}")
-
-
 def compute(stage: str, views: Sequence[CaptureView], calibration,
             progress: Callable | None = None) -> StageResult:
     """Run one calibration stage on captured views.
 
-    Targets and options are those of :func:`stage_options`. The dynamic-camera stage gets
-    the plan's board placements (:func:`capture_plans.circle_board_pose`) as its board
-    priors; the laser stages see every (pose_index, G1 voltages) pair as its own board pose
-    (:func:`board_views`), since the plans show several boards per scene.
+    The stage's solver, targets and options are those of its entry in
+    :data:`calibration_tools.registry.REGISTRY`.
 
     Parameters
     ----------
     stage : str
         One of :data:`calibration_tools.stages.STAGES`.
     views : sequence of CaptureView
-        Captured as :func:`calibration_tools.capture_plans.plan` describes.
+        Captured as :func:`calibration_tools.registry.plan` describes.
     calibration : reconstructor.calibration_file.Calibration
         The current calibration (the one the plan was made with).
     progress : callable, optional
@@ -234,7 +197,7 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
     ValueError
         Unknown stage, no views, or a stage that cannot compute (the reason in the message).
     """
-    options = stage_options(stage)
+    registry.stage(stage)
     views = list(views)
     if not views:
         raise ValueError(f'{stage}: no views')
@@ -243,43 +206,4 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
             raise ValueError(f'views[{i}] must be a CaptureView, got {type(v).__name__}')
     if not hasattr(calibration, 'model'):
         raise ValueError('calibration must be a reconstructor.calibration_file.Calibration')
-
-    def report(done, total, message=''):
-        if progress is not None:
-            progress(done, total, message)
-
-    if stage == 'intrinsics':
-        from calibration_tools.intrinsics import run_intrinsics
-
-        return run_intrinsics(views, calibration, options['board'], progress=progress)
-    if stage == 'dynamic_camera':
-        from calibration_tools.dynamic_camera import run_dynamic_camera
-
-        poses = sorted({int(v.pose_index) for v in views})
-        unknown = [p for p in poses if p >= len(cp.CIRCLE_BOARD_OFFSETS)]
-        if unknown:
-            raise ValueError(f'dynamic_camera: pose_index {unknown} is not a placement of the '
-                             f'capture plan (0..{len(cp.CIRCLE_BOARD_OFFSETS) - 1})')
-        priors = {p: cp.circle_board_pose(p) for p in poses}
-        return run_dynamic_camera(views, calibration, options['board'], board_pose=priors,
-                                  refine_poly=options['refine_poly'], progress=progress)
-    if stage == 'joint_correction':
-        from calibration_tools.joint_correction import run_joint_correction
-
-        report(0, 1, 'reconstructing and registering the sphere views')
-        result = run_joint_correction(views, calibration,
-                                      sphere_radius=options['sphere_radius'])
-        report(1, 1, 'done')
-        return result
-    boards = board_views(views)
-    report(0, 1, f'{len({v.pose_index for v in boards})} board placements')
-    if stage == 'laser_plane':
-        from calibration_tools.laser_plane import run_laser_plane
-
-        result = run_laser_plane(boards, calibration, board=options['board'])
-    else:
-        from calibration_tools.laser_axis import run_laser_axis
-
-        result = run_laser_axis(boards, calibration, board=options['board'])
-    report(1, 1, 'done')
-    return result
+    return registry.run(stage, views, calibration, progress)

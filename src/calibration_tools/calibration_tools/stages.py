@@ -20,6 +20,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 STAGES = ('intrinsics', 'dynamic_camera', 'laser_plane', 'laser_axis', 'joint_correction')
+#: Voltages closer than this are one and the same command (one board placement, one G1
+#: node of a grid, one laser plane) [V].
+VOLTAGE_TOL = 1e-3
 
 
 @dataclass

@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from calibration_tools import capture_plans as cp
-from calibration_tools.capture_plans import CaptureStep, plan, total_frames
+from calibration_tools.capture_plans import CaptureStep, total_frames
+from calibration_tools.registry import plan
 from calibration_tools.stages import STAGES
 from galvo_driver.sim_backend import SimBackend
 from galvoscan.simulated_rig import execute_in_process, nominal_calibration
@@ -242,3 +243,34 @@ def test_in_process_execution_is_what_the_sim_backend_produces():
     assert not views[0].laser_on and views[-1].laser_on
     with pytest.raises(ValueError, match=r'steps\[0\]'):
         execute_in_process(Simulator(rig, load_scene('plane')), ['step'])
+
+
+def test_the_registry_is_the_one_table_of_stages():
+    """Every stage has one registry entry (plan, options, solver); unknown names are refused."""
+    import ast
+    from pathlib import Path
+
+    from calibration_tools import registry, stage_runner
+    from calibration_tools.stages import STAGES
+
+    assert tuple(registry.REGISTRY) == STAGES
+    for name in ('focus', '', None, 3):
+        with pytest.raises(ValueError, match='unknown'):
+            registry.plan(name, None)
+        with pytest.raises(ValueError, match='unknown'):
+            stage_runner.compute(name, [], None)
+    with pytest.raises(TypeError):
+        registry.REGISTRY['intrinsics'].options['board'] = None
+    # no other module of the package branches on a stage variable (`if stage == 'x'`)
+    package = Path(registry.__file__).parent
+    for path in package.glob('*.py'):
+        if path.name == 'registry.py':
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not isinstance(node, ast.Compare):
+                continue
+            sides = [node.left, *node.comparators]
+            named = [ast.unparse(c) for c in sides if isinstance(c, (ast.Name, ast.Attribute))]
+            names = {c.value for c in sides if isinstance(c, ast.Constant)}
+            assert not (any('stage' in n for n in named) and names & set(STAGES)), \
+                f'{path.name}:{node.lineno} branches on a stage name'

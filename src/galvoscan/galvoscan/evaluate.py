@@ -27,6 +27,7 @@ import yaml
 
 from galvoscan import eval_scenes, metrics
 from galvoscan.progress import Progress
+from galvoscan_common.executor import call_service
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
 from reconstructor.model import v0_T_v
 from reconstructor.planning import aim_camera, view_sweep
@@ -64,13 +65,7 @@ class GraphClient:
         client = self._clients.get(name)
         if client is None:
             client = self._clients[name] = self.node.create_client(srv_type, name)
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise RuntimeError(f'service {name} is not available')
-        fut = client.call_async(request)
-        self.ex.spin_until_future_complete(fut, timeout_sec=timeout)
-        if fut.result() is None:
-            raise RuntimeError(f'service {name} did not answer within {timeout} s')
-        return fut.result()
+        return call_service(self.ex, client, request, timeout)
 
     def spin(self, seconds):
         t_end = time.monotonic() + seconds

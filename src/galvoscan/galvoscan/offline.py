@@ -152,7 +152,8 @@ def run_stage(args, progress: Progress) -> int:
 
 def run_all_sim(args, progress: Progress) -> int:
     from calibration_tools import stage_runner
-    from calibration_tools.capture_plans import plan, total_frames
+    from calibration_tools.capture_plans import total_frames
+    from calibration_tools.registry import plan
     from calibration_tools.stages import apply_result
     from galvoscan.simulated_rig import execute_in_process
     from galvoscan_sim import Simulator, load_rig, load_scene_text

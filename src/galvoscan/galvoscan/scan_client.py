@@ -78,22 +78,26 @@ def main(argv=None):
 
     import rclpy
     from galvoscan_msgs.srv import GetScanProgress, SetScene, StartScan, StopScan
+    from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
+
+    from galvoscan_common.executor import call_service
 
     # Ctrl-C stays a plain KeyboardInterrupt so that the context can still stop the scan
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     node = Node('galvoscan_scan')
 
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+
+    clients = {}
+
     def call(srv, name, req, timeout=30.0):
-        client = node.create_client(srv, name)
-        if not client.wait_for_service(timeout_sec=timeout):
-            raise RuntimeError(f'{name} not available: is the driver running?')
-        fut = client.call_async(req)
-        rclpy.spin_until_future_complete(node, fut, timeout_sec=timeout)
-        if fut.result() is None:
-            raise RuntimeError(f'{name} did not answer')
-        return fut.result()
+        if name not in clients:
+            clients[name] = node.create_client(srv, name)
+        return call_service(executor, clients[name], req, timeout,
+                            hint='is the driver running?')
 
     started = False
     try:
@@ -138,6 +142,7 @@ def main(argv=None):
                 call(StopScan, 'scan/stop', StopScan.Request(), timeout=5.0)
             except RuntimeError:
                 pass
+        executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
 

@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from calibration_tools import stage_runner
-from calibration_tools.capture_plans import plan
+from calibration_tools.registry import plan
 from calibration_tools.stages import apply_result
 from galvoscan import offline, sim_scores, simulated_rig
 from galvoscan.simulated_rig import execute_in_process

@@ -69,3 +69,36 @@ def run_node(factory, args=None) -> None:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+def call_service(executor, client, request, timeout: float = 60.0, hint: str = ''):
+    """Call one ROS service and wait for its answer, spinning ``executor`` meanwhile.
+
+    The one service-call helper of the project (calibration node, evaluation, scan client).
+
+    Parameters
+    ----------
+    executor : rclpy executor holding the client's node; spun until the answer arrives.
+    client : rclpy ``Client``.
+    request : the service's ``Request``.
+    timeout : float, seconds
+        How long to wait for the service to appear, and again for its answer.
+    hint : str
+        Appended to the "not available" error (e.g. ``'is the driver running?'``).
+
+    Raises
+    ------
+    RuntimeError
+        The service did not appear, or did not answer within ``timeout``; the pending
+        request is then withdrawn so that a late answer is dropped.
+    """
+    name = client.srv_name
+    if not client.wait_for_service(timeout_sec=timeout):
+        raise RuntimeError(f'service {name} is not available' + (f': {hint}' if hint else ''))
+    future = client.call_async(request)
+    executor.spin_until_future_complete(future, timeout_sec=timeout)
+    if not future.done() or future.result() is None:
+        future.cancel()
+        client.remove_pending_request(future)
+        raise RuntimeError(f'service {name} did not answer within {timeout} s')
+    return future.result()

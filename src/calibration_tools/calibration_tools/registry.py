@@ -1,0 +1,201 @@
+"""The calibration stages by name: each one's capture plan, targets and solver, in one table.
+
+Every stage is an entry of :data:`REGISTRY`, in :data:`~calibration_tools.stages.STAGES`
+order, with
+
+- ``plan(model, quick)``: the capture steps (:mod:`calibration_tools.capture_plans`);
+- ``options``: the targets and options its solver is run with (those the plan is made for);
+- ``run(views, calibration, options, progress)``: the solver, in the Open3D ``run(config)``
+  style (:class:`~calibration_tools.stages.StageResult` out).
+
+The node, the offline command and the benchmarks all go through :func:`plan` and
+:func:`calibration_tools.stage_runner.compute`, which look stages up here; no other module
+branches on a stage's name. Solvers are imported when they run (each pulls in OpenCV and
+SciPy). No rclpy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+
+from calibration_tools import capture_plans as cp
+from calibration_tools.stages import STAGES, VOLTAGE_TOL, CaptureStep, CaptureView, StageResult
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One calibration stage: how to capture for it and how to compute it.
+
+    Attributes
+    ----------
+    name : str
+    plan : callable ``(model, quick: bool) -> list[CaptureStep]``
+    run : callable ``(views, calibration, options, report) -> StageResult``
+        ``report(done, total, message)`` is always callable (a no-op without a listener).
+    options : mapping
+        Targets and options passed to the solver.
+    """
+
+    name: str
+    plan: Callable
+    run: Callable
+    options: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+
+
+# ----------------------------------------------------------------------------- solvers
+def _run_intrinsics(views, calibration, options, report):
+    from calibration_tools.intrinsics import run_intrinsics
+
+    return run_intrinsics(views, calibration, options['board'], progress=report)
+
+
+def _run_dynamic_camera(views, calibration, options, report):
+    """The plan's board placements (:func:`capture_plans.circle_board_pose`) are the priors."""
+    from calibration_tools.dynamic_camera import run_dynamic_camera
+
+    poses = sorted({int(v.pose_index) for v in views})
+    unknown = [p for p in poses if p >= len(cp.CIRCLE_BOARD_OFFSETS)]
+    if unknown:
+        raise ValueError(f'dynamic_camera: pose_index {unknown} is not a placement of the '
+                         f'capture plan (0..{len(cp.CIRCLE_BOARD_OFFSETS) - 1})')
+    priors = {p: cp.circle_board_pose(p) for p in poses}
+    return run_dynamic_camera(views, calibration, options['board'], board_pose=priors,
+                              refine_poly=options['refine_poly'], progress=report)
+
+
+def board_views(views: Sequence[CaptureView]) -> list[CaptureView]:
+    """Views relabelled so that every (pose_index, G1 voltages) pair is its own pose.
+
+    The laser stages' plans show several boards per scene, each at its own G1 voltages;
+    the stages expect one board per pose.
+    """
+    import dataclasses
+
+    import numpy as np
+
+    keys: dict[tuple, int] = {}
+    out = []
+    for v in views:
+        u = np.asarray(v.voltages, dtype=np.float64)
+        key = (int(v.pose_index), int(round(u[0] / VOLTAGE_TOL)), int(round(u[1] / VOLTAGE_TOL)))
+        out.append(dataclasses.replace(v, pose_index=keys.setdefault(key, len(keys))))
+    return out
+
+
+def _laser_stage(solver: Callable) -> Callable:
+    """A laser stage's runner: every (pose, G1 voltages) pair is a board (:func:`board_views`)."""
+    def run(views, calibration, options, report):
+        boards = board_views(views)
+        report(0, 1, f'{len({v.pose_index for v in boards})} board placements')
+        result = solver()(boards, calibration, board=options['board'])
+        report(1, 1, 'done')
+        return result
+    return run
+
+
+def _laser_plane_solver():
+    from calibration_tools.laser_plane import run_laser_plane
+
+    return run_laser_plane
+
+
+def _laser_axis_solver():
+    from calibration_tools.laser_axis import run_laser_axis
+
+    return run_laser_axis
+
+
+def _run_joint_correction(views, calibration, options, report):
+    from calibration_tools.joint_correction import run_joint_correction
+
+    report(0, 1, 'reconstructing and registering the sphere views')
+    result = run_joint_correction(views, calibration, sphere_radius=options['sphere_radius'])
+    report(1, 1, 'done')
+    return result
+
+
+# ----------------------------------------------------------------------------- plans
+_JOINT_LATERALS = (0.0, 0.02, -0.02, 0.04, -0.04, 0.06, -0.06, 0.08, -0.08)
+
+
+def _plan_joint_correction(model, quick):
+    return cp.joint_correction_steps(model, [0.0] if quick else list(_JOINT_LATERALS),
+                                     reach=(0.1, 0.1) if quick else (0.3, 0.1))
+
+
+def _options(**kw) -> MappingProxyType:
+    return MappingProxyType(kw)
+
+
+#: The stages, in calibration order.
+REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
+    Stage('intrinsics',
+          lambda model, quick: cp.intrinsics_steps(model, 8 if quick else 30),
+          _run_intrinsics, _options(board=cp.INTRINSICS_BOARD)),
+    # The reference rig's galvos are non-linear by up to ~0.02 deg: fit their cubic.
+    Stage('dynamic_camera',
+          lambda model, quick: cp.dynamic_camera_steps(
+              model, [20] if quick else [40, 12, 12, 12, 12]),
+          _run_dynamic_camera, _options(board=cp.CIRCLE_BOARD, refine_poly=2)),
+    Stage('laser_plane',
+          lambda model, quick: cp.laser_plane_steps(model, 1 if quick else 2),
+          _laser_stage(_laser_plane_solver), _options(board=cp.LASER_BOARD)),
+    Stage('laser_axis', cp.laser_axis_steps,
+          _laser_stage(_laser_axis_solver), _options(board=cp.LASER_BOARD)),
+    Stage('joint_correction', _plan_joint_correction,
+          _run_joint_correction, _options(sphere_radius=cp.SPHERE_RADIUS)),
+)})
+assert tuple(REGISTRY) == STAGES, 'REGISTRY and STAGES must name the same stages in order'
+
+
+def stage(name: str) -> Stage:
+    """The registered stage ``name``.
+
+    Raises
+    ------
+    ValueError
+        An unknown name (the message lists the known ones).
+    """
+    try:
+        return REGISTRY[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"stage: unknown '{name}', one of {', '.join(STAGES)}") from None
+
+
+def plan(name: str, calibration, quick: bool = False) -> list[CaptureStep]:
+    """The capture plan of a calibration stage.
+
+    Parameters
+    ----------
+    name : str
+        One of :data:`calibration_tools.stages.STAGES`.
+    calibration : reconstructor.calibration_file.Calibration or RigModel
+        The operator's current model: targets are placed and G1 is aimed with it only.
+    quick : bool
+        A reduced plan (few frames; end-to-end tests).
+
+    Returns
+    -------
+    list of CaptureStep
+    """
+    entry = stage(name)
+    return entry.plan(cp.current_model(calibration), bool(quick))
+
+
+def stage_options(name: str) -> dict:
+    """Targets and options the stage's solver is run with (those its plan is made for)."""
+    return dict(stage(name).options)
+
+
+def run(name: str, views: Sequence[CaptureView], calibration,
+        progress: Callable | None = None) -> StageResult:
+    """Run the registered solver of stage ``name`` (``stage_runner.compute`` checks the input)."""
+    entry = stage(name)
+
+    def report(done, total, message=''):
+        if progress is not None:
+            progress(done, total, message)
+
+    return entry.run(views, calibration, entry.options, report)
