@@ -187,8 +187,8 @@ def joint_local(rig, cal, seed):
 
 def joint_wide(rig, cal, seed, laterals, u2s, step=0.1, reach=(0.3, 0.3), held_per_position=3):
     """Sphere at several positions, chained. G1 nodes on one global grid of ``step`` V."""
-    from calibration_tools.placement import aim_g1
     from reconstructor.model import laser_plane_v0
+    from reconstructor.planning import aim_g1
 
     sim = Simulator(rig, load_scene('sphere'), seed=seed)
     views, truths, held, held_truths = [], [], [], []

@@ -249,12 +249,9 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
     mirror_x : bool
         Use -x for every board.
     """
-    from calibration_tools.placement import (
-        aim_g1,
-        board_rotation_on_laser,
-        boards_scene_yaml,
-    )
+    from calibration_tools.placement import board_rotation_on_laser, boards_scene_yaml
     from reconstructor.model import laser_plane_v0
+    from reconstructor.planning import aim_g1
 
     rng = np.random.default_rng(seed)
     z0 = laser_crossing_depth(model)

@@ -34,6 +34,23 @@ _CIRCLES = """    grid: [{nx}, {ny}]
 """
 
 
+def _aim(model, point_v0, what: str) -> np.ndarray:
+    """G1 voltages centring ``point_v0`` under ``model`` (:func:`reconstructor.planning.aim_g1`).
+
+    Raises
+    ------
+    ValueError
+        The point is out of G1 reach under the model.
+    """
+    from reconstructor.planning import aim_g1
+
+    g1 = aim_g1(model, point_v0)
+    if not np.all(np.isfinite(g1)):
+        raise ValueError(f'{what} at {np.round(point_v0, 4).tolist()} m is out of G1 reach '
+                         'under the model')
+    return g1
+
+
 def _board_object(board, translation, rotation_vector, name: str) -> str:
     from calibration_tools.board_layout import Checkerboard, CircleGrid
 
@@ -95,42 +112,6 @@ def _rotvec(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_rotvec()
-
-
-def aim_g1(model, point_v0, start=(0.0, 0.0), *, max_iter: int = 30) -> np.ndarray:
-    """G1 voltages that bring a V0 point to the principal point under ``model`` (Newton).
-
-    Parameters
-    ----------
-    model : reconstructor.model.RigModel
-    point_v0 : array_like, shape (3,), metres
-    start : (float, float), volts
-
-    Returns
-    -------
-    ndarray, shape (2,), volts (U1_pan, U1_tilt)
-    """
-    from reconstructor.model import predict_pixels
-
-    p = np.asarray(point_v0, dtype=np.float64)
-    if p.shape != (3,) or not np.all(np.isfinite(p)):
-        raise ValueError(f'point_v0 must be a finite vector of shape (3,), got {p.shape}')
-    p = p.reshape(1, 3)
-    u = np.array(start, dtype=np.float64)
-    centre = np.array([model.intrinsics.cx, model.intrinsics.cy])
-    h = 1e-4
-    for _ in range(max_iter):
-        uv = predict_pixels(model, p, u[0], u[1])[0][0]
-        J = np.empty((2, 2))
-        for k in range(2):
-            du = u.copy()
-            du[k] += h
-            J[:, k] = (predict_pixels(model, p, du[0], du[1])[0][0] - uv) / h
-        step = np.linalg.solve(J, centre - uv)
-        u += step
-        if np.abs(step).max() < 1e-10:
-            break
-    return u
 
 
 def board_rotation_on_laser(model, p_v0, tilt_y: float, roll: float) -> np.ndarray:
@@ -198,7 +179,7 @@ def board_laser_steps(model, u2_tilts, depths, board, *, offsets=(0.0,), tilt_y:
             p = np.array([x, -(pi[0] * x + pi[2] * z + pi[3]) / pi[1], z])
             R = board_rotation_on_laser(model, p, rng.choice([-1.0, 1.0]) * tilt_y,
                                         rng.uniform(-0.1, 0.1))
-            g1 = aim_g1(model, p)
+            g1 = _aim(model, p, 'a board')
             steps.append(CaptureStep(pose, board_scene_yaml(board, p, _rotvec(R)),
                                      [[g1[0], g1[1], 0.0, 0.0]], False,
                                      note=f'board on the U2 = {u:g} V plane at {z:.4f} m'))
@@ -303,7 +284,7 @@ def sphere_grid_steps(model, u2_tilt: float, radius: float, pans, tilts, *,
     if occluder is not None:
         box = (centre + np.asarray(occluder[0], dtype=np.float64), occluder[1])
         blocked = sphere_scene_yaml(centre, radius, wall, box)
-    aim = aim_g1(model, centre)
+    aim = _aim(model, centre, 'the sphere')
     if grid_step is not None:
         if not grid_step > 0:
             raise ValueError(f'grid_step must be > 0 V, got {grid_step}')

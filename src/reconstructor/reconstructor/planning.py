@@ -3,7 +3,8 @@
 Where to point the mirrors, computed from the model a user has (the calibration), never
 from the rig's hidden truth:
 
-- :func:`aim_camera`: G1 voltages whose view centre looks at a V0 point;
+- :func:`aim_g1` (the one aim solver) and :func:`aim_camera`: G1 voltages whose view centre
+  looks at a V0 point;
 - :func:`aim_laser`: the G2 tilt voltage whose laser plane crosses the view's optical axis
   at a given distance;
 - :func:`view_sweep`: a G2 sweep that moves the stripe across one G1 view.
@@ -15,11 +16,103 @@ import numpy as np
 from scipy.optimize import brentq, least_squares
 
 from galvoscan_common.frame import VOLTAGE_LIMIT
-from reconstructor.model import RigModel, laser_plane_v0, predict_pixels, v0_T_v
+from reconstructor.model import RigModel, laser_plane_v0, rigid_inverse, v0_T_v
+
+#: An aim is reached when the target is this close to the optical axis (tangent of the angle:
+#: about 0.01 px at the telephoto focal length).
+AIM_TOLERANCE = 1e-6
+
+
+def _off_axis(model: RigModel, u, point) -> np.ndarray:
+    """Where ``point`` (V0) lies off the optical axis of the view at G1 ``u``: (x/z, y/z)."""
+    q = rigid_inverse(v0_T_v(model, u[0], u[1])) @ np.append(point, 1.0)
+    return q[:2] / q[2] if q[2] > 0 else np.array([1e3, 1e3])
+
+
+def _newton_aim(model: RigModel, point, u) -> np.ndarray:
+    """Newton on the off-axis offset (numerical Jacobian, steps clipped to 2 V)."""
+    u = np.array(u, dtype=np.float64)
+    for _ in range(30):
+        f = _off_axis(model, u, point)
+        J = np.column_stack([(_off_axis(model, u + h, point) - f) / 1e-4
+                             for h in (np.array([1e-4, 0.0]), np.array([0.0, 1e-4]))])
+        try:
+            step = np.linalg.solve(J, -f)
+        except np.linalg.LinAlgError:
+            break
+        u = u + np.clip(step, -2.0, 2.0)
+        if not np.all(np.isfinite(u)) or np.abs(step).max() < 1e-12:
+            break
+    return u
+
+
+def _bounded_aim(model: RigModel, point, u0, max_abs_u: float) -> np.ndarray:
+    """Bounded least squares from the four sign combinations of ``u0`` (Newton's fallback)."""
+    best = None
+    for sign in ((1, 1), (-1, 1), (1, -1), (-1, -1)):
+        sol = least_squares(lambda u: _off_axis(model, u, point),
+                            np.clip(u0 * sign, -max_abs_u, max_abs_u),
+                            bounds=(-max_abs_u, max_abs_u), x_scale=1.0, xtol=1e-15,
+                            ftol=1e-15, gtol=1e-15)
+        if best is None or sol.cost < best.cost:
+            best = sol
+        if np.abs(best.fun).max() < AIM_TOLERANCE:
+            break
+    return best.x
+
+
+def aim_g1(model: RigModel, points_v0, *, start=None,
+           max_abs_u: float = VOLTAGE_LIMIT) -> np.ndarray:
+    """G1 voltages that put V0 points on the view's optical axis (at the principal point).
+
+    The one aim solver of the project (capture plans, calibration, evaluation). Newton on
+    the target's offset from the optical axis, from ``start`` or from the small-angle guess
+    (the view turns by twice the mirror angle); where Newton does not converge, bounded
+    least squares from the guess's four sign combinations. A target Newton puts on the
+    axis beyond ``max_abs_u`` is out of reach.
+
+    Parameters
+    ----------
+    model : RigModel
+        The user's model (nominal or calibrated), never the rig's truth.
+    points_v0 : array_like, shape (n, 3) or (3,), metres
+        Targets in V0.
+    start : array_like, shape (2,), volts, optional
+        Newton's starting voltages (default: the small-angle guess).
+    max_abs_u : float, volts
+        Voltage range; a target out of reach gets NaN.
+
+    Returns
+    -------
+    ndarray, shape (n, 2) (or (2,) for one point), volts
+        (U1_pan, U1_tilt); NaN where no voltage within range puts the target on the axis
+        to :data:`AIM_TOLERANCE`.
+    """
+    P = np.asarray(points_v0, dtype=np.float64)
+    single = P.shape == (3,)
+    P = P.reshape(1, 3) if single else P
+    if P.ndim != 2 or P.shape[1] != 3:
+        raise ValueError(f'points_v0 must have shape (n, 3), got {np.shape(points_v0)}')
+    if not (np.isfinite(max_abs_u) and max_abs_u > 0):
+        raise ValueError(f'max_abs_u must be > 0 V, got {max_abs_u}')
+    out = np.full((len(P), 2), np.nan)
+    k = np.array([model.g1_pan.k, model.g1_tilt.k])
+    for i, p in enumerate(P):
+        if not np.all(np.isfinite(p)):
+            continue
+        guess = np.nan_to_num(np.array([np.arctan2(p[0], p[2]), -np.arctan2(p[1], p[2])])
+                              / (2 * k))
+        guess = np.clip(guess, -max_abs_u, max_abs_u)
+        u = _newton_aim(model, p, guess if start is None else start)
+        if not (np.all(np.isfinite(u)) and np.abs(_off_axis(model, u, p)).max() < AIM_TOLERANCE):
+            u = _bounded_aim(model, p, guess, max_abs_u)  # Newton did not converge
+        if np.abs(u).max() <= max_abs_u and np.abs(_off_axis(model, u, p)).max() < AIM_TOLERANCE:
+            out[i] = u
+    return out[0] if single else out
 
 
 def aim_camera(model: RigModel, target_v0) -> tuple[float, float]:
-    """G1 (pan, tilt) voltages that put ``target_v0`` at the principal point.
+    """G1 (pan, tilt) voltages that put ``target_v0`` at the principal point (:func:`aim_g1`).
 
     Parameters
     ----------
@@ -33,30 +126,11 @@ def aim_camera(model: RigModel, target_v0) -> tuple[float, float]:
     target = np.asarray(target_v0, dtype=np.float64)
     if target.shape != (3,) or not np.all(np.isfinite(target)):
         raise ValueError(f'target_v0: expected 3 finite coordinates in metres, got {target_v0}')
-    intr = model.intrinsics
-    pp = np.array([intr.cx, intr.cy])
-
-    def residual(u):
-        uv, ok = predict_pixels(model, target[None, :], u[0], u[1])
-        return (uv[0] - pp) if ok[0] else np.array([1e6, 1e6])
-
-    # small-angle start: the view turns by twice the mirror angle
-    k = (model.g1_pan.k, model.g1_tilt.k)
-    u0 = np.array([np.arctan2(target[0], target[2]) / (2 * k[0]),
-                   -np.arctan2(target[1], target[2]) / (2 * k[1])])
-    u0 = np.clip(np.nan_to_num(u0), -VOLTAGE_LIMIT, VOLTAGE_LIMIT)
-    best = None
-    for sign in ((1, 1), (-1, 1), (1, -1), (-1, -1)):
-        sol = least_squares(residual, u0 * sign, bounds=(-VOLTAGE_LIMIT, VOLTAGE_LIMIT),
-                            x_scale=1.0, xtol=1e-12, ftol=1e-12)
-        if best is None or sol.cost < best.cost:
-            best = sol
-        if best.cost < 1e-6:
-            break
-    if best.cost > 1e-2:
+    u = aim_g1(model, target)
+    if not np.all(np.isfinite(u)):
         raise ValueError(f'target_v0 {target.tolist()} cannot be centred within '
-                         f'+-{VOLTAGE_LIMIT} V (residual {np.sqrt(2 * best.cost):.3g} px)')
-    return float(best.x[0]), float(best.x[1])
+                         f'+-{VOLTAGE_LIMIT} V')
+    return float(u[0]), float(u[1])
 
 
 def aim_laser(model: RigModel, u1_pan: float, u1_tilt: float, distance: float = 0.65) -> float:
