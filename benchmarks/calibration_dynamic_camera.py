@@ -41,7 +41,6 @@ import yaml
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD, Checkerboard
 from calibration_tools.circle_board import detect_circles, identify_view
 from calibration_tools.dynamic_camera import (
-    aim_voltages,
     anchor_voltages,
     paper_grid,
     pnp_view,
@@ -55,6 +54,7 @@ from galvoscan_sim.scene import SCENE_DIR, load_scene, load_scene_text
 from galvoscan_sim.simulator import Simulator
 from reconstructor.calibration_file import Calibration
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel, rigid_inverse
+from reconstructor.planning import aim_g1
 
 B = PAPER_CIRCLE_BOARD
 K_NOMINAL = math.radians(20.0) / 10.0
@@ -152,7 +152,7 @@ def board_views(rig, placements, seed):
         plan_pose = np.linalg.inv(W_T_V0) @ nominal_placement
         aims = anchor_voltages(plan_model, B, plan_pose)[:3]
         pts = np.column_stack([rng.uniform(-0.33, 0.33, (4 * n, 2)), np.zeros(4 * n)])
-        more = aim_voltages(plan_model, pts @ plan_pose[:3, :3].T + plan_pose[:3, 3])
+        more = aim_g1(plan_model, pts @ plan_pose[:3, :3].T + plan_pose[:3, 3])
         more = more[np.isfinite(more).all(axis=1)][: n - len(aims)]
         for U in rig.dac.quantize(np.vstack([aims, more])):
             f = sim.calibration_frame([U[0], U[1], 0.0, 0.0], frame_index=frame)

@@ -204,7 +204,8 @@ def dynamic_camera_steps(model, counts, *, seed: int = 0):
         Views per placement (pose_index = position in the sequence, see
         :func:`circle_board_pose`).
     """
-    from calibration_tools.dynamic_camera import aim_voltages, anchor_voltages
+    from calibration_tools.dynamic_camera import anchor_voltages
+    from reconstructor.planning import aim_g1
 
     rng = np.random.default_rng(seed)
     steps = []
@@ -217,7 +218,7 @@ def dynamic_camera_steps(model, counts, *, seed: int = 0):
             raise ValueError(f'placement {p}: fewer than 2 large circles within reach of G1 '
                              f'under the model')
         pts = np.column_stack([rng.uniform(-0.33, 0.33, (6 * n, 2)), np.zeros(6 * n)])
-        more = aim_voltages(model, pts @ T[:3, :3].T + T[:3, 3], max_abs_u=MAX_ABS_VOLTAGE)
+        more = aim_g1(model, pts @ T[:3, :3].T + T[:3, 3], max_abs_u=MAX_ABS_VOLTAGE)
         more = more[np.isfinite(more).all(axis=1)][: n - len(aims)]
         u = np.vstack([aims, more])
         volts = np.column_stack([u, np.zeros((len(u), 2))])

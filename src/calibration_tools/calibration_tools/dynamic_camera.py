@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from reconstructor.model import RigModel, g_T_v, rigid_inverse, v0_T_v
+from reconstructor.planning import aim_g1
 
 from .board_fit import (
     RefineResult,
@@ -235,50 +236,6 @@ def default_board_pose(distance: float) -> np.ndarray:
     return _transform(np.eye(3), [0.0, 0.0, float(distance)])
 
 
-def aim_voltages(model: RigModel, points_v0, *, max_abs_u: float = 10.0) -> np.ndarray:
-    """G1 voltages that put V0 points on the virtual camera's optical axis (capture planning).
-
-    Parameters
-    ----------
-    model : RigModel
-        Nominal or calibrated model.
-    points_v0 : array_like, shape (n, 3), metres
-        Targets in V0.
-    max_abs_u : float, volts
-        Voltage range; targets out of reach get NaN.
-
-    Returns
-    -------
-    ndarray, shape (n, 2), volts
-        (U1_pan, U1_tilt); NaN where no voltage within range reaches the target.
-    """
-    P = np.asarray(points_v0, dtype=np.float64)
-    if P.ndim != 2 or P.shape[1] != 3:
-        raise ValueError(f"points_v0 must have shape (n, 3), got {P.shape}")
-    out = np.full((len(P), 2), np.nan)
-
-    def off_axis(u, p):
-        q = rigid_inverse(v0_T_v(model, u[0], u[1])) @ np.append(p, 1.0)
-        return q[:2] / q[2] if q[2] > 0 else np.array([1e3, 1e3])
-
-    for i, p in enumerate(P):
-        u = np.zeros(2)
-        for _ in range(30):  # Newton with a numerical Jacobian
-            f = off_axis(u, p)
-            J = np.column_stack([(off_axis(u + h, p) - f) / 1e-4
-                                 for h in (np.array([1e-4, 0]), np.array([0, 1e-4]))])
-            try:
-                step = np.linalg.solve(J, -f)
-            except np.linalg.LinAlgError:
-                break
-            u = u + np.clip(step, -2.0, 2.0)
-            if np.abs(step).max() < 1e-9:
-                break
-        if np.abs(off_axis(u, p)).max() < 1e-6 and np.abs(u).max() <= max_abs_u:
-            out[i] = u
-    return out
-
-
 def anchor_voltages(model: RigModel, board: CircleBoard, V0_T_W, *,
                     max_abs_u: float = 10.0) -> np.ndarray:
     """Voltages that centre each reachable large (15 mm) circle of a board placement.
@@ -303,7 +260,7 @@ def anchor_voltages(model: RigModel, board: CircleBoard, V0_T_W, *,
     T = _as_transform(V0_T_W, "V0_T_W")
     big = np.flatnonzero(board.is_large(np.arange(board.n_circles)))
     pts = board.points(big) @ T[:3, :3].T + T[:3, 3]
-    u = aim_voltages(model, pts, max_abs_u=max_abs_u)
+    u = aim_g1(model, pts, max_abs_u=max_abs_u)
     u = u[np.isfinite(u).all(axis=1)]
     return u[np.argsort(np.abs(u).sum(axis=1))]
 
@@ -432,12 +389,92 @@ def run_dynamic_camera(
         raise ValueError(f"min_circles must be >= 1, got {min_circles}")
     model0: RigModel = calibration.model
     intr = model0.intrinsics
+    det = _detect_views(views, intr, min_circles, dark_circles, progress)
+    dets, U, pidx = det.dets, det.U, det.pidx
+    poses = _prior_board_poses(board_pose, model0, board, dets, U, pidx)
+    refine_kw = dict(refine_mirrors=refine_mirrors, refine_theta0=refine_theta0,
+                     refine_poly=refine_poly)
+    ident = identify_views(
+        dets, U, model0, board, poses, pose_index=pidx, **refine_kw,
+        max_offset_pitch=max_offset_pitch, verify_floor_px=verify_floor_px,
+        min_anchors=min_anchors, progress=progress,
+    )
+    accepted = _accepted_views(ident, det)
+    obs = _observations(ident.views, dets, U, pidx, accepted)
+
+    # Eq. 16 on PnP-measured transfers (reference: the view nearest U1 = 0 of each pose).
+    pnp = _pnp_transfers(intr, board, obs)
+    lin, lin_notes = _linear_l_d(obs, pnp, ident.model, U)
+    if progress is not None:
+        progress(1, 1, "final refinement")
+    fin = _final_fit(ident, lin, obs, board, refine_intrinsics=refine_intrinsics, **refine_kw)
+    residuals, extra = _fit_figures(fin, ident, lin, lin_notes, det.keep, obs)
+    if refine_intrinsics:  # PnP again with the final intrinsics
+        pnp = _pnp_transfers(fin.model.intrinsics, board, obs, only=pnp)
+    _verify_transfers(fin.model, fin, obs, pnp, U, residuals, extra)
+    return StageResult(
+        stage="dynamic_camera", residuals=residuals, rejected=det.rejected,
+        updates=_stage_updates(fin.model, refine_intrinsics=refine_intrinsics, **refine_kw),
+        samples_used=len(accepted), samples_rejected=len(views) - len(accepted),
+        extra={"dynamic_camera": extra},
+    )
+
+
+def _accepted_views(ident, det) -> list[int]:
+    """Indices (into the detections) of the identified views; the others go to rejected."""
+    accepted = [j for j, vid in enumerate(ident.views) if vid.accepted]
+    for j, vid in enumerate(ident.views):
+        if not vid.accepted:
+            v = det.U[j]
+            det.rejected.append(
+                f"view {det.keep[j]} (U1 = {v[0]:+.3f}, {v[1]:+.3f} V): {vid.reason}")
+    if len(accepted) < 6:
+        raise ValueError(f"dynamic_camera: only {len(accepted)} views identified; need 6 "
+                         f"({'; '.join(ident.log[-3:])})")
+    return accepted
+
+
+def _fit_figures(fin, ident, lin, lin_notes, keep, obs) -> tuple[dict, dict]:
+    """The stage's residuals and its ``extra['dynamic_camera']`` from the final fit."""
+    res = np.concatenate(fin.residuals_px)
+    residuals = {
+        "reprojection_rms_px": fin.rms_px,
+        "reprojection_max_px": float(np.max(np.linalg.norm(res, axis=1))),
+    }
+    extra = {
+        "board_poses_V0_T_W": {int(k): np.asarray(v).tolist() for k, v in fin.board_poses.items()},
+        "std": dict(fin.std),
+        "identification_verify_px": ident.verify_px,
+        "identification_log": list(ident.log) + lin_notes,
+        # Input view index -> board circle index and detected centre (px) of its circles.
+        "labels": {keep[o.view_id]: o.index.tolist() for o in obs},
+        "centres_px": {keep[o.view_id]: o.uv.tolist() for o in obs},
+    }
+    if lin is not None:
+        residuals["linear_translation_rms_m"] = lin.translation_rms_m
+        extra["linear_l_m"] = lin.l
+        extra["linear_d_m"] = lin.d
+    return residuals, extra
+
+
+@dataclass
+class _Detections:
+    """Circle detections of the usable views (input index ``keep``), and why others were not."""
+
+    dets: list
+    keep: list
+    U: np.ndarray  # shape (n, 2), volts
+    pidx: np.ndarray  # shape (n,), pose index
+    rejected: list
+
+
+def _detect_views(views, intr, min_circles, dark_circles, progress) -> _Detections:
+    """Detect the circles of every laser-off view of the right size; reject the rest."""
     rejected: list[str] = []
     dets: list[CircleDetections] = []
     keep: list[int] = []
     volts: list[np.ndarray] = []
     pose_idx: list[int] = []
-    # Small-circle radius expected at the nominal distance, for lone circles.
     total = len(views)
     for i, view in enumerate(views):
         v = np.asarray(view.voltages, dtype=np.float64)
@@ -463,68 +500,59 @@ def run_dynamic_camera(
         pose_idx.append(int(view.pose_index))
         if progress is not None and (i % 10 == 0 or i == total - 1):
             progress(i + 1, total, "detecting circles")
-    U = np.array(volts).reshape(-1, 2)
-    pidx = np.array(pose_idx, dtype=np.int64)
     if len(dets) < 3:
         raise ValueError(f"dynamic_camera: only {len(dets)} usable views; need at least 3 "
                          f"({len(rejected)} rejected: {'; '.join(rejected[:5])})")
+    return _Detections(dets, keep, np.array(volts).reshape(-1, 2),
+                       np.array(pose_idx, dtype=np.int64), rejected)
+
+
+def _prior_board_poses(board_pose, model0, board, dets, U, pidx) -> dict:
+    """``V0_T_W`` prior per board pose: as given, or facing V0 at the apparent distance."""
     if board_pose is None:
         poses = {}
-        for p in sorted(set(pose_idx)):
+        for p in sorted(set(pidx.tolist())):
             sel = np.flatnonzero(pidx == p)
             z = _estimate_distance(model0, board, [dets[j] for j in sel], U[sel])
             poses[p] = default_board_pose(z if z is not None else 0.65)
-    elif isinstance(board_pose, dict):
-        poses = {int(k): _as_transform(v, f"board_pose[{k}]") for k, v in board_pose.items()}
-    else:
-        T = _as_transform(board_pose, "board_pose")
-        poses = {p: T.copy() for p in set(pose_idx)}
-    ident = identify_views(
-        dets, U, model0, board, poses, pose_index=pidx, refine_mirrors=refine_mirrors,
-        refine_theta0=refine_theta0, refine_poly=refine_poly, max_offset_pitch=max_offset_pitch,
-        verify_floor_px=verify_floor_px, min_anchors=min_anchors, progress=progress,
-    )
-    accepted = [j for j, vid in enumerate(ident.views) if vid.accepted]
-    for j, vid in enumerate(ident.views):
-        if not vid.accepted:
-            v = U[j]
-            rejected.append(f"view {keep[j]} (U1 = {v[0]:+.3f}, {v[1]:+.3f} V): {vid.reason}")
-    if len(accepted) < 6:
-        raise ValueError(f"dynamic_camera: only {len(accepted)} views identified; need 6 "
-                         f"({'; '.join(ident.log[-3:])})")
-    obs = _observations(ident.views, dets, U, pidx, accepted)
+        return poses
+    if isinstance(board_pose, dict):
+        return {int(k): _as_transform(v, f"board_pose[{k}]") for k, v in board_pose.items()}
+    T = _as_transform(board_pose, "board_pose")
+    return {p: T.copy() for p in set(pidx.tolist())}
 
-    # Eq. 16 on PnP-measured transfers (reference: the view nearest U1 = 0 of each pose).
-    m_id = ident.model
+
+def _pnp_transfers(intrinsics, board, obs, only=None) -> dict:
+    """PnP ``Vn_T_W`` of every observation with >= 4 circles (or of those in ``only``)."""
     pnp: dict[int, np.ndarray] = {}
     for o in obs:
-        if len(o.index) >= 4:
-            try:
-                T, _ = pnp_view(intr, board.points(o.index), board.radius(o.index), o.uv)
-            except ValueError:
-                continue
-            pnp[o.view_id] = T
-    lin, lin_notes = _linear_l_d(obs, pnp, m_id, U)
+        if (only is None and len(o.index) < 4) or (only is not None and o.view_id not in only):
+            continue
+        try:
+            T, _ = pnp_view(intrinsics, board.points(o.index), board.radius(o.index), o.uv)
+        except ValueError:
+            continue
+        pnp[o.view_id] = T
+    return pnp
+
+
+def _final_fit(ident, lin, obs, board, **refine_kw):
+    """Bundle refinement from the Eq. 16 (l, d) when plausible, else the identification's.
+
+    If the Eq. 16 start led elsewhere than the identification's model, keep the better fit.
+    """
+    m_id = ident.model
     start = m_id
     if lin is not None and 0.0 < lin.l < 1.0 and 0.0 < lin.d < 1.0:
         start = dataclasses.replace(m_id, l=lin.l, d=lin.d)
-    if progress is not None:
-        progress(1, 1, "final refinement")
-    fin = refine(
-        start, obs, board, {p: ident.board_poses[p] for p in sorted({o.pose_index for o in obs})},
-        refine_mirrors=refine_mirrors, refine_theta0=refine_theta0, refine_poly=refine_poly,
-        refine_intrinsics=refine_intrinsics,
-    )
-    # If the Eq. 16 start led elsewhere than the identification's model, keep the better fit.
-    alt = refine(
-        m_id, obs, board, {p: ident.board_poses[p] for p in sorted({o.pose_index for o in obs})},
-        refine_mirrors=refine_mirrors, refine_theta0=refine_theta0, refine_poly=refine_poly,
-        refine_intrinsics=refine_intrinsics,
-    ) if start is not m_id else fin
-    if alt.rms_px < fin.rms_px - 1e-9:
-        fin = alt
-    m = fin.model
-    res = np.concatenate(fin.residuals_px)
+    poses = {p: ident.board_poses[p] for p in sorted({o.pose_index for o in obs})}
+    fin = refine(start, obs, board, poses, **refine_kw)
+    alt = refine(m_id, obs, board, poses, **refine_kw) if start is not m_id else fin
+    return alt if alt.rms_px < fin.rms_px - 1e-9 else fin
+
+
+def _stage_updates(m, *, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics) -> dict:
+    """The model parameters the stage estimated, keyed as in ``RigModel.to_dict()``."""
     updates: dict = {"l": m.l, "d": m.d}
     if refine_intrinsics:
         updates["intrinsics"] = {k: getattr(m.intrinsics, k) for k in refine_intrinsics}
@@ -536,33 +564,15 @@ def run_dynamic_camera(
     if refine_poly:
         updates["g1_pan"]["poly"] = list(m.g1_pan.poly)
         updates["g1_tilt"]["poly"] = list(m.g1_tilt.poly)
-    residuals = {
-        "reprojection_rms_px": fin.rms_px,
-        "reprojection_max_px": float(np.max(np.linalg.norm(res, axis=1))),
-    }
-    extra = {
-        "board_poses_V0_T_W": {int(k): np.asarray(v).tolist() for k, v in fin.board_poses.items()},
-        "std": dict(fin.std),
-        "identification_verify_px": ident.verify_px,
-        "identification_log": list(ident.log) + lin_notes,
-        # Input view index -> board circle index and detected centre (px) of its circles.
-        "labels": {keep[o.view_id]: o.index.tolist() for o in obs},
-        "centres_px": {keep[o.view_id]: o.uv.tolist() for o in obs},
-    }
-    if lin is not None:
-        residuals["linear_translation_rms_m"] = lin.translation_rms_m
-        extra["linear_l_m"] = lin.l
-        extra["linear_d_m"] = lin.d
-    # Model vs measured transfer matrices (paper's verification): measured Vn_T_V0 from PnP,
-    # V0 from the view at U1 = 0 of the pose when there is one, else the refined board pose.
-    if refine_intrinsics:  # PnP again with the final intrinsics
-        for o in obs:
-            if o.view_id in pnp:
-                try:
-                    pnp[o.view_id], _ = pnp_view(m.intrinsics, board.points(o.index),
-                                                 board.radius(o.index), o.uv)
-                except ValueError:
-                    del pnp[o.view_id]
+    return updates
+
+
+def _verify_transfers(m, fin, obs, pnp, U, residuals: dict, extra: dict) -> None:
+    """Model vs measured transfer matrices (the paper's verification), into the result.
+
+    Measured ``Vn_T_V0`` from PnP, V0 from the view at U1 = 0 of the pose when there is
+    one, else the refined board pose.
+    """
     meas, vv = [], []
     for o in obs:
         if o.view_id not in pnp:
@@ -579,20 +589,9 @@ def run_dynamic_camera(
         residuals["transfer_rotation_rms_rad"] = tme.rotation_rmse_rad
         extra["transfer_matrix_rmse_mm_measured"] = tme.rmse_mm
         extra["transfer_matrix_views"] = len(meas)
-    return StageResult(
-        stage="dynamic_camera",
-        updates=updates,
-        residuals=residuals,
-        samples_used=len(accepted),
-        samples_rejected=len(views) - len(accepted),
-        rejected=rejected,
-        extra={"dynamic_camera": extra},
-    )
-
 
 __all__ = [
     "PAPER_GRID_VOLTAGES",
-    "aim_voltages",
     "anchor_voltages",
     "IdentificationResult",
     "LinearLD",
