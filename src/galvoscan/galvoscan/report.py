@@ -80,11 +80,24 @@ def _fmt(v):
     return f'{v:.3f}'
 
 
-def _plot_stair_errors(details, path):
+def _pyplot():
+    """matplotlib's pyplot on the file-only Agg backend (imported when a report is drawn)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
+    return plt
+
+
+def _save(plt, fig, path) -> bool:
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
+def _plot_stair_errors(details, path):
+    plt = _pyplot()
     rows = [r for r in details['stair'] if r.get('error_mm') is not None]
     if not rows:
         return False
@@ -102,17 +115,11 @@ def _plot_stair_errors(details, path):
         a.set_ylabel('stair step error [mm]')
         a.grid(alpha=0.3)
     fig.suptitle('Stair-block step error against viewing direction (cf. paper Fig. 12b)')
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(plt, fig, path)
 
 
 def _plot_joint(details, path):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     jc = (details.get('stages') or {}).get('joint_correction_curves')
     if not jc:
         return False
@@ -124,17 +131,11 @@ def _plot_joint(details, path):
     ax.legend()
     ax.grid(alpha=0.3)
     ax.set_title('Joint correction: error per view before and after (cf. paper Fig. 6c)')
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(plt, fig, path)
 
 
 def _render_cloud(cloud, path, title):
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     p = xyz(cloud) * 1e3
     if p.shape[0] == 0:
         return False
@@ -149,10 +150,7 @@ def _render_cloud(cloud, path, title):
     ax.invert_yaxis()
     ax.view_init(elev=-60, azim=-90)
     ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return True
+    return _save(plt, fig, path)
 
 
 def write_report(out, result, details, paper, clouds):

@@ -42,6 +42,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from reconstructor.geometry.checks import check_keys
+
 FORMAT = 'g1_grid_rigid'
 FORMAT_VERSION = 1
 _KEYS = ('format', 'format_version', 'u1_pan', 'u1_tilt', 'rotation_vector', 'translation',
@@ -406,14 +408,7 @@ class CorrectionTable:
             Naming the key (e.g. ``translation[1][0][2]``): missing, unknown, wrong type,
             shape or version, non-finite, or implausible magnitude.
         """
-        if not isinstance(data, dict):
-            raise ValueError(f'joint_correction must be a mapping, got {type(data).__name__}')
-        for key in _KEYS:
-            if key not in data:
-                raise ValueError(f'missing key {key}')
-        for key in data:
-            if key not in _KEYS:
-                raise ValueError(f'unknown key {key}')
+        check_keys(data, _KEYS, name='joint_correction')
         if data['format'] != FORMAT:
             raise ValueError(f'format must be {FORMAT!r}, got {data["format"]!r}')
         if data['format_version'] != FORMAT_VERSION:

@@ -440,14 +440,20 @@ class SerialBackend(GalvoBackend):
         if self._link_error is not None:
             raise BackendError(f'serial link lost ({self._link_error}); close() and open()')
 
-    def _handshake(self) -> None:
+    def _timed_query(self, command, answer_type, what: str, gen: int | None = None):
+        """Send ``command``; its answer decoded as ``answer_type``, with the host times
+        (seconds) just before sending and just after the answer arrived."""
         t0 = time.time()
-        ack = self._command(p.Hello(p.PROTOCOL_VERSION))
+        ack = self._command(command, gen=gen)
         t1 = time.time()
         try:
-            info = p.BoardInfo.unpack(ack.data)
+            return t0, t1, answer_type.unpack(ack.data)
         except p.ProtocolError as err:
-            raise BackendError(f'bad HELLO answer from the board: {err}') from err
+            raise BackendError(f'bad {what}: {err}') from err
+
+    def _handshake(self) -> None:
+        t0, t1, info = self._timed_query(p.Hello(p.PROTOCOL_VERSION), p.BoardInfo,
+                                         'HELLO answer from the board')
         if info.version != p.PROTOCOL_VERSION:
             raise BackendError(f'protocol version mismatch: board {info.firmware_id!r} speaks '
                                f'version {info.version}, this host speaks '
@@ -468,13 +474,8 @@ class SerialBackend(GalvoBackend):
     def _sync_clock(self, gen: int) -> p.BoardStatus:
         best = None
         for _ in range(3):
-            t0 = time.time()
-            ack = self._command(p.GetStatus(), gen=gen)
-            t1 = time.time()
-            try:
-                st = p.BoardStatus.unpack(ack.data)
-            except p.ProtocolError as err:
-                raise BackendError(f'bad GET_STATUS answer: {err}') from err
+            t0, t1, st = self._timed_query(p.GetStatus(), p.BoardStatus, 'GET_STATUS answer',
+                                           gen=gen)
             if st.boot_id != self._boot_id:
                 with self._cond:
                     self._board_reset(st.boot_id, 'GET_STATUS answered by a new boot')

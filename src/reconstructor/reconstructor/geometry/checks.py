@@ -61,3 +61,34 @@ def as_float_array(value, name: str) -> np.ndarray:
             raise ValueError(f"{name} must be real numeric, got dtype {a.dtype}")
         a = a.astype(np.float64)
     return a
+
+
+def check_keys(data, keys, prefix: str = '', name: str | None = None) -> None:
+    """Raise ValueError unless ``data`` is a mapping with exactly ``keys``.
+
+    The message names the key as ``prefix + key`` (missing or unknown), or the mapping as
+    ``name`` (default: ``prefix`` without its dot, else ``'model'``).
+    """
+    if not isinstance(data, dict):
+        name = name or prefix.rstrip('.') or 'model'
+        raise ValueError(f"{name} must be a mapping, got {type(data).__name__}")
+    for key in keys:
+        if key not in data:
+            raise ValueError(f"missing key {prefix}{key}")
+    for key in data:
+        if key not in keys:
+            raise ValueError(f"unknown key {prefix}{key}")
+
+
+def unit_vector(value, name: str, length: int, what: str) -> np.ndarray:
+    """Return a finite vector scaled to unit norm over its first three entries (read-only).
+
+    ``what`` names the part that must be non-zero in the error (e.g. ``'normal (a, b, c)'``).
+    """
+    a = finite_vector(value, name, length)
+    norm = float(np.linalg.norm(a[:3]))
+    if norm < 1e-12:
+        raise ValueError(f"{name} must have a non-zero {what}")
+    a = a / norm
+    a.flags.writeable = False
+    return a

@@ -11,7 +11,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 
 from .camera import CameraIntrinsics
-from .checks import as_float_array, finite_scalar, finite_vector
+from .checks import as_float_array, check_keys, finite_scalar, finite_vector, unit_vector
 from .galvo import MirrorParams, g_T_v, g_T_v_scalar, rigid_inverse
 
 
@@ -74,20 +74,10 @@ class RigModel:
                 raise ValueError(f"{name} must be a MirrorParams")
         object.__setattr__(self, "l", finite_scalar(self.l, "l"))
         object.__setattr__(self, "d", finite_scalar(self.d, "d"))
-        plane = finite_vector(self.laser_plane_v0, "laser_plane_v0", 4)
-        norm = float(np.linalg.norm(plane[:3]))
-        if norm < 1e-12:
-            raise ValueError("laser_plane_v0 must have a non-zero normal (a, b, c)")
-        plane = plane / norm
-        plane.flags.writeable = False
-        object.__setattr__(self, "laser_plane_v0", plane)
-        axis = finite_vector(self.laser_axis_dir, "laser_axis_dir", 3)
-        norm = float(np.linalg.norm(axis))
-        if norm < 1e-12:
-            raise ValueError("laser_axis_dir must be non-zero")
-        axis = axis / norm
-        axis.flags.writeable = False
-        object.__setattr__(self, "laser_axis_dir", axis)
+        object.__setattr__(self, "laser_plane_v0", unit_vector(
+            self.laser_plane_v0, "laser_plane_v0", 4, "normal (a, b, c)"))
+        object.__setattr__(self, "laser_axis_dir", unit_vector(
+            self.laser_axis_dir, "laser_axis_dir", 3, "direction"))
         point = finite_vector(self.laser_axis_point, "laser_axis_point", 3)
         object.__setattr__(self, "laser_axis_point", point)
         if self.correction is not None and not callable(
@@ -153,9 +143,9 @@ class RigModel:
             Naming the key (dotted path, e.g. ``intrinsics.fx``) that is missing, unknown,
             non-finite or of the wrong shape.
         """
-        _check_keys(data, _TOP_KEYS, "")
+        check_keys(data, _TOP_KEYS, "")
         intr = data["intrinsics"]
-        _check_keys(intr, _INTR_KEYS, "intrinsics.")
+        check_keys(intr, _INTR_KEYS, "intrinsics.")
         intr_values = {key: _num(intr[key], f"intrinsics.{key}") for key in _INTR_KEYS[:4]}
         intr_values["dist"] = _vec(intr["dist"], "intrinsics.dist", 5)
         intr_values["width"] = _num(intr["width"], "intrinsics.width")
@@ -190,17 +180,6 @@ _MIRROR_KEYS = ("theta0", "k", "poly")
 _MIRROR_NAMES = ("g1_pan", "g1_tilt", "g2_tilt")
 
 
-def _check_keys(data, keys, prefix):
-    if not isinstance(data, dict):
-        raise ValueError(f"{prefix.rstrip('.') or 'model'} must be a mapping, got {type(data)}")
-    for key in keys:
-        if key not in data:
-            raise ValueError(f"missing key {prefix}{key}")
-    for key in data:
-        if key not in keys:
-            raise ValueError(f"unknown key {prefix}{key}")
-
-
 def _num(value, key) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
         raise ValueError(f"{key} must be a number, got {value!r}")
@@ -217,7 +196,7 @@ def _vec(value, key, length) -> list[float]:
 
 
 def _mirror_from_dict(data, name) -> MirrorParams:
-    _check_keys(data, _MIRROR_KEYS, f"{name}.")
+    check_keys(data, _MIRROR_KEYS, f"{name}.")
     poly = data["poly"]
     if not isinstance(poly, (list, tuple)):
         raise ValueError(f"{name}.poly must be a list of numbers, got {poly!r}")
