@@ -71,6 +71,13 @@ def _as_transform(T, name) -> np.ndarray:
     return T
 
 
+def _as_pose_dict(board_poses) -> dict:
+    """Board pose(s) as ``{pose_index: V0_T_W}``; one (4, 4) array is pose 0."""
+    if isinstance(board_poses, dict):
+        return {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
+    return {0: _as_transform(board_poses, "board_poses")}
+
+
 def _rotation_angle(R) -> np.ndarray:
     c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.arccos(np.clip(c, -1.0, 1.0))
@@ -282,6 +289,151 @@ def _set_params(model: RigModel, names, values) -> RigModel:
     return dataclasses.replace(model, **kw) if kw else model
 
 
+def _check_observations(observations, poses) -> list:
+    """The observations as a list, each a ViewObservation of a known board pose."""
+    obs = list(observations)
+    for i, o in enumerate(obs):
+        if not isinstance(o, ViewObservation):
+            raise ValueError(f"observations[{i}] must be a ViewObservation")
+        if o.pose_index not in poses:
+            raise ValueError(f"observations[{i}].pose_index {o.pose_index} has no board pose")
+    return obs
+
+
+def _param_scale(names, n_pose: int) -> np.ndarray:
+    """Scale of each parameter of the solver vector (model parameters, then pose deltas)."""
+    # Parameter scales: lengths in mm-ish units, angles in mrad-ish units.
+    scale = []
+    for n in names:
+        if n.startswith("intrinsics."):
+            scale.append(1.0)
+        elif n in ("l", "d"):
+            scale.append(1e-3)
+        elif n.endswith(".k"):
+            scale.append(1e-5)
+        elif n.endswith("theta0"):
+            scale.append(1e-4)
+        else:
+            scale.append(1e-5)
+    return np.array(scale + [1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3] * (n_pose // 6))
+
+
+@dataclass
+class _RefineProblem:
+    """Stacked circles of all views and the map from solver vector to model and poses."""
+
+    model: RigModel
+    names: list
+    x_model0: np.ndarray
+    pose_keys: list
+    R0: list
+    t0: list
+    refine_pose: bool
+    scale: np.ndarray
+    counts: np.ndarray
+    uv_obs: np.ndarray
+    P: np.ndarray
+    radii: np.ndarray
+    volts: np.ndarray
+    view_of: np.ndarray
+    pose_of_view: np.ndarray
+
+    @property
+    def n_model(self) -> int:
+        return len(self.names)
+
+    @property
+    def n_params(self) -> int:
+        return len(self.scale)
+
+    @property
+    def n_residuals(self) -> int:
+        return 2 * len(self.uv_obs)
+
+    def unpack(self, z):
+        """Model and board poses (list of (4, 4), ``pose_keys`` order) of solver vector z."""
+        n_model = self.n_model
+        x = z * self.scale
+        m = self.model
+        if n_model:
+            m = _set_params(self.model, self.names, self.x_model0 + x[:n_model])
+        Ts = []
+        for j in range(len(self.pose_keys)):
+            if self.refine_pose:
+                w = x[n_model + 6 * j: n_model + 6 * j + 3]
+                dt = x[n_model + 6 * j + 3: n_model + 6 * j + 6]
+                Ts.append(_transform(rodrigues(w) @ self.R0[j], self.t0[j] + dt))
+            else:
+                Ts.append(_transform(self.R0[j], self.t0[j]))
+        return m, Ts
+
+    def predict(self, z):
+        """Predicted ellipse centres of all circles, shape (N, 2), pixels."""
+        m, Ts = self.unpack(z)
+        V_T_V0 = rigid_inverse(v0_T_v(m, self.volts[:, 0], self.volts[:, 1]))
+        V_T_W = V_T_V0 @ np.stack(Ts)[self.pose_of_view]
+        return project_circle_centres(m.intrinsics, V_T_W[self.view_of], self.P, self.radii)
+
+    def fun(self, z):
+        """Flat residual vector for the solver (non-finite residuals replaced by 1e6 px)."""
+        r = (self.predict(z) - self.uv_obs).ravel()
+        return np.where(np.isfinite(r), r, 1e6)
+
+
+def _build_problem(model, obs, board, poses, names, refine_pose, ellipse_correction):
+    """Stack the circles of all observations into a :class:`_RefineProblem`."""
+    pose_keys = sorted({o.pose_index for o in obs})
+    counts = np.array([len(o.index) for o in obs])
+    index = np.concatenate([o.index for o in obs])
+    n_pose = 6 * len(pose_keys) if refine_pose else 0
+    return _RefineProblem(
+        model=model,
+        names=names,
+        x_model0=np.array([_get_param(model, n) for n in names], dtype=np.float64),
+        pose_keys=pose_keys,
+        R0=[poses[k][:3, :3] for k in pose_keys],
+        t0=[poses[k][:3, 3] for k in pose_keys],
+        refine_pose=refine_pose,
+        scale=_param_scale(names, n_pose),
+        counts=counts,
+        uv_obs=np.concatenate([o.uv for o in obs]),
+        P=board.points(index),
+        radii=board.radius(index) if ellipse_correction else np.zeros(len(index)),
+        volts=np.array([o.voltages for o in obs]),
+        view_of=np.repeat(np.arange(len(obs)), counts),
+        pose_of_view=np.array([pose_keys.index(o.pose_index) for o in obs]),
+    )
+
+
+def _solve(prob: _RefineProblem, loss, f_scale_px, max_nfev):
+    """Run ``least_squares`` from z = 0: (z, success, message, jacobian)."""
+    z0 = np.zeros(prob.n_params)
+    if len(z0) == 0:
+        return z0, True, "nothing to refine", np.zeros((prob.n_residuals, 0))
+    if prob.n_residuals < len(z0):
+        raise ValueError(f"{prob.n_residuals} residuals cannot fix {len(z0)} parameters")
+    sol = least_squares(
+        prob.fun, z0, method="trf", loss=loss, f_scale=f_scale_px, x_scale=1.0,
+        max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+    )
+    return sol.x, bool(sol.success), str(sol.message), sol.jac
+
+
+def _model_std(prob: _RefineProblem, res, jac) -> dict:
+    """1-sigma standard errors of the model parameters from the Jacobian (SI units)."""
+    n_model = prob.n_model
+    if not n_model:
+        return {}
+    dof = max(prob.n_residuals - prob.n_params, 1)
+    s2 = float(np.sum(res**2)) / dof
+    try:
+        cov = np.linalg.pinv(jac.T @ jac) * s2
+        sd = np.sqrt(np.clip(np.diag(cov)[:n_model], 0.0, None)) * prob.scale[:n_model]
+        return {n: float(v) for n, v in zip(prob.names, sd, strict=True)}
+    except np.linalg.LinAlgError:
+        return {}
+
+
 def refine(
     model: RigModel,
     observations: Sequence[ViewObservation],
@@ -338,108 +490,27 @@ def refine(
     """
     if not observations:
         raise ValueError("observations must not be empty")
-    if isinstance(board_poses, dict):
-        poses = {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
-    else:
-        poses = {0: _as_transform(board_poses, "board_poses")}
+    poses = _as_pose_dict(board_poses)
     if refine_poly not in (0, 1, 2):
         raise ValueError(f"refine_poly must be 0, 1 or 2, got {refine_poly}")
-    obs = list(observations)
-    for i, o in enumerate(obs):
-        if not isinstance(o, ViewObservation):
-            raise ValueError(f"observations[{i}] must be a ViewObservation")
-        if o.pose_index not in poses:
-            raise ValueError(f"observations[{i}].pose_index {o.pose_index} has no board pose")
-    pose_keys = sorted({o.pose_index for o in obs})
+    obs = _check_observations(observations, poses)
     bad = [n for n in refine_intrinsics if n not in _INTRINSIC_NAMES]
     if bad:
         raise ValueError(f"refine_intrinsics must name {_INTRINSIC_NAMES}, got {bad}")
     names = _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly,
                          tuple(dict.fromkeys(refine_intrinsics)))
-    x_model0 = np.array([_get_param(model, n) for n in names], dtype=np.float64)
-    counts = np.array([len(o.index) for o in obs])
-    index = np.concatenate([o.index for o in obs])
-    uv_obs = np.concatenate([o.uv for o in obs])
-    P = board.points(index)
-    radii = board.radius(index) if ellipse_correction else np.zeros(len(index))
-    volts = np.array([o.voltages for o in obs])
-    view_of = np.repeat(np.arange(len(obs)), counts)
-    pose_of_view = np.array([pose_keys.index(o.pose_index) for o in obs])
-    R0 = [poses[k][:3, :3] for k in pose_keys]
-    t0 = [poses[k][:3, 3] for k in pose_keys]
-    n_model = len(names)
-    n_pose = 6 * len(pose_keys) if refine_pose else 0
-    # Parameter scales: lengths in mm-ish units, angles in mrad-ish units.
-    scale = []
-    for n in names:
-        if n.startswith("intrinsics."):
-            scale.append(1.0)
-        elif n in ("l", "d"):
-            scale.append(1e-3)
-        elif n.endswith(".k"):
-            scale.append(1e-5)
-        elif n.endswith("theta0"):
-            scale.append(1e-4)
-        else:
-            scale.append(1e-5)
-    scale = np.array(scale + [1e-3, 1e-3, 1e-3, 1e-3, 1e-3, 1e-3] * (n_pose // 6))
-
-    def unpack(z):
-        x = z * scale
-        m = _set_params(model, names, x_model0 + x[:n_model]) if n_model else model
-        Ts = []
-        for j in range(len(pose_keys)):
-            if refine_pose:
-                w = x[n_model + 6 * j: n_model + 6 * j + 3]
-                dt = x[n_model + 6 * j + 3: n_model + 6 * j + 6]
-                Ts.append(_transform(rodrigues(w) @ R0[j], t0[j] + dt))
-            else:
-                Ts.append(_transform(R0[j], t0[j]))
-        return m, Ts
-
-    def predict(z):
-        m, Ts = unpack(z)
-        V_T_V0 = rigid_inverse(v0_T_v(m, volts[:, 0], volts[:, 1]))
-        V_T_W = V_T_V0 @ np.stack(Ts)[pose_of_view]
-        return project_circle_centres(m.intrinsics, V_T_W[view_of], P, radii)
-
-    def fun(z):
-        r = (predict(z) - uv_obs).ravel()
-        return np.where(np.isfinite(r), r, 1e6)
-
-    z0 = np.zeros(n_model + n_pose)
-    if len(z0) == 0:
-        sol_x = z0
-        success, message = True, "nothing to refine"
-        jac = np.zeros((2 * len(index), 0))
-    else:
-        if 2 * len(index) < len(z0):
-            raise ValueError(f"{2 * len(index)} residuals cannot fix {len(z0)} parameters")
-        sol = least_squares(
-            fun, z0, method="trf", loss=loss, f_scale=f_scale_px, x_scale=1.0,
-            max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12,
-        )
-        sol_x, success, message, jac = sol.x, bool(sol.success), str(sol.message), sol.jac
-    m, Ts = unpack(sol_x)
-    res = (predict(sol_x) - uv_obs)
-    per_view = np.split(res, np.cumsum(counts)[:-1])
+    prob = _build_problem(model, obs, board, poses, names, refine_pose, ellipse_correction)
+    sol_x, success, message, jac = _solve(prob, loss, f_scale_px, max_nfev)
+    m, Ts = prob.unpack(sol_x)
+    res = (prob.predict(sol_x) - prob.uv_obs)
+    per_view = np.split(res, np.cumsum(prob.counts)[:-1])
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    std = {}
-    if n_model:
-        dof = max(2 * len(index) - len(z0), 1)
-        s2 = float(np.sum(res**2)) / dof
-        try:
-            cov = np.linalg.pinv(jac.T @ jac) * s2
-            sd = np.sqrt(np.clip(np.diag(cov)[:n_model], 0.0, None)) * scale[:n_model]
-            std = {n: float(v) for n, v in zip(names, sd, strict=True)}
-        except np.linalg.LinAlgError:
-            std = {}
     return RefineResult(
         model=m,
-        board_poses={k: T for k, T in zip(pose_keys, Ts, strict=True)},
+        board_poses={k: T for k, T in zip(prob.pose_keys, Ts, strict=True)},
         residuals_px=per_view,
         rms_px=rms,
-        std=std,
+        std=_model_std(prob, res, jac),
         names=tuple(names),
         success=success,
         message=message,

@@ -27,6 +27,7 @@ from reconstructor.model import RigModel, v0_T_v
 from .board_fit import (
     RefineResult,
     ViewObservation,
+    _as_pose_dict,
     _as_transform,
     _rotation_angle,
     _transform,
@@ -236,6 +237,75 @@ def identify_views(
     -------
     IdentificationResult
     """
+    views, poses = _check_views(detections, voltages, board_poses, pose_index, board,
+                                min_anchors)
+    cfg = _Settings(refine_mirrors, refine_theta0, refine_poly, max_offset_pitch,
+                    verify_sigma, verify_floor_px, verify_max_pitch, max_rounds, min_anchors)
+    log: list[str] = []
+    # Round 0: board orientation and plane from per-view PnP, then the lattice position
+    # of each board pose from the large-circle views.
+    _orient_poses(views, model, board, poses, log)
+    _anchor_poses(views, model, board, poses, min_anchors, log)
+    m, rounds, ref = _label_and_refine(views, model, board, poses, cfg, progress, log)
+    ids, m, ref, verify_px = _verify(views, m, board, poses, ref, cfg)
+    log.append(f"verification: tolerance {verify_px:.2f} px, "
+               f"{sum(v.accepted for v in ids)}/{views.n} views accepted")
+    return IdentificationResult(ids, m, poses, ref, verify_px, rounds, log)
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """Keyword settings of :func:`identify_views` used by its steps."""
+
+    refine_mirrors: bool
+    refine_theta0: bool
+    refine_poly: int
+    max_offset_pitch: float
+    verify_sigma: float
+    verify_floor_px: float
+    verify_max_pitch: float
+    max_rounds: int
+    min_anchors: int
+
+
+@dataclass
+class _ViewSet:
+    """The views being identified; ``unverified`` maps a refused board pose to the reason."""
+
+    detections: Sequence[CircleDetections]
+    U: np.ndarray
+    pidx: np.ndarray
+    board: CircleBoard
+    unverified: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return len(self.detections)
+
+    def label_all(self, m, ps, **kw) -> list:
+        """:func:`identify_view` of every view with model ``m`` and board poses ``ps``."""
+        out = []
+        for i, det in enumerate(self.detections):
+            p = int(self.pidx[i])
+            if p in self.unverified:
+                out.append(ViewIdentification(False, np.full(len(det), -1, np.int64),
+                                              self.unverified[p]))
+            elif len(det):
+                out.append(identify_view(det, self.U[i, 0], self.U[i, 1], m, ps[p], self.board,
+                                         **kw))
+            else:
+                out.append(identify_view(det, 0.0, 0.0, m, ps[p], self.board))
+        return out
+
+    def accepted(self, ids) -> list[int]:
+        return [i for i in range(self.n) if ids[i].accepted]
+
+    def observations(self, ids, accepted) -> list[ViewObservation]:
+        return _observations(ids, self.detections, self.U, self.pidx, accepted)
+
+
+def _check_views(detections, voltages, board_poses, pose_index, board, min_anchors):
+    """Validated inputs of :func:`identify_views`: (_ViewSet, board poses dict)."""
     n = len(detections)
     U = np.asarray(voltages, dtype=np.float64)
     if U.shape != (n, 2) or not np.isfinite(U).all():
@@ -243,52 +313,44 @@ def identify_views(
     pidx = np.zeros(n, dtype=np.int64) if pose_index is None else np.asarray(pose_index)
     if pidx.shape != (n,):
         raise ValueError(f"pose_index must have shape ({n},), got {pidx.shape}")
-    if isinstance(board_poses, dict):
-        poses = {int(k): _as_transform(v, f"board_poses[{k}]") for k, v in board_poses.items()}
-    else:
-        poses = {0: _as_transform(board_poses, "board_poses")}
+    poses = _as_pose_dict(board_poses)
     for p in set(pidx.tolist()):
         if p not in poses:
             raise ValueError(f"pose_index {p} has no entry in board_poses")
     if min_anchors < 0:
         raise ValueError(f"min_anchors must be >= 0, got {min_anchors}")
-    log: list[str] = []
-    period = board.sub_pattern
-    unverified: dict[int, str] = {}
+    return _ViewSet(detections, U, pidx, board), poses
 
-    def label_all(m, ps, **kw):
-        out = []
-        for i, det in enumerate(detections):
-            p = int(pidx[i])
-            if p in unverified:
-                out.append(ViewIdentification(False, np.full(len(det), -1, np.int64),
-                                              unverified[p]))
-            elif len(det):
-                out.append(identify_view(det, U[i, 0], U[i, 1], m, ps[p], board, **kw))
-            else:
-                out.append(identify_view(det, 0.0, 0.0, m, ps[p], board))
-        return out
 
-    # Round 0: board orientation and plane from per-view PnP, then the lattice position
-    # of each board pose from the large-circle views.
+def _orient_poses(views: _ViewSet, model, board, poses, log) -> None:
+    """Round 0, first half: each board pose's orientation and plane from per-view PnP."""
     for p in sorted(poses):
-        sel = np.flatnonzero(pidx == p)
+        sel = np.flatnonzero(views.pidx == p)
         poses[p], used = board_pose_from_views(
-            [detections[i] for i in sel], U[sel], model, board, poses[p]
+            [views.detections[i] for i in sel], views.U[sel], model, board, poses[p]
         )
         log.append(f"pose {p}: orientation from {used} PnP views")
-    ids = label_all(model, poses, max_offset_pitch=0.49, max_spread_pitch=0.25)
+
+
+def _anchor_poses(views: _ViewSet, model, board, poses, min_anchors, log) -> None:
+    """Round 0, second half: shift each board pose onto the lattice its large circles show.
+
+    A pose with fewer than ``min_anchors`` agreeing large-circle views is marked unverified
+    (``min_anchors`` 0: it keeps its prior position).
+    """
+    period = board.sub_pattern
+    ids = views.label_all(model, poses, max_offset_pitch=0.49, max_spread_pitch=0.25)
     for p in sorted(poses):
-        offs = [ids[i].offset_pitch for i in range(n)
-                if pidx[i] == p and ids[i].accepted and ids[i].mode == "large"]
+        offs = [ids[i].offset_pitch for i in range(views.n)
+                if views.pidx[i] == p and ids[i].accepted and ids[i].mode == "large"]
         shift, support = _lattice_shift(offs, period) if offs else (np.zeros(2), 0)
         if support < max(min_anchors, 1):
             what = (f"{support} agreeing view(s) with a large circle" if offs
                     else "no view with a large circle")
             if min_anchors > 0:
-                unverified[p] = (f"board pose {p}: {what}, need {min_anchors}; circle "
-                                 "identities cannot be verified")
-                log.append(unverified[p])
+                views.unverified[p] = (f"board pose {p}: {what}, need {min_anchors}; circle "
+                                       "identities cannot be verified")
+                log.append(views.unverified[p])
             else:
                 log.append(f"pose {p}: {what}; relying on the pose prior")
             continue
@@ -296,67 +358,91 @@ def identify_views(
         poses[p] = poses[p] @ _transform(np.eye(3), -delta)
         log.append(f"pose {p}: {support} of {len(offs)} large-circle views agree; board "
                    f"prior shifted by ({shift[0]:+.2f}, {shift[1]:+.2f}) pitch (row, col)")
+
+
+def _refine_accepted(model, obs, board, poses, **kw) -> RefineResult:
+    """Robust :func:`refine` on the accepted views; updates ``poses`` with the result."""
+    ref = refine(
+        model, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
+        loss="soft_l1", **kw,
+    )
+    poses.update(ref.board_poses)
+    return ref
+
+
+def _label_and_refine(views: _ViewSet, model, board, poses, cfg: _Settings, progress, log):
+    """Rounds of labelling and refining until the accepted labels stop changing.
+
+    Returns (model, rounds, last RefineResult or None); ``poses`` is updated in place.
+    """
+    n = views.n
     m = model
     prev = None
     rounds = 0
     ref = None
-    for rounds in range(1, max_rounds + 1):
-        ids = label_all(m, poses, max_offset_pitch=max_offset_pitch)
-        accepted = [i for i in range(n) if ids[i].accepted]
+    for rounds in range(1, cfg.max_rounds + 1):
+        ids = views.label_all(m, poses, max_offset_pitch=cfg.max_offset_pitch)
+        accepted = views.accepted(ids)
         key = tuple((i, tuple(ids[i].index)) for i in accepted)
         if progress is not None:
-            progress(rounds, max_rounds, f"identification round {rounds}: "
+            progress(rounds, cfg.max_rounds, f"identification round {rounds}: "
                      f"{len(accepted)}/{n} views labelled")
         if key == prev:
             break
         prev = key
-        obs = _observations(ids, detections, U, pidx, accepted)
+        obs = views.observations(ids, accepted)
         n_pts = sum(len(o.index) for o in obs)
         if n_pts < 12:
             log.append(f"round {rounds}: only {n_pts} labelled circles, cannot refine")
             break
-        spread = np.ptp(U[accepted], axis=0) if accepted else np.zeros(2)
+        spread = np.ptp(views.U[accepted], axis=0) if accepted else np.zeros(2)
         enough = len(accepted) >= 6 and spread.min() > 1.0
-        ref = refine(
-            m, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
+        ref = _refine_accepted(
+            m, obs, board, poses,
             refine_l_d=enough and rounds >= 2,
-            refine_mirrors=refine_mirrors and enough,
-            refine_theta0=refine_theta0 and enough and rounds >= 2,
-            refine_poly=refine_poly if (enough and rounds >= 3) else 0,
-            loss="soft_l1", f_scale_px=2.0,
+            refine_mirrors=cfg.refine_mirrors and enough,
+            refine_theta0=cfg.refine_theta0 and enough and rounds >= 2,
+            refine_poly=cfg.refine_poly if (enough and rounds >= 3) else 0,
+            f_scale_px=2.0,
         )
         m = ref.model
-        poses.update(ref.board_poses)
         log.append(f"round {rounds}: {len(accepted)} views labelled, robust fit rms "
                    f"{ref.rms_px:.3f} px")
-    # Final verification against the refined model.
+    return m, rounds, ref
+
+
+def _verify(views: _ViewSet, model, board, poses, ref, cfg: _Settings):
+    """Final verification against the refined model, with a tolerance from the residuals.
+
+    Returns (identifications, model, last RefineResult, tolerance in pixels).
+    """
+    m = model
     pitch_px = _pitch_px(m, board, poses)
-    ids = label_all(m, poses, max_offset_pitch=max_offset_pitch)
-    verify_px = verify_floor_px
+    ids = views.label_all(m, poses, max_offset_pitch=cfg.max_offset_pitch)
+    verify_px = cfg.verify_floor_px
     for _ in range(3):
-        accepted = [i for i in range(n) if ids[i].accepted]
+        accepted = views.accepted(ids)
         if not accepted:
             break
-        obs = _observations(ids, detections, U, pidx, accepted)
-        ref = refine(
-            m, obs, board, {p: poses[p] for p in sorted({o.pose_index for o in obs})},
-            refine_l_d=len(accepted) >= 6, refine_mirrors=refine_mirrors and len(accepted) >= 6,
-            refine_theta0=refine_theta0 and len(accepted) >= 6,
-            refine_poly=refine_poly if len(accepted) >= 6 else 0,
-            loss="soft_l1", f_scale_px=max(verify_px / 4.0, 0.5),
+        obs = views.observations(ids, accepted)
+        enough = len(accepted) >= 6
+        ref = _refine_accepted(
+            m, obs, board, poses,
+            refine_l_d=enough, refine_mirrors=cfg.refine_mirrors and enough,
+            refine_theta0=cfg.refine_theta0 and enough,
+            refine_poly=cfg.refine_poly if enough else 0,
+            f_scale_px=max(verify_px / 4.0, 0.5),
         )
         m = ref.model
-        poses.update(ref.board_poses)
         res = np.concatenate(ref.residuals_px)
         sigma = 1.4826 * float(np.median(np.abs(res - np.median(res, axis=0))))
-        verify_px = float(np.clip(verify_sigma * sigma, verify_floor_px,
-                                  verify_max_pitch * pitch_px))
-        ids = label_all(m, poses, max_offset_pitch=max_offset_pitch, max_residual_px=verify_px)
-        if [i for i in range(n) if ids[i].accepted] == accepted:
+        verify_px = float(np.clip(cfg.verify_sigma * sigma, cfg.verify_floor_px,
+                                  cfg.verify_max_pitch * pitch_px))
+        ids = views.label_all(m, poses, max_offset_pitch=cfg.max_offset_pitch,
+                              max_residual_px=verify_px)
+        if views.accepted(ids) == accepted:
             break
-    log.append(f"verification: tolerance {verify_px:.2f} px, "
-               f"{sum(v.accepted for v in ids)}/{n} views accepted")
-    return IdentificationResult(ids, m, poses, ref, verify_px, rounds, log)
+    return ids, m, ref, verify_px
 
 
 def _observations(ids, detections, U, pidx, accepted):

@@ -91,6 +91,20 @@ def _edge_distance_px(sd_m, grad_dir, dbu, dbv):
         return sd_m / np.hypot(gu, gv)
 
 
+def _disc_coverage(b, cx, cy, radius, on, dbu, dbv):
+    """Pixel coverage, shape (H, W), of the disc of ``radius`` (metres) centred at (cx, cy).
+
+    ``b`` is the board (x, y) of each pixel; zero where ``on`` is False.
+    """
+    dx, dy = b[..., 0] - cx, b[..., 1] - cy
+    dist = np.hypot(dx, dy)
+    sd_m = dist - radius
+    with np.errstate(all="ignore"):
+        direction = np.stack([dx / dist, dy / dist], axis=-1)
+    sd_px = _edge_distance_px(sd_m, direction, dbu, dbv)
+    return np.where(on, np.clip(0.5 - np.nan_to_num(sd_px, nan=1.0), 0.0, 1.0), 0.0)
+
+
 def _finish(coverage_dark, inside_board, levels, background, blur_sigma_px, noise_std, rng):
     dark, light = levels
     img = light - (light - dark) * coverage_dark
@@ -169,14 +183,8 @@ def render_circle_board(
     on_lattice = (r_idx >= 0) & (r_idx < board.rows) & (c_idx >= 0) & (c_idx < board.cols)
     cx = (c_idx - board.centre_col) * board.pitch
     cy = (r_idx - board.centre_row) * board.pitch
-    dx, dy = b[..., 0] - cx, b[..., 1] - cy
-    dist = np.hypot(dx, dy)
     radius = np.where(board.is_large_rc(r_idx, c_idx), board.large_diameter, board.small_diameter)
-    sd_m = dist - radius / 2.0
-    with np.errstate(all="ignore"):
-        direction = np.stack([dx / dist, dy / dist], axis=-1)
-    sd_px = _edge_distance_px(sd_m, direction, dbu, dbv)
-    coverage = np.where(on_lattice, np.clip(0.5 - np.nan_to_num(sd_px, nan=1.0), 0.0, 1.0), 0.0)
+    coverage = _disc_coverage(b, cx, cy, radius / 2.0, on_lattice, dbu, dbv)
     half_x = board.centre_col * board.pitch + border
     half_y = board.centre_row * board.pitch + border
     with np.errstate(invalid="ignore"):
@@ -203,6 +211,78 @@ def render_circle_board(
             & (uv[:, 1] > -intr.height) & (uv[:, 1] < 2 * intr.height)
         )
     return RenderedView(image, index[near], uv[near], complete[near], V_T_W)
+
+
+def _checkerboard_coverage(board: Checkerboard, b, dbu, dbv):
+    """Dark coverage of each pixel and the pixels on the target, both shape (H, W)."""
+    s = board.square
+    # Squares span [-s, cols*s] x [-s, rows*s]; one white square of margin around them.
+    fx, fy = b[..., 0] / s, b[..., 1] / s
+    dist_x = (fx - np.rint(fx)) * s  # signed distance to the nearest vertical edge line
+    dist_y = (fy - np.rint(fy)) * s
+    ones = np.ones_like(dist_x)
+    zeros = np.zeros_like(dist_x)
+    px_x = np.abs(_edge_distance_px(dist_x, np.stack([ones, zeros], -1), dbu, dbv))
+    px_y = np.abs(_edge_distance_px(dist_y, np.stack([zeros, ones], -1), dbu, dbv))
+    # Squares k = -1 .. cols (x) and -1 .. rows (y); the stripe sign is +1 for even k.
+    px_x = np.nan_to_num(px_x, nan=1.0)
+    px_y = np.nan_to_num(px_y, nan=1.0)
+    sign_x = np.where(np.mod(np.floor(fx), 2) == 0, 1.0, -1.0)
+    sign_y = np.where(np.mod(np.floor(fy), 2) == 0, 1.0, -1.0)
+    # Inner lines: smooth each stripe pattern over +-0.5 px. Outer lines (the border of
+    # the squares, next to the white margin): the stripe keeps the inner square's sign
+    # and the pixel's coverage of the squares region scales the result.
+    with np.errstate(invalid="ignore"):
+        lx, ly = np.rint(fx), np.rint(fy)
+        outer_x = (lx == -1) | (lx == board.cols)
+        outer_y = (ly == -1) | (ly == board.rows)
+        in_x = (fx >= -1) & (fx <= board.cols)
+        in_y = (fy >= -1) & (fy <= board.rows)
+    kx = np.where(lx == -1, -1, board.cols - 1)
+    ky = np.where(ly == -1, -1, board.rows - 1)
+    inner_sx = np.where(np.mod(kx, 2) == 0, 1.0, -1.0)
+    inner_sy = np.where(np.mod(ky, 2) == 0, 1.0, -1.0)
+    ax = np.where(outer_x, inner_sx, sign_x * np.clip(px_x * 2.0, 0.0, 1.0))
+    ay = np.where(outer_y, inner_sy, sign_y * np.clip(px_y * 2.0, 0.0, 1.0))
+    wx = np.where(outer_x, np.clip(0.5 + np.where(in_x, px_x, -px_x), 0.0, 1.0),
+                  in_x.astype(float))
+    wy = np.where(outer_y, np.clip(0.5 + np.where(in_y, px_y, -px_y), 0.0, 1.0),
+                  in_y.astype(float))
+    with np.errstate(invalid="ignore"):
+        inside = (fx >= -2) & (fx <= board.cols + 1) & (fy >= -2) & (fy <= board.rows + 1)
+    # Square (-1, -1), the board's first corner square, is dark.
+    coverage = wx * wy * (0.5 + 0.5 * ax * ay)
+    return coverage, inside
+
+
+def _checkerboard_corners(intrinsics: CameraIntrinsics, V_T_W, obj):
+    """Pixels of the inner corners, shape (m, 2), and whether each lies in the image."""
+    p = obj @ V_T_W[:3, :3].T + V_T_W[:3, 3]
+    uv = project_points(intrinsics, p)
+    with np.errstate(invalid="ignore"):
+        complete = (
+            np.isfinite(uv).all(axis=1)
+            & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width - 1)
+            & (uv[:, 1] >= 0) & (uv[:, 1] <= intrinsics.height - 1)
+        )
+    return uv, complete
+
+
+def _circle_grid_coverage(board: CircleGrid, b, dbu, dbv):
+    """Dark coverage of each pixel and the pixels on the target, both shape (H, W)."""
+    p_ = board.pitch
+    fx, fy = b[..., 0] / p_, b[..., 1] / p_
+    cx, cy = np.rint(fx) * p_, np.rint(fy) * p_
+    with np.errstate(invalid="ignore"):
+        on_grid = (
+            (np.rint(fx) >= 0) & (np.rint(fx) < board.cols)
+            & (np.rint(fy) >= 0) & (np.rint(fy) < board.rows)
+        )
+        inside = (
+            (fx >= -1.5) & (fx <= board.cols + 0.5) & (fy >= -1.5) & (fy <= board.rows + 0.5)
+        )
+    coverage = _disc_coverage(b, cx, cy, board.diameter / 2.0, on_grid, dbu, dbv)
+    return coverage, inside
 
 
 def render_target(
@@ -239,69 +319,10 @@ def render_target(
     b, dbu, dbv = _pixel_board_map(intrinsics, V_T_W)
     obj = board.object_points()
     if isinstance(board, Checkerboard):
-        s = board.square
-        # Squares span [-s, cols*s] x [-s, rows*s]; one white square of margin around them.
-        fx, fy = b[..., 0] / s, b[..., 1] / s
-        dist_x = (fx - np.rint(fx)) * s  # signed distance to the nearest vertical edge line
-        dist_y = (fy - np.rint(fy)) * s
-        ones = np.ones_like(dist_x)
-        zeros = np.zeros_like(dist_x)
-        px_x = np.abs(_edge_distance_px(dist_x, np.stack([ones, zeros], -1), dbu, dbv))
-        px_y = np.abs(_edge_distance_px(dist_y, np.stack([zeros, ones], -1), dbu, dbv))
-        # Squares k = -1 .. cols (x) and -1 .. rows (y); the stripe sign is +1 for even k.
-        px_x = np.nan_to_num(px_x, nan=1.0)
-        px_y = np.nan_to_num(px_y, nan=1.0)
-        sign_x = np.where(np.mod(np.floor(fx), 2) == 0, 1.0, -1.0)
-        sign_y = np.where(np.mod(np.floor(fy), 2) == 0, 1.0, -1.0)
-        # Inner lines: smooth each stripe pattern over +-0.5 px. Outer lines (the border of
-        # the squares, next to the white margin): the stripe keeps the inner square's sign
-        # and the pixel's coverage of the squares region scales the result.
-        with np.errstate(invalid="ignore"):
-            lx, ly = np.rint(fx), np.rint(fy)
-            outer_x = (lx == -1) | (lx == board.cols)
-            outer_y = (ly == -1) | (ly == board.rows)
-            in_x = (fx >= -1) & (fx <= board.cols)
-            in_y = (fy >= -1) & (fy <= board.rows)
-        kx = np.where(lx == -1, -1, board.cols - 1)
-        ky = np.where(ly == -1, -1, board.rows - 1)
-        inner_sx = np.where(np.mod(kx, 2) == 0, 1.0, -1.0)
-        inner_sy = np.where(np.mod(ky, 2) == 0, 1.0, -1.0)
-        ax = np.where(outer_x, inner_sx, sign_x * np.clip(px_x * 2.0, 0.0, 1.0))
-        ay = np.where(outer_y, inner_sy, sign_y * np.clip(px_y * 2.0, 0.0, 1.0))
-        wx = np.where(outer_x, np.clip(0.5 + np.where(in_x, px_x, -px_x), 0.0, 1.0),
-                      in_x.astype(float))
-        wy = np.where(outer_y, np.clip(0.5 + np.where(in_y, px_y, -px_y), 0.0, 1.0),
-                      in_y.astype(float))
-        with np.errstate(invalid="ignore"):
-            inside = (fx >= -2) & (fx <= board.cols + 1) & (fy >= -2) & (fy <= board.rows + 1)
-        # Square (-1, -1), the board's first corner square, is dark.
-        coverage = wx * wy * (0.5 + 0.5 * ax * ay)
-        p = obj @ V_T_W[:3, :3].T + V_T_W[:3, 3]
-        uv = project_points(intrinsics, p)
-        with np.errstate(invalid="ignore"):
-            complete = (
-                np.isfinite(uv).all(axis=1)
-                & (uv[:, 0] >= 0) & (uv[:, 0] <= intrinsics.width - 1)
-                & (uv[:, 1] >= 0) & (uv[:, 1] <= intrinsics.height - 1)
-            )
+        coverage, inside = _checkerboard_coverage(board, b, dbu, dbv)
+        uv, complete = _checkerboard_corners(intrinsics, V_T_W, obj)
     elif isinstance(board, CircleGrid):
-        p_ = board.pitch
-        fx, fy = b[..., 0] / p_, b[..., 1] / p_
-        cx, cy = np.rint(fx) * p_, np.rint(fy) * p_
-        dx, dy = b[..., 0] - cx, b[..., 1] - cy
-        dist = np.hypot(dx, dy)
-        with np.errstate(all="ignore"):
-            direction = np.stack([dx / dist, dy / dist], axis=-1)
-        sd_px = _edge_distance_px(dist - board.diameter / 2.0, direction, dbu, dbv)
-        with np.errstate(invalid="ignore"):
-            on_grid = (
-                (np.rint(fx) >= 0) & (np.rint(fx) < board.cols)
-                & (np.rint(fy) >= 0) & (np.rint(fy) < board.rows)
-            )
-            inside = (
-                (fx >= -1.5) & (fx <= board.cols + 0.5) & (fy >= -1.5) & (fy <= board.rows + 0.5)
-            )
-        coverage = np.where(on_grid, np.clip(0.5 - np.nan_to_num(sd_px, nan=1.0), 0.0, 1.0), 0.0)
+        coverage, inside = _circle_grid_coverage(board, b, dbu, dbv)
         radii = np.full(len(obj), board.diameter / 2.0)
         uv = project_circle_centres(intrinsics, V_T_W, obj, radii)
         complete = _circle_complete(intrinsics, V_T_W, obj, radii)

@@ -175,6 +175,117 @@ def _edge_points(img, c0, r0, level, dark, n_rays, step):
     return pts[ok], int(n_rays - ok.sum())
 
 
+@dataclass(frozen=True)
+class _BlobLimits:
+    """Acceptance limits of :func:`detect_circles` for one blob (pixels)."""
+
+    dark_circles: bool
+    min_radius_px: float
+    max_radius_px: float
+    border_margin_px: float
+    max_fit_rms_px: float
+    max_axis_ratio: float
+    n_rays: int
+
+
+def _threshold_blobs(imgf, lo: float, hi: float, dark_circles: bool):
+    """Otsu threshold of the smoothed, stretched image, then 8-connected components.
+
+    Returns ``cv2.connectedComponentsWithStats``' (n, labels, stats, centroids).
+    """
+    img8 = np.rint((imgf - lo) * (255.0 / (hi - lo))).astype(np.uint8)
+    blur8 = cv2.GaussianBlur(img8, (5, 5), 1.0)
+    thr, _ = cv2.threshold(blur8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    mask = (blur8 < thr) if dark_circles else (blur8 > thr)
+    return cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+
+
+def _edge_level(imgf, labels, i, box, r0, kernel) -> float | None:
+    """Grey level midway between inside blob ``i`` and a ring just outside it.
+
+    None when the blob is too small to hold both samples.
+    """
+    x, y, bw, bh = box
+    h, w = imgf.shape
+    # Grey levels inside (eroded blob) and in a ring just outside (dilated blob).
+    pad = int(np.ceil(0.6 * r0)) + 12
+    x0, y0 = max(x - pad, 0), max(y - pad, 0)
+    x1, y1 = min(x + bw + pad, w), min(y + bh + pad, h)
+    blob = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
+    roi = imgf[y0:y1, x0:x1]
+    # 5x5 kernel: each iteration moves the boundary by 2 px. Keep 4 px away from the
+    # edge on both sides, sample at least 4 px of ring.
+    inner = cv2.erode(blob, kernel, iterations=max(2, int(0.15 * r0 / 2)))
+    gap = cv2.dilate(blob, kernel, iterations=2)
+    outer = cv2.dilate(gap, kernel, iterations=max(2, int(0.25 * r0 / 2)))
+    ring = (outer > 0) & (gap == 0)
+    if inner.sum() < 5 or ring.sum() < 5:
+        return None
+    return 0.5 * (float(np.median(roi[inner > 0])) + float(np.median(roi[ring])))
+
+
+def _fit_blob_ellipse(pts, w: int, h: int, lim: _BlobLimits):
+    """Ellipse through a blob's edge points: (centre, radius, axes, angle, rms) or a reason."""
+    try:
+        centre, axes, angle, rms = fit_ellipse(pts)
+    except ValueError as exc:
+        return str(exc)
+    if rms > lim.max_fit_rms_px:
+        return f"not an ellipse (edge rms {rms:.2f} px)"
+    if axes[0] > lim.max_axis_ratio * axes[1]:
+        return f"too elongated ({axes[0] / axes[1]:.1f})"
+    radius = float(np.sqrt(axes[0] * axes[1]))
+    if not lim.min_radius_px <= radius <= lim.max_radius_px:
+        return f"radius {radius:.1f} px out of range"
+    # The fitted ellipse itself must stay clear of the border.
+    ext = axes[0]
+    margin = lim.border_margin_px
+    if (
+        centre[0] - ext < margin
+        or centre[1] - ext < margin
+        or centre[0] + ext > w - 1 - margin
+        or centre[1] + ext > h - 1 - margin
+    ):
+        return "ellipse reaches the image border (partial circle)"
+    return centre, radius, axes, angle, rms
+
+
+def _measure_blob(imgf, labels, i, stat, c0, kernel, lim: _BlobLimits):
+    """Sub-pixel ellipse of blob ``i``: (centre, radius, axes, angle, rms) or a reason."""
+    x, y, bw, bh, area = stat
+    h, w = imgf.shape
+    margin = lim.border_margin_px
+    if x <= margin or y <= margin or x + bw - 1 >= w - 1 - margin or y + bh - 1 >= h - 1 - margin:
+        return "touches the image border (partial circle)"
+    r0 = float(np.sqrt(area / np.pi))
+    if r0 > lim.max_radius_px:
+        return f"radius {r0:.0f} px above max_radius_px"
+    level = _edge_level(imgf, labels, i, (x, y, bw, bh), r0, kernel)
+    if level is None:
+        return "too small to measure"
+    pts, failed = _edge_points(imgf, c0, r0, level, lim.dark_circles, lim.n_rays, 0.25)
+    if failed > 0.1 * lim.n_rays or len(pts) < 12:
+        return f"edge not closed inside the image ({failed} rays lost)"
+    return _fit_blob_ellipse(pts, w, h, lim)
+
+
+def _size_classes(radii, large_ratio, expected_small_radius_px, rejected):
+    """(large, size_known) per circle from the radii of one view; notes a conflict."""
+    large = np.zeros(len(radii), dtype=bool)
+    known = np.zeros(len(radii), dtype=bool)
+    if len(radii) >= 2:
+        large = radii > large_ratio * radii.min()
+        if large.sum() <= 1:
+            known[:] = True
+        else:
+            rejected.append(f"{int(large.sum())} large circles in one view: sizes unknown")
+            large[:] = False
+    elif expected_small_radius_px is not None:
+        large[:] = radii > large_ratio * float(expected_small_radius_px)
+        known[:] = True
+    return large, known
+
+
 def detect_circles(
     image,
     *,
@@ -228,80 +339,21 @@ def detect_circles(
     rejected: list[str] = []
     if hi - lo < 1e-6:
         return _empty(rejected)
-    img8 = np.rint((imgf - lo) * (255.0 / (hi - lo))).astype(np.uint8)
-    blur8 = cv2.GaussianBlur(img8, (5, 5), 1.0)
-    thr, _ = cv2.threshold(blur8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    mask = (blur8 < thr) if dark_circles else (blur8 > thr)
-    n, labels, stats, cents = cv2.connectedComponentsWithStats(
-        mask.astype(np.uint8), connectivity=8
-    )
+    n, labels, stats, cents = _threshold_blobs(imgf, lo, hi, dark_circles)
+    lim = _BlobLimits(dark_circles, min_radius_px, max_radius_px, border_margin_px,
+                      max_fit_rms_px, max_axis_ratio, n_rays)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
     out = []
     min_area = np.pi * min_radius_px**2 * 0.5
     for i in range(1, n):
-        x, y, bw, bh, area = stats[i]
         c0 = cents[i]
-        where = f"blob at ({c0[0]:.0f}, {c0[1]:.0f}) px"
-        if area < min_area:
+        if stats[i][4] < min_area:
             continue  # specks: not worth a line in the report
-        if (
-            x <= border_margin_px
-            or y <= border_margin_px
-            or x + bw - 1 >= w - 1 - border_margin_px
-            or y + bh - 1 >= h - 1 - border_margin_px
-        ):
-            rejected.append(f"{where}: touches the image border (partial circle)")
-            continue
-        r0 = float(np.sqrt(area / np.pi))
-        if r0 > max_radius_px:
-            rejected.append(f"{where}: radius {r0:.0f} px above max_radius_px")
-            continue
-        # Grey levels inside (eroded blob) and in a ring just outside (dilated blob).
-        pad = int(np.ceil(0.6 * r0)) + 12
-        x0, y0 = max(x - pad, 0), max(y - pad, 0)
-        x1, y1 = min(x + bw + pad, w), min(y + bh + pad, h)
-        blob = (labels[y0:y1, x0:x1] == i).astype(np.uint8)
-        roi = imgf[y0:y1, x0:x1]
-        # 5x5 kernel: each iteration moves the boundary by 2 px. Keep 4 px away from the
-        # edge on both sides, sample at least 4 px of ring.
-        inner = cv2.erode(blob, kernel, iterations=max(2, int(0.15 * r0 / 2)))
-        gap = cv2.dilate(blob, kernel, iterations=2)
-        outer = cv2.dilate(gap, kernel, iterations=max(2, int(0.25 * r0 / 2)))
-        ring = (outer > 0) & (gap == 0)
-        if inner.sum() < 5 or ring.sum() < 5:
-            rejected.append(f"{where}: too small to measure")
-            continue
-        level = 0.5 * (float(np.median(roi[inner > 0])) + float(np.median(roi[ring])))
-        pts, failed = _edge_points(imgf, c0, r0, level, dark_circles, n_rays, 0.25)
-        if failed > 0.1 * n_rays or len(pts) < 12:
-            rejected.append(f"{where}: edge not closed inside the image ({failed} rays lost)")
-            continue
-        try:
-            centre, axes, angle, rms = fit_ellipse(pts)
-        except ValueError as exc:
-            rejected.append(f"{where}: {exc}")
-            continue
-        if rms > max_fit_rms_px:
-            rejected.append(f"{where}: not an ellipse (edge rms {rms:.2f} px)")
-            continue
-        if axes[0] > max_axis_ratio * axes[1]:
-            rejected.append(f"{where}: too elongated ({axes[0] / axes[1]:.1f})")
-            continue
-        radius = float(np.sqrt(axes[0] * axes[1]))
-        if not min_radius_px <= radius <= max_radius_px:
-            rejected.append(f"{where}: radius {radius:.1f} px out of range")
-            continue
-        # The fitted ellipse itself must stay clear of the border.
-        ext = axes[0]
-        if (
-            centre[0] - ext < border_margin_px
-            or centre[1] - ext < border_margin_px
-            or centre[0] + ext > w - 1 - border_margin_px
-            or centre[1] + ext > h - 1 - border_margin_px
-        ):
-            rejected.append(f"{where}: ellipse reaches the image border (partial circle)")
-            continue
-        out.append((centre, radius, axes, angle, rms))
+        got = _measure_blob(imgf, labels, i, stats[i], c0, kernel, lim)
+        if isinstance(got, str):
+            rejected.append(f"blob at ({c0[0]:.0f}, {c0[1]:.0f}) px: {got}")
+        else:
+            out.append(got)
     if not out:
         return _empty(rejected)
     centres = np.array([o[0] for o in out])
@@ -309,18 +361,7 @@ def detect_circles(
     axes = np.array([o[2] for o in out])
     angles = np.array([o[3] for o in out])
     rms = np.array([o[4] for o in out])
-    large = np.zeros(len(out), dtype=bool)
-    known = np.zeros(len(out), dtype=bool)
-    if len(out) >= 2:
-        large = radii > large_ratio * radii.min()
-        if large.sum() <= 1:
-            known[:] = True
-        else:
-            rejected.append(f"{int(large.sum())} large circles in one view: sizes unknown")
-            large[:] = False
-    elif expected_small_radius_px is not None:
-        large[:] = radii > large_ratio * float(expected_small_radius_px)
-        known[:] = True
+    large, known = _size_classes(radii, large_ratio, expected_small_radius_px, rejected)
     return CircleDetections(centres, radii, axes, angles, large, known, rms, rejected)
 
 
@@ -358,6 +399,55 @@ class ViewIdentification:
 
 def _reject(n, reason, **kw) -> ViewIdentification:
     return ViewIdentification(False, np.full(n, -1, dtype=np.int64), reason, **kw)
+
+
+def _large_circle_offset(frac, large, board: CircleBoard) -> np.ndarray:
+    """Offset, shape (2,) pitches, moving the view's one large circle onto the nearest site."""
+    # The large circle sits at (row, col) = h (mod period); pick the nearest such site.
+    h = board.sub_pattern // 2
+    per = board.sub_pattern
+    f = frac[np.flatnonzero(large)[0]]
+    site = np.round((f - h) / per) * per + h
+    return site - f
+
+
+def _common_offset(frac) -> np.ndarray:
+    """Common offset of the view, shape (2,) pitches: minus the circular mean of ``frac``."""
+    ang = 2.0 * np.pi * frac
+    mean = np.arctan2(np.sin(ang).mean(axis=0), np.cos(ang).mean(axis=0)) / (2.0 * np.pi)
+    return -mean
+
+
+def _round_to_lattice(frac, offset):
+    """Labels (rounded ``frac + offset``, float (n, 2)) and the largest rounding, pitches."""
+    shifted = frac + offset
+    labels = np.rint(shifted)
+    spread = float(np.abs(shifted - labels).max())
+    return labels, spread
+
+
+def _board_index(detections: CircleDetections, labels, board: CircleBoard):
+    """Board index of each label and why the labels are impossible ('' when they are not)."""
+    known = detections.size_known
+    rows, cols = labels[:, 0].astype(np.int64), labels[:, 1].astype(np.int64)
+    index = board.index_of(rows, cols)
+    if np.any(index < 0):
+        return index, "labels fall outside the board"
+    if len(np.unique(index)) != len(detections):
+        return index, "two detections got the same label"
+    board_large = board.is_large(index)
+    if np.any(board_large[known] != detections.large[known]):
+        return index, "circle sizes do not match the board at these labels"
+    return index, ""
+
+
+def _reprojection_residual(detections, u1_pan, u1_tilt, model, V0_T_W, board, index):
+    """Distance of each detection from the model reprojection of its label, shape (n,), px."""
+    V_T_W = view_T_board(model, float(u1_pan), float(u1_tilt), V0_T_W)
+    uv = project_circle_centres(
+        model.intrinsics, V_T_W, board.points(index), board.radius(index)
+    )
+    return np.linalg.norm(uv - detections.centres, axis=1)
 
 
 def identify_view(
@@ -416,31 +506,18 @@ def identify_view(
     if not np.isfinite(xy).all():
         return _reject(n, "pixel rays miss the board plane of the approximate pose")
     frac = board.lattice_coords(xy)  # (n, 2) fractional (row, col)
-    known = detections.size_known
-    large = detections.large & known
+    large = detections.large & detections.size_known
     mode = "model"
     if use_large and large.sum() == 1:
-        # The large circle sits at (row, col) = h (mod period); pick the nearest such site.
-        h = board.sub_pattern // 2
-        per = board.sub_pattern
-        f = frac[np.flatnonzero(large)[0]]
-        site = np.round((f - h) / per) * per + h
-        offset = site - f
+        offset = _large_circle_offset(frac, large, board)
         mode = "large"
         if np.abs(offset).max() > max_anchor_offset_pitch:
             return _reject(n, f"prediction off by {np.abs(offset).max():.2f} pitch even with "
                               "a large circle", mode=mode, offset_pitch=offset)
-        shifted = frac + offset
-        labels = np.rint(shifted)
-        spread = float(np.abs(shifted - labels).max())
+        labels, spread = _round_to_lattice(frac, offset)
     else:
-        # Common offset of the view: circular mean of the per-circle fractional parts.
-        ang = 2.0 * np.pi * frac
-        mean = np.arctan2(np.sin(ang).mean(axis=0), np.cos(ang).mean(axis=0)) / (2.0 * np.pi)
-        offset = -mean
-        shifted = frac + offset
-        labels = np.rint(shifted)
-        spread = float(np.abs(shifted - labels).max())
+        offset = _common_offset(frac)
+        labels, spread = _round_to_lattice(frac, offset)
         if np.abs(offset).max() > max_offset_pitch:
             return _reject(n, f"ambiguous: prediction off by {np.abs(offset).max():.2f} pitch "
                               "and no large circle", mode=mode, offset_pitch=offset,
@@ -448,23 +525,14 @@ def identify_view(
     if spread > max_spread_pitch:
         return _reject(n, f"circles do not fit one lattice offset (spread {spread:.2f} pitch)",
                        mode=mode, offset_pitch=offset, spread_pitch=spread)
-    rows, cols = labels[:, 0].astype(np.int64), labels[:, 1].astype(np.int64)
-    index = board.index_of(rows, cols)
     common = dict(mode=mode, offset_pitch=offset, spread_pitch=spread)
-    if np.any(index < 0):
-        return _reject(n, "labels fall outside the board", **common)
-    if len(np.unique(index)) != n:
-        return _reject(n, "two detections got the same label", **common)
-    board_large = board.is_large(index)
-    if np.any(board_large[known] != detections.large[known]):
-        return _reject(n, "circle sizes do not match the board at these labels", **common)
+    index, reason = _board_index(detections, labels, board)
+    if reason:
+        return _reject(n, reason, **common)
     residual = np.full(n, np.nan)
     if max_residual_px is not None:
-        V_T_W = view_T_board(model, float(u1_pan), float(u1_tilt), V0_T_W)
-        uv = project_circle_centres(
-            model.intrinsics, V_T_W, board.points(index), board.radius(index)
-        )
-        residual = np.linalg.norm(uv - detections.centres, axis=1)
+        residual = _reprojection_residual(detections, u1_pan, u1_tilt, model, V0_T_W, board,
+                                          index)
         worst = float(np.nanmax(residual)) if np.isfinite(residual).any() else np.inf
         if not worst <= max_residual_px:
             return _reject(n, f"reprojection check failed ({worst:.1f} px > "
