@@ -51,6 +51,9 @@ def complete_chunk_messages(path):
         op, length = struct.unpack_from('<BQ', data, pos)
         if pos + 9 + length > len(data):
             break
+        if op == 0x04:  # channel record between chunks
+            cid, _, tlen = struct.unpack_from('<HHI', data, pos + 9)
+            topics[cid] = data[pos + 9 + 8 : pos + 9 + 8 + tlen].decode()
         if op == 0x06:
             (n,) = struct.unpack_from('<I', data, pos + 9 + 28)
             start = pos + 9 + 28 + 4 + n + 8

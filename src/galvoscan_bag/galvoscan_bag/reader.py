@@ -1,20 +1,28 @@
-"""Read rosbag2 directories (or a lone, complete MCAP file) as CDR bytes with rosbags.
+"""Read rosbag2 MCAP bags (a directory, one or several files, or a lone file) as CDR bytes.
 
-A bag whose writer was killed has no metadata.yaml and no MCAP summary; rosbags cannot read it.
-Such a bag raises :class:`BagReadError` naming ``galvoscan bag-recover`` (:mod:`.recover`).
-No rclpy here.
+Built on the ``mcap`` package's indexed reader, independent of the bag's metadata.yaml: a
+bag recorded by rosbag2 (Jazzy or older: schema names with or without ``/msg/``, any
+metadata version, several files, or no metadata.yaml at all) reads the same as our own,
+whatever QoS its metadata and its channels record. Chunk CRCs are checked where the writer
+stored them; a damaged chunk raises :class:`BagReadError` naming ``galvoscan bag-recover``,
+which keeps every intact chunk (:mod:`.recover`). So does a file without its summary (a
+killed writer). A bag whose summary counts messages that the reader does not yield is an
+error, never a silently short result. No rclpy here.
 """
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Collection, Iterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from rosbags.interfaces import ConnectionExtRosbag2, Qos
-from rosbags.rosbag2 import Reader
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from rosbags.interfaces import Qos
 from rosbags.typesys.store import Typestore
 
+from .bagdir import BagLayoutError, bag_files, message_type, metadata_topics, offered_qos
 from .typestore import default_typestore
 
 
@@ -42,47 +50,75 @@ class TopicInfo(NamedTuple):
     qos: list[Qos]  # publishers' offered QoS as recorded (may be empty)
 
 
-def _open(path: Path | str) -> Reader:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f'bag path {path} does not exist')
-    if path.is_dir() and not (path / 'metadata.yaml').exists():
-        raise BagReadError(
-            f'{path} has no metadata.yaml (was its writer killed?); '
-            f'run `galvoscan bag-recover {path}` to make a readable copy'
-        )
+def _recover_hint(path) -> str:
+    return f'run `galvoscan bag-recover {path}` to make a readable copy of every intact chunk'
+
+
+def _summary(file: Path, fh):
+    """The file's summary section (schemas, channels, statistics, chunk index)."""
     try:
-        reader = Reader(path)
-        reader.open()
-    except Exception as err:  # rosbags raises several unrelated types for a damaged file
-        raise BagReadError(
-            f'cannot read bag {path}: {err}; if its writer was killed, run '
-            f'`galvoscan bag-recover {path}`'
-        ) from err
-    return reader
+        reader = SeekingReader(fh, validate_crcs=True)
+        summary = reader.get_summary()
+    except (McapError, EOFError, OSError, ValueError, StopIteration) as err:
+        raise BagReadError(f'{file} has no readable summary ({err or type(err).__name__}); '
+                           f'was its writer killed? {_recover_hint(file.parent)}') from None
+    if summary is None:
+        raise BagReadError(f'{file} has no summary section; {_recover_hint(file.parent)}')
+    return reader, summary
+
+
+def _topic_type(channel, summary, meta: dict) -> str:
+    schema = summary.schemas.get(channel.schema_id)
+    if schema is not None and schema.name:
+        return message_type(schema.name)
+    # schemaless channel: the type recorded in metadata.yaml, if any
+    return message_type(str(meta.get(channel.topic, {}).get('type', '')))
 
 
 def read_topics(path: Path | str) -> list[TopicInfo]:
-    """Topics of the bag at ``path`` (a rosbag2 directory or a complete ``.mcap`` file)."""
-    reader = _open(path)
-    try:
-        infos = []
-        for connection in reader.connections:
-            ext = connection.ext
-            qos = list(ext.offered_qos_profiles) if isinstance(ext, ConnectionExtRosbag2) else []
-            infos.append(
-                TopicInfo(
-                    topic=connection.topic,
-                    msgtype=connection.msgtype,
-                    count=connection.msgcount,
-                    msgdef=connection.msgdef.data or '',
-                    rihs01=connection.digest or '',
-                    qos=qos,
+    """Topics of the bag at ``path`` (a rosbag2 directory or a complete ``.mcap`` file).
+
+    Counts come from the files' statistics; a topic that metadata.yaml lists with no
+    channel in any file is listed with count 0.
+    """
+    files, metadata = _files(path)
+    meta = metadata_topics(metadata)
+    infos: dict[str, TopicInfo] = {}
+    for file in files:
+        with open(file, 'rb') as fh:
+            _, summary = _summary(file, fh)
+            counts = summary.statistics.channel_message_counts if summary.statistics else {}
+            for cid, channel in summary.channels.items():
+                known = infos.get(channel.topic)
+                count = int(counts.get(cid, 0)) + (known.count if known else 0)
+                if known is not None:
+                    infos[channel.topic] = known._replace(count=count)
+                    continue
+                schema = summary.schemas.get(channel.schema_id)
+                tmeta = meta.get(channel.topic, {})
+                infos[channel.topic] = TopicInfo(
+                    topic=channel.topic,
+                    msgtype=_topic_type(channel, summary, meta),
+                    count=count,
+                    msgdef=schema.data.decode('utf8', 'replace') if schema else '',
+                    rihs01=channel.metadata.get('topic_type_hash', '')
+                    or str(tmeta.get('type_description_hash', '') or ''),
+                    qos=offered_qos(channel.metadata.get('offered_qos_profiles')
+                                    or tmeta.get('offered_qos_profiles')),
                 )
-            )
-        return infos
-    finally:
-        reader.close()
+    for topic, tmeta in meta.items():
+        if topic not in infos:
+            infos[topic] = TopicInfo(topic, message_type(str(tmeta.get('type', ''))), 0, '',
+                                     str(tmeta.get('type_description_hash', '') or ''),
+                                     offered_qos(tmeta.get('offered_qos_profiles')))
+    return list(infos.values())
+
+
+def _files(path) -> tuple[list[Path], dict]:
+    try:
+        return bag_files(path)
+    except BagLayoutError as err:
+        raise BagReadError(str(err)) from None
 
 
 def read_messages(
@@ -90,24 +126,52 @@ def read_messages(
 ) -> Iterator[BagMessage]:
     """Yield the bag's messages in log-time order, optionally only those of ``topics``.
 
-    Topic names are compared as stored (fully qualified, e.g. ``/galvo/state``).
+    Topic names are compared as stored (fully qualified, e.g. ``/galvo/state``). Files of a
+    multi-file bag are merged by log time.
+
+    Raises
+    ------
+    FileNotFoundError
+        No such path.
+    ValueError
+        A requested topic is not in the bag.
+    BagReadError
+        Not an MCAP bag, a file without summary, a chunk whose CRC does not match, or fewer
+        messages than the files' statistics count.
     """
-    reader = _open(path)
-    try:
-        if topics is not None:
-            wanted = set(topics)
-            unknown = wanted - {c.topic for c in reader.connections}
-            if unknown:
-                raise ValueError(f'topics {sorted(unknown)} are not in bag {path}')
-            connections = [c for c in reader.connections if c.topic in wanted]
-        else:
-            connections = list(reader.connections)
-        if not connections:
-            return
-        for connection, timestamp, rawdata in reader.messages(connections=connections):
-            yield BagMessage(connection.topic, connection.msgtype, timestamp, bytes(rawdata))
-    finally:
-        reader.close()
+    infos = read_topics(path)
+    if topics is not None:
+        wanted = set(topics)
+        unknown = wanted - {t.topic for t in infos}
+        if unknown:
+            raise ValueError(f'topics {sorted(unknown)} are not in bag {path}')
+    else:
+        wanted = {t.topic for t in infos}
+    expected = sum(t.count for t in infos if t.topic in wanted)
+    if not wanted:
+        return
+    files, metadata = _files(path)
+    types = {t.topic: t.msgtype for t in infos}
+    streams = [_file_messages(file, wanted, types) for file in files]
+    n = 0
+    for message in heapq.merge(*streams, key=lambda m: m.log_time_ns):
+        n += 1
+        yield message
+    if n != expected:
+        raise BagReadError(f'bag {path}: read {n} messages of {sorted(wanted)} but its '
+                           f'files count {expected}; {_recover_hint(path)}')
+
+
+def _file_messages(file: Path, wanted: set, types: dict) -> Iterator[BagMessage]:
+    with open(file, 'rb') as fh:
+        reader, _ = _summary(file, fh)
+        try:
+            for _, channel, message in reader.iter_messages(topics=sorted(wanted),
+                                                            log_time_order=True):
+                yield BagMessage(channel.topic, types[channel.topic], message.log_time,
+                                 bytes(message.data))
+        except (McapError, EOFError, ValueError) as err:
+            raise BagReadError(f'{file}: {err}; {_recover_hint(file.parent)}') from None
 
 
 def deserialize(message: BagMessage, typestore: Typestore | None = None) -> Any:

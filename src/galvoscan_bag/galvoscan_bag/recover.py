@@ -15,22 +15,26 @@ recovered bag carries exactly the definitions the recorder wrote. No rclpy here.
 from __future__ import annotations
 
 import argparse
+import mmap
+import os
 import shutil
 import struct
 import sys
 import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 
-import yaml
 from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, Footer, Message, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
-from rosbags.interfaces import Qos
-from rosbags.rosbag2 import StoragePlugin, Writer
-from rosbags.rosbag2.metadata import parse_qos
+from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
+
+from .bagdir import BagLayoutError, bag_files, message_type, metadata_topics, offered_qos
+from .writer import _Writer
 
 
 class RecoveryError(RuntimeError):
@@ -47,6 +51,8 @@ class RecoveryReport:
     messages: int = 0  # messages written to the output [1]
     per_topic: dict[str, int] = field(default_factory=dict)
     complete: bool = False  # every source file ended with a valid footer
+    chunks_damaged: int = 0  # chunks skipped: CRC or layout wrong [1]
+    damaged: list[str] = field(default_factory=list)  # what was skipped, where and why
     stop_reason: str = ''  # why reading stopped early ('' when complete)
     bytes_dropped: int = 0  # bytes after the last complete record, all files [B]
 
@@ -58,6 +64,8 @@ class RecoveryReport:
         ]
         for topic, count in sorted(self.per_topic.items()):
             lines.append(f'  {topic}: {count}')
+        for line in self.damaged:
+            lines.append(f'  LOST: {line}')
         if self.complete:
             lines.append('  source was complete (footer present)')
         else:
@@ -67,47 +75,40 @@ class RecoveryReport:
 
 def _source_files(source: Path) -> tuple[list[Path], dict]:
     """MCAP files of ``source`` in order, and the parsed metadata.yaml (or {})."""
-    if source.is_file():
-        if source.suffix != '.mcap':
-            raise ValueError(f'source {source} is not a .mcap file or a bag directory')
-        return [source], {}
-    if not source.is_dir():
-        raise FileNotFoundError(f'source {source} does not exist')
-    metadata: dict = {}
-    files: list[Path] = []
-    metapath = source / 'metadata.yaml'
-    if metapath.exists():
-        try:
-            loaded = yaml.safe_load(metapath.read_text(encoding='utf8'))
-            metadata = (loaded or {}).get('rosbag2_bagfile_information', {}) or {}
-        except yaml.YAMLError:
-            metadata = {}
-        for name in metadata.get('relative_file_paths', []) or []:
-            candidate = source / name
-            if candidate.suffix == '.mcap' and candidate.exists():
-                files.append(candidate)
-    if not files:
-        files = sorted(source.glob('*.mcap'))
-    if not files:
-        raise RecoveryError(f'source {source} holds no .mcap file')
+    try:
+        files, metadata = bag_files(source)
+    except BagLayoutError as err:
+        if source.is_file():  # not an MCAP file: a wrong argument rather than a lost bag
+            raise ValueError(str(err)) from None
+        raise RecoveryError(str(err)) from None
     return files, metadata
 
 
 def _hashes_from_metadata(metadata: dict) -> dict[str, str]:
-    hashes = {}
-    for entry in metadata.get('topics_with_message_count', []) or []:
-        topic_meta = (entry or {}).get('topic_metadata', {}) or {}
-        if topic_meta.get('type') and topic_meta.get('type_description_hash'):
-            hashes[topic_meta['type']] = topic_meta['type_description_hash']
-    return hashes
+    """RIHS01 hash per message type recorded in metadata.yaml."""
+    return {message_type(str(meta['type'])): meta['type_description_hash']
+            for meta in metadata_topics(metadata).values()
+            if meta.get('type') and meta.get('type_description_hash')}
+
+
+def _schemaless_types(metadata: dict) -> dict[str, Schema]:
+    """Stand-in schemas (no definition) for topics whose metadata.yaml names their type."""
+    return {topic: Schema(id=0, data=b'', encoding='ros2msg', name=message_type(str(meta['type'])))
+            for topic, meta in metadata_topics(metadata).items() if meta.get('type')}
 
 
 def _hash_from_definition(schema: Schema) -> str:
     """RIHS01 hash of ``schema``'s type computed from its own stored definition."""
     store = get_typestore(Stores.EMPTY)
     text = schema.data.decode('utf8')
+    name = message_type(schema.name)
+    if schema.id == 0:  # a schemaless channel's stand-in: the Jazzy store may know the type
+        try:
+            return get_typestore(Stores.ROS2_JAZZY).hash_rihs01(name)
+        except KeyError:
+            raise RecoveryError(f'type {name} has neither a definition nor a hash') from None
     if schema.encoding == 'ros2msg':
-        store.register(get_types_from_msg(text, schema.name))
+        store.register(get_types_from_msg(text, name))
     elif schema.encoding == 'ros2idl':
         sep = '=' * 80 + '\n'
         parts = text.split(sep)[1:] if text.startswith(sep + 'IDL: ') else ['\n' + text]
@@ -115,17 +116,7 @@ def _hash_from_definition(schema: Schema) -> str:
             store.register(get_types_from_idl(part.split('\n', 1)[1]))
     else:
         raise RecoveryError(f'schema {schema.name} has unsupported encoding {schema.encoding!r}')
-    return store.hash_rihs01(schema.name)
-
-
-def _qos_of(channel: Channel) -> list[Qos]:
-    text = channel.metadata.get('offered_qos_profiles', '')
-    if not text:
-        return []
-    try:
-        return parse_qos(text)
-    except Exception:  # a damaged or foreign QoS string must not stop a recovery
-        return []
+    return store.hash_rihs01(name)
 
 
 def _chunk_is_complete(chunk: Chunk) -> bool:
@@ -149,51 +140,133 @@ def _chunk_is_complete(chunk: Chunk) -> bool:
     return pos == len(data)
 
 
+#: MCAP record opcodes (spec): header .. data end.
+_OPCODES = frozenset(range(0x01, 0x10))
+
+
+def _record_at(data, pos: int):
+    """The record at ``pos`` as (record, end, '') or (None, None, why) if it cannot be read."""
+    if pos + 9 > len(data):
+        return None, None, f'{len(data) - pos} bytes, shorter than a record header'
+    opcode = data[pos]
+    (length,) = struct.unpack_from('<Q', data, pos + 1)
+    end = pos + 9 + length
+    if opcode not in _OPCODES:
+        return None, None, f'opcode 0x{opcode:02x} is not an MCAP record'
+    if end > len(data):
+        return None, None, f'record 0x{opcode:02x} claims {length} bytes, past the end'
+    try:
+        reader = StreamReader(BytesIO(data[pos:end]), skip_magic=True, emit_chunks=True,
+                              record_size_limit=None)
+        record = next(iter(reader.records))
+    except (McapError, ValueError, EOFError, struct.error, StopIteration,
+            UnicodeDecodeError) as err:
+        return None, None, f'record 0x{opcode:02x}: {err or type(err).__name__}'
+    return record, end, ''
+
+
+def _chunk_records(chunk: Chunk) -> list:
+    """The records of a chunk whose CRC and layout check out (else ValueError/McapError)."""
+    if not _chunk_is_complete(chunk):
+        raise ValueError('its length or CRC does not match its records')
+    return breakup_chunk(chunk, validate_crc=True)
+
+
+def _next_chunk(data, start: int) -> int | None:
+    """Offset of the next chunk record at or after ``start`` whose records check out."""
+    pos = data.find(b'\x06', start)
+    while pos != -1:
+        record, _, _ = _record_at(data, pos)
+        if isinstance(record, Chunk):
+            try:
+                _chunk_records(record)
+                return pos
+            except (McapError, ValueError, EOFError, struct.error):
+                pass
+        pos = data.find(b'\x06', pos + 1)
+    return None
+
+
 class _Recovery:
     """Copies records from one or more damaged MCAP files into one rosbags Writer."""
 
-    def __init__(self, writer: Writer, report: RecoveryReport, hashes: dict[str, str]) -> None:
+    def __init__(self, writer: _Writer, report: RecoveryReport, hashes: dict[str, str]) -> None:
         self.writer = writer
         self.report = report
         self.hashes = hashes
         self.connections: dict[tuple[str, str], object] = {}
+        #: Schemas standing in for schemaless channels: type and definition from metadata.yaml.
+        self.schemaless: dict[str, Schema] = {}
 
     def read_file(self, path: Path) -> bool:
-        """Copy the complete records of ``path``; return whether it ended with a footer."""
+        """Copy the messages of every intact chunk of ``path``; return whether it had a footer.
+
+        A chunk whose CRC (or record layout) does not check out is skipped and named in the
+        report; so is any stretch of unreadable bytes, after which reading resumes at the
+        next intact chunk. Reading ends at the footer or at the end of the file.
+        """
         schemas: dict[int, Schema] = {}
         channels: dict[int, Channel] = {}
-        size = path.stat().st_size
-        used = 0
+        self._seed_from_summary(path, schemas, channels)
         with path.open('rb') as stream:
-            reader = StreamReader(stream, emit_chunks=True, record_size_limit=2**32)
+            size = os.fstat(stream.fileno()).st_size
+            if size <= 8:
+                self.report.stop_reason += f'{path.name}: no record after the magic; '
+                return False
+            data = mmap.mmap(stream.fileno(), 0, access=mmap.ACCESS_READ)
             try:
-                for record in reader.records:
-                    if isinstance(record, Chunk):
-                        if not _chunk_is_complete(record):
-                            raise ValueError('chunk is incomplete or its records do not fit it')
-                        inner = breakup_chunk(record, validate_crc=True)
-                    else:
-                        inner = [record]
-                    # Resolve the whole record (chunk) before writing any of it.
-                    self._take(inner, schemas, channels)
-                    self.report.chunks += isinstance(record, Chunk)
-                    used = stream.tell()
-                    if isinstance(record, Footer):
-                        used = size  # the closing magic follows
-                        return True
-                reason = 'no footer'
-            except (McapError, ValueError, EOFError, OverflowError, struct.error) as err:
-                reason = f'{type(err).__name__}: {err}' if str(err) else type(err).__name__
+                return self._walk(path, data, schemas, channels)
             finally:
-                self.report.bytes_dropped += size - used
-        if used == size:
-            self.report.stop_reason += f'{path.name}: ends after a complete record, no footer; '
-        else:
-            self.report.stop_reason += (
-                f'{path.name}: dropped the last {size - used} bytes (incomplete or damaged '
-                f'record: {reason}); '
-            )
+                data.close()
+
+    def _walk(self, path: Path, data, schemas: dict, channels: dict) -> bool:
+        size, pos, chunk_no = len(data), 8, 0
+        while pos < size:
+            record, end, why = _record_at(data, pos)
+            if record is None:
+                if not any(data[pos:]):  # a zero-filled (preallocated) tail
+                    self.report.stop_reason += f'{path.name}: zero-filled tail, no footer; '
+                    return False
+                resume = _next_chunk(data, pos + 1)
+                lost = (resume if resume is not None else size) - pos
+                self.report.bytes_dropped += lost
+                if resume is None:
+                    self.report.stop_reason += (f'{path.name}: dropped the last {lost} bytes '
+                                                f'(incomplete or damaged record: {why}); ')
+                    return False
+                self.report.damaged.append(f'{path.name}: {lost} unreadable bytes at offset '
+                                           f'{pos} ({why}); resumed at the next intact chunk')
+                pos = resume
+                continue
+            if isinstance(record, Chunk):
+                chunk_no += 1
+                try:
+                    self._take(_chunk_records(record), schemas, channels)
+                    self.report.chunks += 1
+                except (McapError, ValueError, EOFError, struct.error) as err:
+                    self.report.damaged.append(
+                        f'{path.name}: chunk {chunk_no} at offset {pos} ({end - pos} bytes, '
+                        f'log time {record.message_start_time}..{record.message_end_time} ns) '
+                        f'skipped: {err or type(err).__name__}')
+                    self.report.chunks_damaged += 1
+            elif isinstance(record, Footer):
+                return True
+            elif isinstance(record, (Schema, Channel, Message)):
+                self._take([record], schemas, channels)
+            pos = end
+        self.report.stop_reason += f'{path.name}: ends after a complete record, no footer; '
         return False
+
+    def _seed_from_summary(self, path: Path, schemas: dict, channels: dict) -> None:
+        """Schemas and channels of an intact summary: chunks after a lost one still resolve."""
+        try:
+            with path.open('rb') as stream:
+                summary = SeekingReader(stream).get_summary()
+        except Exception:  # noqa: BLE001 - a killed or damaged file has no usable summary
+            return
+        if summary is not None:
+            schemas.update(summary.schemas)
+            channels.update(summary.channels)
 
     def _take(
         self,
@@ -215,6 +288,8 @@ class _Recovery:
                 if channel is None:
                     raise ValueError(f'message on unknown channel {record.channel_id}')
                 schema = new_schemas.get(channel.schema_id)
+                if schema is None and channel.schema_id == 0:  # schemaless: type from metadata
+                    schema = self.schemaless.get(channel.topic)
                 if schema is None:
                     raise ValueError(f'channel {channel.topic} has unknown schema')
                 resolved.append((channel, schema, record))
@@ -227,17 +302,19 @@ class _Recovery:
             self.report.per_topic[channel.topic] = self.report.per_topic.get(channel.topic, 0) + 1
 
     def _connection(self, channel: Channel, schema: Schema) -> object:
-        key = (channel.topic, schema.name)
+        msgtype = message_type(schema.name)
+        key = (channel.topic, msgtype)
         connection = self.connections.get(key)
         if connection is None:
-            digest = self.hashes.get(schema.name) or _hash_from_definition(schema)
+            digest = (self.hashes.get(msgtype) or channel.metadata.get('topic_type_hash')
+                      or _hash_from_definition(schema))
             connection = self.writer.add_connection(
                 channel.topic,
-                schema.name,
+                msgtype,
                 msgdef=schema.data.decode('utf8'),
                 rihs01=digest,
                 serialization_format=channel.message_encoding or 'cdr',
-                offered_qos_profiles=_qos_of(channel),
+                offered_qos_profiles=offered_qos(channel.metadata.get('offered_qos_profiles')),
             )
             self.connections[key] = connection
             self.report.per_topic.setdefault(channel.topic, 0)
@@ -281,15 +358,16 @@ def recover_bag(source: Path | str, output: Path | str | None = None) -> Recover
             if stream.read(8) != b'\x89MCAP0\r\n':
                 raise RecoveryError(f'{path} does not start with the MCAP magic')
     report = RecoveryReport(source_files=files, output=output)
-    writer = Writer(output, version=9, storage_plugin=StoragePlugin.MCAP)
+    writer = _Writer(output, version=9, storage_plugin=StoragePlugin.MCAP)
     writer.set_custom_data('galvoscan.recovered_from', str(source))
     writer.open()
     try:
         recovery = _Recovery(writer, report, _hashes_from_metadata(metadata))
+        recovery.schemaless = _schemaless_types(metadata)
         complete = True
         for path in files:
             complete = recovery.read_file(path) and complete
-        report.complete = complete
+        report.complete = complete and not report.damaged
     except BaseException:
         writer.abort()
         shutil.rmtree(output, ignore_errors=True)

@@ -27,15 +27,24 @@ import os
 import shutil
 import struct
 import time
-from collections import defaultdict
+import zlib
+from collections import defaultdict, deque
 from collections.abc import Callable, Iterable, Sequence
 from io import BytesIO
 from pathlib import Path
 from typing import Any
 
-from rosbags.interfaces import Connection, Qos
+from rosbags.interfaces import Connection, MessageDefinitionFormat, Qos
 from rosbags.rosbag2 import CompressionMode, StoragePlugin, Writer
-from rosbags.rosbag2.storage_mcap import McapWriter, PendingChunk
+from rosbags.rosbag2.storage_mcap import (
+    Channel,
+    McapWriter,
+    PendingChunk,
+    Schema,
+    write_channel,
+    write_schema,
+    write_string,
+)
 from rosbags.typesys.store import Typestore
 
 from .typestore import default_typestore
@@ -52,6 +61,50 @@ _MESSAGE_HEADER = struct.Struct('<BQHIQQ')  # opcode, record length, channel, se
 _CHUNK_HEADER = struct.Struct('<BQQQQIIQ')  # opcode, length, start, end, size, crc, '', size
 
 
+#: The ROS distribution the bags are written for (metadata.yaml ``ros_distro``).
+ROS_DISTRO = 'jazzy'
+_FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
+_DATA_END_SIZE = 1 + 8 + 4  # opcode, length, data section crc
+
+
+class _CrcFile:
+    """A binary file that keeps the CRC-32 of every byte written, with recent checkpoints.
+
+    ``checkpoints`` maps the offset at the start of each of the last writes to the CRC of all
+    bytes before it: the data-section CRC is the one at the DataEnd record's offset.
+    """
+
+    def __init__(self, raw, crc: int, offset: int) -> None:
+        self.raw = raw
+        self.crc = crc
+        self.offset = offset
+        self.checkpoints: deque[tuple[int, int]] = deque(maxlen=4096)
+
+    def write(self, data) -> int:
+        self.checkpoints.append((self.offset, self.crc))
+        self.crc = zlib.crc32(data, self.crc)
+        self.offset += len(data)
+        return self.raw.write(data)
+
+    def crc_before(self, offset: int) -> int | None:
+        for at, crc in reversed(self.checkpoints):
+            if at == offset:
+                return crc
+        return None
+
+    def tell(self) -> int:
+        return self.offset
+
+    def flush(self) -> None:
+        self.raw.flush()
+
+    def fileno(self) -> int:
+        return self.raw.fileno()
+
+    def close(self) -> None:
+        self.raw.close()
+
+
 class _ZeroCopyMcapStorage(McapWriter):
     """rosbags' MCAP storage, with chunks kept as a list of byte strings (uncompressed only).
 
@@ -65,6 +118,36 @@ class _ZeroCopyMcapStorage(McapWriter):
         super().__init__(path, compression)
         self._parts: list[bytes] = []
         self.pending_size = 0  # bytes in the pending chunk [B]
+        # From here on every byte goes through the CRC tracker (magic and header first).
+        self.bio.flush()
+        head = self.path.read_bytes()
+        self.bio = _CrcFile(self.bio, zlib.crc32(head), len(head))
+
+    def add_msgtype(self, connection: Connection) -> None:
+        """rosbags' schema record, written straight to the file (see :meth:`add_connection`)."""
+        self.schemas.append(Schema(
+            len(self.schemas) + 1, connection.msgtype,
+            'ros2msg' if connection.msgdef.format == MessageDefinitionFormat.MSG else 'ros2idl',
+            connection.msgdef.data))
+        write_schema(self.bio, self.schemas[-1])
+
+    def add_connection(self, connection: Connection, offered_qos_profiles: str) -> None:
+        """rosbags' channel record, plus the ``topic_type_hash`` rosbag2 Jazzy writes.
+
+        Schema and channel records go to the file between chunks, not into the pending
+        chunk: a damaged chunk then never takes the types of later chunks with it.
+        """
+        metadata = BytesIO()
+        write_string(metadata, 'offered_qos_profiles')
+        write_string(metadata, offered_qos_profiles)
+        if connection.digest:
+            write_string(metadata, 'topic_type_hash')
+            write_string(metadata, connection.digest)
+        self.channels.append(Channel(
+            connection.id, connection.msgtype, connection.topic,
+            connection.ext.serialization_format, metadata.getvalue()))
+        self.channel_stats[connection.id] = 0
+        write_channel(self.bio, self.channels[-1], self.schemas)
 
     def _absorb_bio(self) -> None:
         bio = self.chunk.bio
@@ -96,11 +179,14 @@ class _ZeroCopyMcapStorage(McapWriter):
         self._absorb_bio()
         chunk, size = self.chunk, self.pending_size
         chunk_start = self.bio.tell()
-        # Chunk record: start, end, uncompressed size, crc (0: none), compression '', data size.
+        crc = 0
+        for part in self._parts:
+            crc = zlib.crc32(part, crc)
+        # Chunk record: start, end, uncompressed size, crc, compression '', data size.
         self.bio.write(
             _CHUNK_HEADER.pack(
                 0x06, 8 + 8 + 8 + 4 + 4 + 8 + size, chunk.message_start_time,
-                chunk.message_end_time, size, 0, 0, size,
+                chunk.message_end_time, size, crc, 0, size,
             )
         )
         for part in self._parts:
@@ -133,7 +219,33 @@ class _ZeroCopyMcapStorage(McapWriter):
         self._absorb_bio()
         if self.pending_size:
             self.close_chunk()
+        tracker = self.bio
+        metadata = metadata.replace('ros_distro: rosbags', f'ros_distro: {ROS_DISTRO}')
         super().close(version, metadata)
+        _write_section_crcs(self.path, tracker)
+
+
+def _write_section_crcs(path: Path, tracker: _CrcFile) -> None:
+    """Fill in the DataEnd (data section) and Footer (summary) CRCs of a closed MCAP file.
+
+    The data-section CRC covers every byte before the DataEnd record (leading magic
+    included); the summary CRC covers the summary section and the footer up to its CRC.
+    """
+    with path.open('r+b') as f:
+        f.seek(-(8 + _FOOTER_SIZE), os.SEEK_END)
+        footer_start = f.tell()
+        footer = f.read(_FOOTER_SIZE)
+        opcode, _, summary_start, _ = struct.unpack_from('<BQQQ', footer)
+        data_end = summary_start - _DATA_END_SIZE
+        data_crc = tracker.crc_before(data_end)
+        if opcode != 0x02 or data_crc is None:
+            return  # not the layout this writer makes: leave the CRCs at 0 (none)
+        f.seek(data_end + 9)
+        f.write(struct.pack('<I', data_crc))
+        f.seek(summary_start)
+        summary = f.read(footer_start - summary_start) + footer[:_FOOTER_SIZE - 4]
+        f.seek(footer_start + _FOOTER_SIZE - 4)
+        f.write(struct.pack('<I', zlib.crc32(summary)))
 
 
 class _Writer(Writer):
@@ -220,6 +332,7 @@ class BagWriter:
         writer, self._writer = self._writer, None
         if writer is not None:
             writer.close()
+            _set_ros_distro(self.path / 'metadata.yaml')
 
     def abort(self) -> None:
         """Close the file without summary or metadata.yaml (what a crash leaves). Idempotent."""
@@ -404,6 +517,16 @@ def write_bag(
         raise
     bag.close()
     return bag.counts
+
+
+def _set_ros_distro(metapath: Path) -> None:
+    """rosbags writes ``ros_distro: rosbags``; the bag is a ROS 2 Jazzy bag."""
+    text = metapath.read_text(encoding='utf8')
+    fixed = text.replace('ros_distro: rosbags', f'ros_distro: {ROS_DISTRO}')
+    if fixed != text:
+        tmp = metapath.with_suffix('.yaml.tmp')
+        tmp.write_text(fixed, encoding='utf8')
+        tmp.replace(metapath)
 
 
 def _remove_tree(path: Path) -> None:

@@ -41,7 +41,8 @@ def _string(buf, pos):
 def walk_chunks(data):
     """Complete chunks of an MCAP byte string: list of (end offset, [(topic, log_time, bytes)]).
 
-    Only rosbags' layout is handled: channels and messages inside uncompressed chunks.
+    Only our writer's layout is handled: channel records between chunks or inside them,
+    messages inside uncompressed chunks.
     """
     assert data[:8] == MAGIC
     pos, topics, chunks = 8, {}, []
@@ -50,6 +51,9 @@ def walk_chunks(data):
         body_start, end = pos + 9, pos + 9 + length
         if end > len(data):
             break
+        if op == 0x04:  # channel between chunks: id, schema id, topic, ...
+            cid, _ = struct.unpack_from('<HH', data, body_start)
+            topics[cid], _ = _string(data, body_start + 4)
         if op == 0x06:  # chunk
             _, _, size, _ = struct.unpack_from('<QQQI', data, body_start)
             compression, p = _string(data, body_start + 28)
@@ -210,33 +214,68 @@ def test_zero_filled_tail_is_ignored(killed, tmp_path):
     assert recovered_messages(tmp_path / 'out') == written
 
 
-def test_garbage_record_header_stops_before_it(killed, tmp_path):
+def expected_without(chunks, lost):
+    """Messages of every chunk but those whose end offsets are in ``lost``."""
+    return [m for end, msgs in chunks if end not in lost for m in msgs]
+
+
+def _chunk_starts(data, chunks):
+    """Start offset of each walked chunk (the chunk record's opcode)."""
+    starts, pos = [], 8
+    for end, _ in chunks:
+        while data[pos] != 0x06:  # header, message index records
+            pos += 9 + struct.unpack_from('<Q', data, pos + 1)[0]
+        starts.append(pos)
+        pos = end
+    return starts
+
+
+def test_garbage_record_header_loses_only_that_record(killed, tmp_path):
     _, _, data, chunks = killed
-    # The record right after the 3rd chunk claims to be a 1 TiB chunk.
-    after_3rd = chunks[2][0]
+    # The 4th chunk's record header claims a 1 TiB chunk: reading resumes at the 5th.
+    start = _chunk_starts(data, chunks)[3]
     damaged = bytearray(data)
-    damaged[after_3rd : after_3rd + 9] = struct.pack('<BQ', 0x06, 2**40)
+    damaged[start : start + 9] = struct.pack('<BQ', 0x06, 2**40)
     source = tmp_path / 'damaged.mcap'
     source.write_bytes(bytes(damaged))
     report = recover_bag(source, tmp_path / 'out')
-    assert recovered_messages(tmp_path / 'out') == expected_after_cut(chunks, after_3rd)
-    assert report.bytes_dropped == len(data) - after_3rd
+    assert recovered_messages(tmp_path / 'out') == expected_without(chunks, {chunks[3][0]})
+    assert report.chunks == len(chunks) - 1 and not report.complete
+    assert len(report.damaged) == 1 and f'offset {start}' in report.damaged[0]
+    assert 'LOST' in report.summary()
 
 
 def test_damaged_chunk_content_is_not_kept(killed, tmp_path):
     _, _, data, chunks = killed
     # Inside the 4th chunk, make the first inner record claim more bytes than the chunk has.
-    start = chunks[2][0]
-    while data[start] != 0x06:  # skip the 3rd chunk's message index records
-        start += 9 + struct.unpack_from('<Q', data, start + 1)[0]
+    start = _chunk_starts(data, chunks)[3]
     _, p = _string(data, start + 9 + 28)
     inner = p + 8
     damaged = bytearray(data)
     damaged[inner + 1 : inner + 9] = struct.pack('<Q', 10**6)
     source = tmp_path / 'damaged.mcap'
     source.write_bytes(bytes(damaged))
-    recover_bag(source, tmp_path / 'out')
-    assert recovered_messages(tmp_path / 'out') == expected_after_cut(chunks, chunks[2][0])
+    report = recover_bag(source, tmp_path / 'out')
+    assert recovered_messages(tmp_path / 'out') == expected_without(chunks, {chunks[3][0]})
+    assert report.chunks_damaged == 1 and 'chunk 4' in report.damaged[0]
+
+
+@pytest.mark.parametrize('k', [0, 2, 5])
+def test_one_flipped_byte_loses_its_chunk_only(killed, tmp_path, k):
+    """A flipped byte inside chunk k's messages: its CRC catches it, every other chunk stays."""
+    directory, written, data, chunks = killed
+    starts = _chunk_starts(data, chunks)
+    target = (starts[k] + chunks[k][0]) // 2  # the middle of chunk k, inside its records
+    damaged = bytearray(data)
+    damaged[target] ^= 0x10
+    source = tmp_path / 'flipped.mcap'
+    source.write_bytes(bytes(damaged))
+    report = recover_bag(source, tmp_path / 'out')
+    got = recovered_messages(tmp_path / 'out')
+    assert got == expected_without(chunks, {chunks[k][0]})  # channels are outside chunks
+    assert report.chunks_damaged == 1
+    assert f'chunk {k + 1} at offset {starts[k]}' in report.damaged[0]
+    assert 'crc' in report.damaged[0].lower()
 
 
 def test_complete_bag_recovers_everything(tmp_path):

@@ -313,3 +313,56 @@ def test_reading_a_killed_bag_names_the_fix(tmp_path):
         read_topics(tmp_path / 'k' / 'k.mcap')
     with pytest.raises(FileNotFoundError):
         read_topics(tmp_path / 'missing')
+
+
+def _images_bag(path, n=12):
+    Image = STORE.types['sensor_msgs/msg/Image']
+    written = []
+    with BagWriter(path, chunk_size=20000, flush_interval=None) as bag:
+        bag.add_topic('/camera/image_raw', 'sensor_msgs/msg/Image')
+        for i in range(n):
+            pixels = np.full((60, 80), i, dtype=np.uint8)
+            msg = Image(header=header(i, 'cam'), height=60, width=80, encoding='mono8',
+                        is_bigendian=0, step=80, data=pixels.ravel())
+            written.append(bytes(STORE.serialize_cdr(msg, msg.__msgtype__)))
+            bag.write('/camera/image_raw', written[-1], T0 + i)
+    return written
+
+
+def test_bags_carry_crcs_type_hashes_and_the_ros_distro(tmp_path):
+    """As rosbag2 Jazzy's MCAP plugin writes them: chunk, data and summary CRCs, the type
+    hash in each channel's metadata, and ``ros_distro: jazzy``."""
+    from mcap.records import Channel, Chunk, DataEnd, Footer
+    from mcap.stream_reader import StreamReader
+
+    _images_bag(tmp_path / 'b')
+    with open(tmp_path / 'b' / 'b.mcap', 'rb') as stream:
+        records = list(StreamReader(stream, skip_magic=False, emit_chunks=True,
+                                    validate_crcs=True).records)
+    chunks = [r for r in records if isinstance(r, Chunk)]
+    assert len(chunks) >= 3 and all(c.uncompressed_crc != 0 for c in chunks)
+    (data_end,) = [r for r in records if isinstance(r, DataEnd)]
+    (footer,) = [r for r in records if isinstance(r, Footer)]
+    assert data_end.data_section_crc != 0 and footer.summary_crc != 0
+    info = yaml.safe_load((tmp_path / 'b' / 'metadata.yaml').read_text())
+    info = info['rosbag2_bagfile_information']
+    assert info['ros_distro'] == 'jazzy'
+    (topic,) = info['topics_with_message_count']
+    hashes = {r.metadata['topic_type_hash'] for r in records if isinstance(r, Channel)}
+    assert hashes == {topic['topic_metadata']['type_description_hash']}
+    assert next(iter(hashes)).startswith('RIHS01_')
+
+
+def test_a_flipped_byte_in_an_image_is_caught_on_read_and_loses_one_chunk(tmp_path):
+    written = _images_bag(tmp_path / 'b')
+    data = bytearray((tmp_path / 'b' / 'b.mcap').read_bytes())
+    at = data.index(bytes([7]) * 80)  # inside the pixels of image 7
+    data[at + 40] ^= 0x01
+    (tmp_path / 'b' / 'b.mcap').write_bytes(bytes(data))
+    with pytest.raises(BagReadError, match='bag-recover'):
+        list(read_messages(tmp_path / 'b'))
+    report = recover_bag(tmp_path / 'b', tmp_path / 'r')
+    kept = [m.data for m in read_messages(tmp_path / 'r')]
+    assert report.chunks_damaged == 1 and 'crc' in report.damaged[0].lower()
+    assert written[7] not in kept and 0 < len(kept) < len(written)
+    assert all(k in written for k in kept)
