@@ -207,6 +207,67 @@ def _view_rms(obj, img, K, dist, rvecs, tvecs):
     return np.array(out)
 
 
+def _view_points(image_points, object_points) -> tuple[list, list]:
+    """Per-view image points (m_i, 2) and object points (m_i, 3) as float64, checked."""
+    img = [np.asarray(p, dtype=np.float64) for p in image_points]
+    n = len(img)
+    if isinstance(object_points, np.ndarray) and object_points.ndim == 2:
+        obj = [np.asarray(object_points, dtype=np.float64)] * n
+    else:
+        obj = [np.asarray(o, dtype=np.float64) for o in object_points]
+    if len(obj) != n:
+        raise ValueError(f"object_points must have one entry per view ({n}), got {len(obj)}")
+    for i, (o, p) in enumerate(zip(obj, img, strict=True)):
+        if p.ndim != 2 or p.shape[1] != 2 or o.shape != (len(p), 3) or len(p) < 4:
+            raise ValueError(f"image_points[{i}] shape {p.shape} and object_points shape "
+                             f"{o.shape} must be (m >= 4, 2) and (m, 3)")
+        if not (np.isfinite(p).all() and np.isfinite(o).all()):
+            raise ValueError(f"image_points[{i}] or its object points are not finite")
+    return img, obj
+
+
+def _all_view_rms(obj, img, idx, vr, used, K, dist) -> np.ndarray:
+    """Per-view errors for every view (rejected ones through their own PnP)."""
+    view_rms = np.full(len(img), np.nan)
+    view_rms[idx] = vr
+    for i in np.flatnonzero(~used):
+        ok, rv, tv = cv2.solvePnP(obj[i], img[i], K, dist)
+        if ok:
+            view_rms[i] = _view_rms([obj[i]], [img[i]], K, dist, [rv], [tv])[0]
+    return view_rms
+
+
+def _detect_views(views, board, current, max_abs_u1, progress) -> tuple[list, list, list]:
+    """Target points of the usable views, their input indices, and why the others are not."""
+    size = (current.width, current.height)
+    rejected: list[str] = []
+    pts, keep = [], []
+    for i, view in enumerate(views):
+        v = np.asarray(view.voltages, dtype=np.float64)
+        if v.shape != (4,) or not np.isfinite(v).all():
+            rejected.append(f"view {i}: voltages must be 4 finite values")
+            continue
+        if np.abs(v[:2]).max() > max_abs_u1:
+            rejected.append(f"view {i}: U1 = ({v[0]:+.4f}, {v[1]:+.4f}) V is not at 0")
+            continue
+        if view.laser_on:
+            rejected.append(f"view {i}: laser on")
+            continue
+        img = np.asarray(view.image)
+        if img.shape != (current.height, current.width):
+            rejected.append(f"view {i}: image shape {img.shape} is not {size[::-1]}")
+            continue
+        p = detect_target(img, board)
+        if p is None:
+            rejected.append(f"view {i}: target not found")
+        else:
+            pts.append(p)
+            keep.append(i)
+        if progress is not None:
+            progress(i + 1, len(views), "detecting the target")
+    return pts, keep, rejected
+
+
 def calibrate_intrinsics(
     image_points: Sequence,
     object_points,
@@ -243,20 +304,8 @@ def calibrate_intrinsics(
     -------
     IntrinsicsResult
     """
-    img = [np.asarray(p, dtype=np.float64) for p in image_points]
+    img, obj = _view_points(image_points, object_points)
     n = len(img)
-    if isinstance(object_points, np.ndarray) and object_points.ndim == 2:
-        obj = [np.asarray(object_points, dtype=np.float64)] * n
-    else:
-        obj = [np.asarray(o, dtype=np.float64) for o in object_points]
-    if len(obj) != n:
-        raise ValueError(f"object_points must have one entry per view ({n}), got {len(obj)}")
-    for i, (o, p) in enumerate(zip(obj, img, strict=True)):
-        if p.ndim != 2 or p.shape[1] != 2 or o.shape != (len(p), 3) or len(p) < 4:
-            raise ValueError(f"image_points[{i}] shape {p.shape} and object_points shape "
-                             f"{o.shape} must be (m >= 4, 2) and (m, 3)")
-        if not (np.isfinite(p).all() and np.isfinite(o).all()):
-            raise ValueError(f"image_points[{i}] or its object points are not finite")
     w, h = (int(v) for v in image_size)
     if w <= 0 or h <= 0:
         raise ValueError(f"image_size must be positive (width, height), got {image_size}")
@@ -293,13 +342,7 @@ def calibrate_intrinsics(
         used[idx[worst]] = False
         rejected[int(idx[worst])] = (f"outlier view: reprojection rms {vr[worst]:.3f} px > "
                                      f"{limit:.3f} px")
-    # Per-view errors for every view (rejected ones through their own PnP).
-    view_rms = np.full(n, np.nan)
-    view_rms[idx] = vr
-    for i in np.flatnonzero(~used):
-        ok, rv, tv = cv2.solvePnP(obj[i], img[i], K, dist)
-        if ok:
-            view_rms[i] = _view_rms([obj[i]], [img[i]], K, dist, [rv], [tv])[0]
+    view_rms = _all_view_rms(obj, img, idx, vr, used, K, dist)
     d = np.zeros(5)
     d[: min(5, dist.size)] = np.asarray(dist).ravel()[:5]
     intr = CameraIntrinsics(
@@ -357,31 +400,7 @@ def run_intrinsics(
         raise ValueError(f"max_abs_u1 must be >= 0, got {max_abs_u1}")
     current = calibration.model.intrinsics
     size = (current.width, current.height)
-    rejected: list[str] = []
-    pts, keep = [], []
-    for i, view in enumerate(views):
-        v = np.asarray(view.voltages, dtype=np.float64)
-        if v.shape != (4,) or not np.isfinite(v).all():
-            rejected.append(f"view {i}: voltages must be 4 finite values")
-            continue
-        if np.abs(v[:2]).max() > max_abs_u1:
-            rejected.append(f"view {i}: U1 = ({v[0]:+.4f}, {v[1]:+.4f}) V is not at 0")
-            continue
-        if view.laser_on:
-            rejected.append(f"view {i}: laser on")
-            continue
-        img = np.asarray(view.image)
-        if img.shape != (current.height, current.width):
-            rejected.append(f"view {i}: image shape {img.shape} is not {size[::-1]}")
-            continue
-        p = detect_target(img, board)
-        if p is None:
-            rejected.append(f"view {i}: target not found")
-        else:
-            pts.append(p)
-            keep.append(i)
-        if progress is not None:
-            progress(i + 1, len(views), "detecting the target")
+    pts, keep, rejected = _detect_views(views, board, current, max_abs_u1, progress)
     if len(pts) < min_views:
         raise ValueError(f"intrinsics: only {len(pts)} views with the target found, need "
                          f"{min_views} ({'; '.join(rejected[:5])})")
