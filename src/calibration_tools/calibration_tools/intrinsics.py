@@ -24,7 +24,7 @@ from reconstructor.model import CameraIntrinsics
 
 from .board_layout import Checkerboard, CircleGrid
 from .circle_board import detect_circles
-from .small_board import detect_board
+from .small_board import as_uint8_image, detect_board
 from .stages import CaptureView, StageResult
 
 #: Distortion models: which plumb_bob coefficients are estimated.
@@ -139,13 +139,7 @@ def detect_target(image, board) -> np.ndarray | None:
         return refine_corners_symmetric(img, corners, radius_px=max(2.0, 0.4 * side))
     if not isinstance(board, CircleGrid):
         raise ValueError(f"board must be a Checkerboard or CircleGrid, got {type(board).__name__}")
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise ValueError(f"image must have shape (H, W), got {img.shape}")
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise ValueError(f"image must be uint8 or uint16, got {img.dtype}")
+    img = as_uint8_image(image)
     dets = detect_circles(img, min_radius_px=3.0)
     if len(dets) < board.cols * board.rows:
         return None
@@ -268,6 +262,21 @@ def _detect_views(views, board, current, max_abs_u1, progress) -> tuple[list, li
     return pts, keep, rejected
 
 
+def _initial_guess(initial, dist_model: str) -> tuple[np.ndarray, np.ndarray, int]:
+    """OpenCV's start: camera matrix (3, 3), distortion (5,) and calibration flags."""
+    flags = _dist_flags(dist_model)
+    if initial is not None:
+        K0 = initial.matrix()
+        d0 = np.array(initial.dist, dtype=np.float64)
+        if dist_model == "none":
+            d0[:] = 0.0
+        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
+    else:
+        K0 = np.eye(3)
+        d0 = np.zeros(5)
+    return K0, d0, flags
+
+
 def calibrate_intrinsics(
     image_points: Sequence,
     object_points,
@@ -311,16 +320,7 @@ def calibrate_intrinsics(
         raise ValueError(f"image_size must be positive (width, height), got {image_size}")
     if outlier_factor <= 1.0 or max_view_rms_px <= 0.0:
         raise ValueError("outlier_factor must be > 1 and max_view_rms_px > 0")
-    flags = _dist_flags(dist_model)
-    if initial is not None:
-        K0 = initial.matrix()
-        d0 = np.array(initial.dist, dtype=np.float64)
-        if dist_model == "none":
-            d0[:] = 0.0
-        flags |= cv2.CALIB_USE_INTRINSIC_GUESS
-    else:
-        K0 = np.eye(3)
-        d0 = np.zeros(5)
+    K0, d0, flags = _initial_guess(initial, dist_model)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     used = np.ones(n, dtype=bool)
     rejected: dict[int, str] = {}

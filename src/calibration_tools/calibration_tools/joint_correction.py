@@ -301,8 +301,6 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
     ValueError
         Bad arguments, or no node registered (the reasons are in the message).
     """
-    from reconstructor.correction import CorrectionTable
-
     if registration not in REGISTRATIONS:
         raise ValueError(f'registration must be one of {REGISTRATIONS}, got {registration!r}')
     if not sphere_radius > 0:
@@ -316,7 +314,6 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
             raise ValueError(f'nodes[{i}] must be a NodeCloud, got {type(n).__name__}')
 
     results: dict[int, NodeResult] = {}
-    fits: dict[int, _Fit] = {}
 
     def skip(i, why, status='skipped'):
         n = nodes[i]
@@ -325,7 +322,31 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
         r = results[i]
         r.status, r.reason = status, why
 
-    # Quality of every node on its own.
+    fits = _fit_spheres(nodes, results, skip, sphere_radius=sphere_radius, viewpoint=viewpoint,
+                        min_points=min_points, min_sphere_points=min_sphere_points,
+                        sphere_inlier_tol=sphere_inlier_tol, max_sphere_rms=max_sphere_rms)
+    table = _chain_positions(nodes, ref_key, fits, results, skip,
+                             registration=registration, sphere_radius=sphere_radius,
+                             sphere_inlier_tol=sphere_inlier_tol,
+                             max_off_sphere=max_off_sphere,
+                             coverage_tol=coverage_tol, min_coverage=min_coverage,
+                             icp_max_distance=icp_max_distance,
+                             icp_max_iterations=icp_max_iterations,
+                             min_fitness=min_fitness, icp_tolerance=icp_tolerance)
+    registered = [r for r in results.values() if r.status == 'registered']
+    if not registered:
+        reasons = [f'pose {r.pose_index} U1 ({r.u1_pan:.4f}, {r.u1_tilt:.4f}) V: {r.reason}'
+                   for r in results.values() if r.reason]
+        raise ValueError(f'joint_correction: no node could be registered; {reasons}')
+    ordered = [results[i] for i in range(len(nodes))]
+    return JointCorrectionResult(table=_correction_table(nodes, table), nodes=ordered,
+                                 errors=_error_figures(registered))
+
+
+def _fit_spheres(nodes, results, skip, *, sphere_radius, viewpoint, min_points,
+                 min_sphere_points, sphere_inlier_tol, max_sphere_rms) -> dict:
+    """Quality of every node on its own: its sphere fit, or the reason it is skipped."""
+    fits: dict[int, _Fit] = {}
     for i, n in enumerate(nodes):
         results[i] = NodeResult(n.pose_index, n.u1_pan, n.u1_tilt, 'pending',
                                 n_points=int(n.points.shape[0]))
@@ -347,9 +368,12 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
             skip(i, f'sphere fit RMS {sf.rms * 1e6:.1f} um > {max_sphere_rms * 1e6:.1f} um')
             continue
         fits[i] = _Fit(sf.centre, sf.rms, n.points[sf.inliers])
+    return fits
 
-    # Positions in chaining order.
-    table: dict[tuple, tuple] = {}  # key -> (T, pan, tilt)
+
+def _chain_positions(nodes, ref_key, fits, results, skip, **register_kw) -> dict:
+    """Register the sphere positions in chaining order: key -> (T, pan, tilt)."""
+    table: dict[tuple, tuple] = {}
     by_pose: dict[int, list] = {}
     for i, n in enumerate(nodes):
         by_pose.setdefault(n.pose_index, []).append(i)
@@ -366,25 +390,18 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
                 continue
             pending.remove(pose)
             progress = True
-            _register_position(nodes, idx, ref, fits, results, table, skip,
-                               registration=registration, sphere_radius=sphere_radius,
-                               sphere_inlier_tol=sphere_inlier_tol,
-                               max_off_sphere=max_off_sphere,
-                               coverage_tol=coverage_tol, min_coverage=min_coverage,
-                               icp_max_distance=icp_max_distance,
-                               icp_max_iterations=icp_max_iterations,
-                               min_fitness=min_fitness, icp_tolerance=icp_tolerance)
+            _register_position(nodes, idx, ref, fits, results, table, skip, **register_kw)
     for pose in pending:
         for i in by_pose[pose]:
             if results[i].status == 'pending':
                 skip(i, f'sphere position {pose} has no node at the reference voltages or at '
                         f'an already corrected G1 voltage to chain to')
+    return table
 
-    registered = [r for r in results.values() if r.status == 'registered']
-    if not registered:
-        reasons = [f'pose {r.pose_index} U1 ({r.u1_pan:.4f}, {r.u1_tilt:.4f}) V: {r.reason}'
-                   for r in results.values() if r.reason]
-        raise ValueError(f'joint_correction: no node could be registered; {reasons}')
+
+def _correction_table(nodes, table):
+    """The registered transforms on the G1 grid of the nodes' voltages."""
+    from reconstructor.correction import CorrectionTable
 
     pans = _axis_values([n.u1_pan for n in nodes])
     tilts = _axis_values([n.u1_tilt for n in nodes])
@@ -395,8 +412,11 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
         b = int(np.argmin(np.abs(tilts - tilt)))
         T[a, b] = Tn
         valid[a, b] = True
-    corr = CorrectionTable(pans, tilts, T, valid)
+    return CorrectionTable(pans, tilts, T, valid)
 
+
+def _error_figures(registered) -> dict:
+    """RMS of the three registration errors over the registered nodes [m]."""
     def cat(attr, name):
         arrs = [getattr(getattr(r, attr), name) for r in registered
                 if getattr(r, attr) is not None]
@@ -406,8 +426,7 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
     for attr, suffix in (('errors', ''), ('errors_dense', '_dense')):
         for name in ('error1', 'error2', 'error3'):
             errors[f'{name}{suffix}_rms_m'] = RegistrationErrors.rms(cat(attr, name))
-    ordered = [results[i] for i in range(len(nodes))]
-    return JointCorrectionResult(table=corr, nodes=ordered, errors=errors)
+    return errors
 
 
 def _axis_values(values) -> np.ndarray:

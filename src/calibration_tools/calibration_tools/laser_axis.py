@@ -187,36 +187,11 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
         raise ValueError(f'poly_degree must be an integer >= 1, got {poly_degree!r}')
     N = pl[:, :3]
     e = pl[:, 3]
-    w = np.ones(m)
-    if weights is not None:
-        w = np.asarray(weights, dtype=np.float64)
-        if w.shape != (m,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.max() > 0:
-            raise ValueError(f'weights must be finite, >= 0, not all 0, shape ({m},)')
-        w = w / w.max()
+    w = _plane_weights(weights, m)
     sw = np.sqrt(w)
     if method not in METHODS:
         raise ValueError(f'method must be one of {METHODS}, got {method!r}')
-    evals, evecs = np.linalg.eigh((N * w[:, None]).T @ N)
-    if evals[1] < 1e-14 * max(evals[2], 1e-300):
-        raise ValueError('the planes are all parallel: their normals do not span a plane, so '
-                         'they define no axis (sweep the laser over a wider range)')
-    if method == 'cone':
-        if m < 3:
-            raise ValueError("method='cone' needs at least 3 planes")
-        Nc = N - (w @ N) / w.sum()
-        evals, evecs = np.linalg.eigh((Nc * w[:, None]).T @ Nc)
-        if evals[1] < 1e-14 * max(evals[2], 1e-300):
-            raise ValueError('the plane normals trace no arc: the cone axis is undetermined '
-                             '(sweep the laser over a wider range)')
-    n = evecs[:, 0]
-    if reference_dir is not None:
-        r = np.asarray(reference_dir, dtype=np.float64)
-        if r.shape != (3,):
-            raise ValueError(f'reference_dir must have shape (3,), got {r.shape}')
-        if n @ r < 0.0:
-            n = -n
-    elif n[np.argmax(np.abs(n))] < 0.0:
-        n = -n
+    n, evals, evecs = _axis_direction(N, w, method, reference_dir)
     # P = anchor + B y with B spanning the plane perpendicular to n.
     B = evecs[:, 1:]
     A = N @ B
@@ -244,24 +219,67 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
             raise ValueError(f'voltages must be finite with shape ({m},), got {u.shape}')
         ref = int(np.argmin(np.abs(u)))
     rot = plane_rotation_angles(pl, n, ref)
-    k, poly, fit_rms = None, (), None
-    if u is not None:
-        distinct = np.unique(np.round(u / VOLTAGE_TOL)).shape[0]
-        degree = min(poly_degree, distinct - 2)
-        if degree < poly_degree:
-            log.warning('angle per volt: %d distinct voltages support degree %d, not %d',
-                        distinct, max(degree, 0), poly_degree)
-        if degree >= 1:
-            # alpha = c + 2 (k U + p0 U^2 + ...)
-            V = np.column_stack([np.ones(m)] + [u ** (p + 1) for p in range(degree)])
-            coef, *_ = np.linalg.lstsq(V * sw[:, None], rot * sw, rcond=None)
-            fit_rms = float(np.sqrt(np.mean((V @ coef - rot) ** 2)))
-            k = float(coef[1] / 2.0)
-            poly = tuple(float(c / 2.0) for c in coef[2:])
+    k, poly, fit_rms = (None, (), None) if u is None else _angle_per_volt(u, rot, sw, poly_degree)
     return AxisFit(direction=n, point=P, offset=rho, cone_angle=cone, eigenvalues=evals,
                    plane_angle_rad=angle,
                    plane_distance_m=dist, rotation_rad=rot, k=k, poly=poly,
                    angle_fit_rms_rad=fit_rms)
+
+
+def _plane_weights(weights, m: int) -> np.ndarray:
+    """Relative plane weights scaled to a maximum of 1 (all 1 by default)."""
+    w = np.ones(m)
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (m,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not w.max() > 0:
+            raise ValueError(f'weights must be finite, >= 0, not all 0, shape ({m},)')
+        w = w / w.max()
+    return w
+
+
+def _axis_direction(N, w, method: str, reference_dir):
+    """Axis direction n (signed), and the eigenvalues and eigenvectors it came from."""
+    m = N.shape[0]
+    evals, evecs = np.linalg.eigh((N * w[:, None]).T @ N)
+    if evals[1] < 1e-14 * max(evals[2], 1e-300):
+        raise ValueError('the planes are all parallel: their normals do not span a plane, so '
+                         'they define no axis (sweep the laser over a wider range)')
+    if method == 'cone':
+        if m < 3:
+            raise ValueError("method='cone' needs at least 3 planes")
+        Nc = N - (w @ N) / w.sum()
+        evals, evecs = np.linalg.eigh((Nc * w[:, None]).T @ Nc)
+        if evals[1] < 1e-14 * max(evals[2], 1e-300):
+            raise ValueError('the plane normals trace no arc: the cone axis is undetermined '
+                             '(sweep the laser over a wider range)')
+    n = evecs[:, 0]
+    if reference_dir is not None:
+        r = np.asarray(reference_dir, dtype=np.float64)
+        if r.shape != (3,):
+            raise ValueError(f'reference_dir must have shape (3,), got {r.shape}')
+        if n @ r < 0.0:
+            n = -n
+    elif n[np.argmax(np.abs(n))] < 0.0:
+        n = -n
+    return n, evals, evecs
+
+
+def _angle_per_volt(u, rot, sw, poly_degree: int):
+    """k, poly and the fit's RMS [rad] of alpha = c + 2 (k U + p0 U^2 + ...), as supported."""
+    m = u.shape[0]
+    k, poly, fit_rms = None, (), None
+    distinct = np.unique(np.round(u / VOLTAGE_TOL)).shape[0]
+    degree = min(poly_degree, distinct - 2)
+    if degree < poly_degree:
+        log.warning('angle per volt: %d distinct voltages support degree %d, not %d',
+                    distinct, max(degree, 0), poly_degree)
+    if degree >= 1:
+        V = np.column_stack([np.ones(m)] + [u ** (p + 1) for p in range(degree)])
+        coef, *_ = np.linalg.lstsq(V * sw[:, None], rot * sw, rcond=None)
+        fit_rms = float(np.sqrt(np.mean((V @ coef - rot) ** 2)))
+        k = float(coef[1] / 2.0)
+        poly = tuple(float(c / 2.0) for c in coef[2:])
+    return k, poly, fit_rms
 
 
 def line_distance(p1, d1, p2, d2) -> float:

@@ -435,76 +435,33 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
     StripeCollection
     """
     from reconstructor.model import v0_T_v
-    from stripe_extractor.extractor import extract
 
     _check_views(views)
     check_small_board(board)
     out = StripeCollection()
-    obj = board.object_points()
-    pose_cache: dict[int, tuple] = {}
-
-    def board_pose(view_idx: int):
-        if view_idx in pose_cache:
-            return pose_cache[view_idx]
-        corners = detect_board(board, views[view_idx].image)
-        result = (None, None, 'board not found')
-        if corners is not None:
-            try:
-                pose = board_plane_from_pnp(corners, obj, model.intrinsics)
-            except ValueError as exc:
-                result = (None, None, f'PnP failed: {exc}')
-            else:
-                if pose.reprojection_rms_px > max_pnp_rms_px:
-                    result = (None, None, f'board PnP reprojection RMS '
-                              f'{pose.reprojection_rms_px:.3f} px > {max_pnp_rms_px} px')
-                else:
-                    result = (pose, corners, '')
-        pose_cache[view_idx] = result
-        return result
-
+    poses = _BoardPoses(views, board, model, max_pnp_rms_px)
     for i, view in enumerate(views):
         if not view.laser_on:
             continue
         volts = np.asarray(view.voltages, dtype=np.float64)
+        label = f'view {i} (pose {view.pose_index})'
         if u2_tilt is not None and abs(volts[3] - u2_tilt) > VOLTAGE_TOL:
-            _reject(out, f'view {i} (pose {view.pose_index}): U2_tilt = {volts[3]:.4f} V, '
-                         f'not {u2_tilt:g} V')
+            _reject(out, f'{label}: U2_tilt = {volts[3]:.4f} V, not {u2_tilt:g} V')
             continue
-        candidates = [j for j, w in enumerate(views) if not w.laser_on
-                      and w.pose_index == view.pose_index and _same_g1(w, view)]
-        pose, corners, why = None, None, 'no laser-off view of this pose and G1 voltage'
-        for j in candidates:
-            pose, corners, why = board_pose(j)
-            if pose is not None:
-                break
+        pose, corners, why = poses.for_view(i)
         if pose is None:
-            pose, corners, why2 = board_pose(i)
-            why = f'{why}; in the laser-on image: {why2}' if pose is None else ''
-        if pose is None:
-            _reject(out, f'view {i} (pose {view.pose_index}): {why}')
+            _reject(out, f'{label}: {why}')
             continue
-        stripe = extract(np.ascontiguousarray(view.image), extractor_config)
-        uv = np.column_stack([stripe.u, stripe.v]).astype(np.float64)
-        if uv.shape[0]:
-            uv = uv[inside_convex_hull(uv, corners, hull_margin_px)]
-        if uv.shape[0] < min_stripe_points:
-            _reject(out, f'view {i} (pose {view.pose_index}): {uv.shape[0]} stripe points on '
-                         f'the board < {min_stripe_points}')
-            continue
-        p_v, ok = backproject_to_plane(uv, pose.plane, model.intrinsics)
-        p_v = p_v[ok]
-        B_T_V = np.linalg.inv(pose.V_T_B)
-        p_v = p_v[away_from_pattern_edges(board, p_v @ B_T_V[:3, :3].T + B_T_V[:3, 3],
-                                          edge_margin)]
-        if p_v.shape[0] < min_stripe_points:
-            _reject(out, f'view {i} (pose {view.pose_index}): {p_v.shape[0]} stripe points '
-                         f'away from pattern edges < {min_stripe_points}')
+        p_v, why = _stripe_on_board(view, pose, corners, board, model, extractor_config,
+                                    hull_margin_px, edge_margin, min_stripe_points)
+        if why:
+            _reject(out, f'{label}: {why}')
             continue
         # A plane cuts the board in a straight line: drop stripe points off it (extraction
         # errors where the stripe crosses the pattern's edges).
         _, _, keep, line_rms = fit_line_trimmed(p_v, k_sigma=line_k_sigma)
         if keep.sum() < min_stripe_points:
-            _reject(out, f'view {i} (pose {view.pose_index}): {int(keep.sum())} stripe points '
+            _reject(out, f'{label}: {int(keep.sum())} stripe points '
                          f'on a line < {min_stripe_points}')
             continue
         T = v0_T_v(model, volts[0], volts[1])
@@ -515,6 +472,73 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
                                          line_rms=line_rms,
                                          n_trimmed=int((~keep).sum())))
     return out
+
+
+class _BoardPoses:
+    """Board pose (PnP) per view, computed once: (pose, corners, '') or (None, None, why)."""
+
+    def __init__(self, views, board, model, max_pnp_rms_px: float) -> None:
+        self.views, self.board, self.model = views, board, model
+        self.max_pnp_rms_px = max_pnp_rms_px
+        self.obj = board.object_points()
+        self.cache: dict[int, tuple] = {}
+
+    def __call__(self, view_idx: int):
+        if view_idx in self.cache:
+            return self.cache[view_idx]
+        corners = detect_board(self.board, self.views[view_idx].image)
+        result = (None, None, 'board not found')
+        if corners is not None:
+            try:
+                pose = board_plane_from_pnp(corners, self.obj, self.model.intrinsics)
+            except ValueError as exc:
+                result = (None, None, f'PnP failed: {exc}')
+            else:
+                if pose.reprojection_rms_px > self.max_pnp_rms_px:
+                    result = (None, None, f'board PnP reprojection RMS '
+                              f'{pose.reprojection_rms_px:.3f} px > {self.max_pnp_rms_px} px')
+                else:
+                    result = (pose, corners, '')
+        self.cache[view_idx] = result
+        return result
+
+    def for_view(self, i: int):
+        """The board under laser-on view ``i``: from a laser-off view of the same pose and G1
+        voltages, else from the laser-on image itself."""
+        view = self.views[i]
+        candidates = [j for j, w in enumerate(self.views) if not w.laser_on
+                      and w.pose_index == view.pose_index and _same_g1(w, view)]
+        pose, corners, why = None, None, 'no laser-off view of this pose and G1 voltage'
+        for j in candidates:
+            pose, corners, why = self(j)
+            if pose is not None:
+                break
+        if pose is None:
+            pose, corners, why2 = self(i)
+            why = f'{why}; in the laser-on image: {why2}' if pose is None else ''
+        return pose, corners, why
+
+
+def _stripe_on_board(view, pose, corners, board, model, extractor_config,
+                     hull_margin_px: float, edge_margin: float, min_stripe_points: int):
+    """Stripe points of a laser-on view on its board, in V [m], or ``(None, why)``."""
+    from stripe_extractor.extractor import extract
+
+    stripe = extract(np.ascontiguousarray(view.image), extractor_config)
+    uv = np.column_stack([stripe.u, stripe.v]).astype(np.float64)
+    if uv.shape[0]:
+        uv = uv[inside_convex_hull(uv, corners, hull_margin_px)]
+    if uv.shape[0] < min_stripe_points:
+        return None, f'{uv.shape[0]} stripe points on the board < {min_stripe_points}'
+    p_v, ok = backproject_to_plane(uv, pose.plane, model.intrinsics)
+    p_v = p_v[ok]
+    B_T_V = np.linalg.inv(pose.V_T_B)
+    p_v = p_v[away_from_pattern_edges(board, p_v @ B_T_V[:3, :3].T + B_T_V[:3, 3],
+                                      edge_margin)]
+    if p_v.shape[0] < min_stripe_points:
+        return None, (f'{p_v.shape[0]} stripe points away from pattern edges '
+                      f'< {min_stripe_points}')
+    return p_v, ''
 
 
 def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,

@@ -25,6 +25,27 @@ def check_small_board(board, name: str = 'board'):
                          f'{type(board).__name__}')
 
 
+def as_uint8_image(image) -> np.ndarray:
+    """A grey image as uint8 (uint16 keeps its high byte); ValueError for other shapes or types.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), uint8 or uint16
+
+    Returns
+    -------
+    ndarray, shape (H, W), uint8
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f'image must have shape (H, W), got {img.shape}')
+    if img.dtype == np.uint16:
+        img = (img >> 8).astype(np.uint8)
+    elif img.dtype != np.uint8:
+        raise ValueError(f'image must be uint8 or uint16, got {img.dtype}')
+    return img
+
+
 def detect_board(board, image) -> np.ndarray | None:
     """Find a small board's features in an image.
 
@@ -40,13 +61,7 @@ def detect_board(board, image) -> np.ndarray | None:
         grid is not found.
     """
     check_small_board(board)
-    img = np.asarray(image)
-    if img.ndim != 2:
-        raise ValueError(f'image must have shape (H, W), got {img.shape}')
-    if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise ValueError(f'image must be uint8 or uint16, got {img.dtype}')
+    img = as_uint8_image(image)
     size = (board.cols, board.rows)
     if isinstance(board, Checkerboard):
         flags = cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY

@@ -182,6 +182,30 @@ def fit_sphere(points, *, radius=None, viewpoint=(0.0, 0.0, 0.0), inlier_tol: fl
         Bad arguments, or no sphere hypothesis with at least 4 inliers.
     """
     p = _points(points, min_n=3 if radius is not None else 4)
+    vp, hint, R = _fit_arguments(viewpoint, centre_hint, radius, inlier_tol)
+    c, r = _ransac(p, R, vp, inlier_tol, int(trials), seed, sample_window)
+    inl = np.abs(np.linalg.norm(p - c, axis=1) - r) <= inlier_tol
+    # When the inliers are one planar arc, re-decide between the two mirror centres.
+    for _ in range(10):
+        q = p[inl]
+        c0 = _mirror_centre(q, c, R, hint, vp)
+        if refine:
+            c, r = _refine(q, c0, R if R is not None else r, R is not None)
+        else:
+            c = c0
+        res = np.linalg.norm(p - c, axis=1) - r
+        sigma = 1.4826 * np.median(np.abs(res[inl] - np.median(res[inl])))
+        new = np.abs(res) <= max(k_sigma * sigma, inlier_tol / 4.0)
+        if new.sum() < 4 or np.array_equal(new, inl):
+            break
+        inl = new
+    res = np.linalg.norm(p[inl] - c, axis=1) - r
+    return SphereFit(centre=np.asarray(c, dtype=np.float64), radius=float(r),
+                     rms=float(np.sqrt(np.mean(res * res))), inliers=inl)
+
+
+def _fit_arguments(viewpoint, centre_hint, radius, inlier_tol):
+    """Checked viewpoint (3,), centre hint (3,) or None, and radius [m] or None."""
     vp = np.asarray(viewpoint, dtype=np.float64)
     if vp.shape != (3,):
         raise ValueError(f'viewpoint must have shape (3,), got {vp.shape}')
@@ -197,33 +221,41 @@ def fit_sphere(points, *, radius=None, viewpoint=(0.0, 0.0, 0.0), inlier_tol: fl
             raise ValueError(f'radius must be > 0 m, got {radius!r}')
     if not inlier_tol > 0:
         raise ValueError(f'inlier_tol must be > 0 m, got {inlier_tol!r}')
+    return vp, hint, R
+
+
+def _hypotheses(sample, R):
+    """Sphere hypotheses (centre, radius) through a minimal sample ([] if degenerate)."""
+    try:
+        if R is not None:
+            c, nn, rc = fit_circle_3d(sample)
+            if rc > R * 1.01:
+                return []
+            return [(cc, R) for cc in _centres_from_circle(c, nn, rc, R)]
+        return [fit_sphere_algebraic(sample)]
+    except (ValueError, np.linalg.LinAlgError):
+        return []
+
+
+def _ransac(p, R, vp, inlier_tol, trials, seed, sample_window):
+    """The hypothesis with the most inliers (ties: the most facing the viewpoint)."""
     n = p.shape[0]
     rng = np.random.default_rng(seed)
-    best = None  # (count, facing, centre, radius)
+    best = None  # ((count, facing), centre, radius)
     k = 3 if R is not None else 4
     window = None
     if sample_window is not None:
         window = int(min(sample_window, n - 1))
         if window < k:
             window = None
-    for trial in range(int(trials)):
+    for trial in range(trials):
         if window is not None and trial % 2:
             w = int(rng.integers(max(k, window // 4), window + 1))
             start = int(rng.integers(0, n - w))
             idx = start + np.sort(rng.choice(w + 1, size=k, replace=False))
         else:
             idx = rng.choice(n, size=k, replace=False)
-        try:
-            if R is not None:
-                c, nn, rc = fit_circle_3d(p[idx])
-                if rc > R * 1.01:
-                    continue
-                hyps = [(cc, R) for cc in _centres_from_circle(c, nn, rc, R)]
-            else:
-                hyps = [fit_sphere_algebraic(p[idx])]
-        except (ValueError, np.linalg.LinAlgError):
-            continue
-        for cc, rr in hyps:
+        for cc, rr in _hypotheses(p[idx], R):
             inl = np.abs(np.linalg.norm(p - cc, axis=1) - rr) <= inlier_tol
             cnt = int(inl.sum())
             facing = _facing_fraction(p[inl], cc, vp) if cnt else 0.0
@@ -232,34 +264,19 @@ def fit_sphere(points, *, radius=None, viewpoint=(0.0, 0.0, 0.0), inlier_tol: fl
                 best = (key, cc, rr)
     if best is None or best[0][0] < 4:
         raise ValueError('no sphere hypothesis with at least 4 inliers')
-    _, c, r = best
-    inl = np.abs(np.linalg.norm(p - c, axis=1) - r) <= inlier_tol
-    # When the inliers are one planar arc, re-decide between the two mirror centres.
-    for _ in range(10):
-        q = p[inl]
-        if R is not None:
-            try:
-                cc, nn, rc = fit_circle_3d(q)
-                cands = _centres_from_circle(cc, nn, rc, R)
-                if hint is not None:
-                    c0 = min(cands, key=lambda x: np.linalg.norm(x - hint))
-                else:
-                    c0 = max(cands, key=lambda x: (round(_facing_fraction(q, x, vp), 2),
-                                                   np.linalg.norm(x - vp)))
-            except ValueError:
-                c0 = c
-        else:
-            c0 = c
-        if refine:
-            c, r = _refine(q, c0, R if R is not None else r, R is not None)
-        else:
-            c = c0
-        res = np.linalg.norm(p - c, axis=1) - r
-        sigma = 1.4826 * np.median(np.abs(res[inl] - np.median(res[inl])))
-        new = np.abs(res) <= max(k_sigma * sigma, inlier_tol / 4.0)
-        if new.sum() < 4 or np.array_equal(new, inl):
-            break
-        inl = new
-    res = np.linalg.norm(p[inl] - c, axis=1) - r
-    return SphereFit(centre=np.asarray(c, dtype=np.float64), radius=float(r),
-                     rms=float(np.sqrt(np.mean(res * res))), inliers=inl)
+    return best[1], best[2]
+
+
+def _mirror_centre(q, c, R, hint, vp):
+    """For a known radius, the centre of the inliers' arc on the right side of its plane."""
+    if R is None:
+        return c
+    try:
+        cc, nn, rc = fit_circle_3d(q)
+    except ValueError:
+        return c
+    cands = _centres_from_circle(cc, nn, rc, R)
+    if hint is not None:
+        return min(cands, key=lambda x: np.linalg.norm(x - hint))
+    return max(cands, key=lambda x: (round(_facing_fraction(q, x, vp), 2),
+                                     np.linalg.norm(x - vp)))
