@@ -304,6 +304,30 @@ def _write_params(path, args, cal_path, data_dir):
     path.write_text(yaml.safe_dump(params, sort_keys=False))
 
 
+def _output_folder(out: Path) -> Path:
+    """Create ``out`` (and parents) and check that files can be written in it.
+
+    Raises
+    ------
+    OSError
+        Naming the folder; a folder created here is removed again.
+    """
+    created = [p for p in [out, *out.parents] if not p.exists()]
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / '.galvoscan_write_test'
+        probe.write_bytes(b'')
+        probe.unlink()
+    except OSError as exc:
+        for p in created:  # innermost first
+            try:
+                p.rmdir()
+            except OSError:
+                break
+        raise OSError(f'--out {out}: cannot write there ({exc.strerror or exc})') from None
+    return out
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog='galvoscan evaluate', description=__doc__.split('\n')[0])
     p.add_argument('--rig', default='reference', help='rig name or YAML (default: reference)')
@@ -327,10 +351,13 @@ def main(argv=None):
     from reconstructor import calibration_file
 
     t0 = time.monotonic()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        rig = load_rig(args.rig)
+        out = _output_folder(Path(args.out))
+    except (ValueError, OSError) as exc:
+        print(f'galvoscan evaluate: {exc}', file=sys.stderr)
+        return 2
     progress = Progress()
-    rig = load_rig(args.rig)
     cal_path = out / 'calibration.yaml'
     if cal_path.exists():
         cal_path.unlink()

@@ -14,6 +14,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+#: Largest rig or scene file read [bytes]: a bigger one is not a rig or scene description.
+MAX_FILE_BYTES = 16 * 2**20
+
 
 class ConfigError(ValueError):
     """A rig or scene file is missing a key, has a wrong value or an unknown entry."""
@@ -54,10 +57,21 @@ def read_yaml_text(text: str, source: str) -> dict:
 
 
 def read_yaml_file(path: Path) -> dict:
+    """The mapping of a UTF-8 YAML file; ConfigError naming the file for anything else."""
     try:
-        text = Path(path).read_text()
+        data = Path(path).read_bytes()
     except OSError as exc:
         raise ConfigError(str(path), '<file>', f'a readable file ({exc.strerror})') from exc
+    if len(data) > MAX_FILE_BYTES:
+        raise ConfigError(str(path), '<file>', f'a YAML file under {MAX_FILE_BYTES} bytes',
+                          len(data), True)
+    try:
+        text = data.decode('utf-8')
+    except UnicodeDecodeError as exc:
+        raise ConfigError(str(path), '<file>', f'UTF-8 YAML text (byte {exc.start} is '
+                          f'0x{data[exc.start]:02x}: a binary or UTF-16 file?)') from None
+    if '\x00' in text:
+        raise ConfigError(str(path), '<file>', 'YAML text (it holds NUL bytes: a binary file?)')
     return read_yaml_text(text, str(path))
 
 
