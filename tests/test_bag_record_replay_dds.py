@@ -353,3 +353,19 @@ def test_sigterm_stops_a_looping_player_and_a_recorder_cleanly(ros, tmp_path):
     assert len(recorded) >= 10
     start = expected.index(recorded[0])
     assert recorded == (expected * (len(recorded) // 5 + 2))[start : start + len(recorded)]
+
+
+def test_record_names_an_unusable_folder_and_a_silent_topic(tmp_path):
+    """``record -o /proc/x`` is an error without a "recorded 0 messages" summary; a named
+    topic that never publishes ends with a warning naming it."""
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(random.randint(100, 200))}
+    cmd = [sys.executable, '-m', 'galvoscan_bag.record_node']
+    bad = subprocess.run([*cmd, '-o', '/proc/galvoscan_bag', '/galvo/state'], env=env,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and '/proc/galvoscan_bag' in bad.stderr
+    assert 'recorded' not in bad.stdout and 'Traceback' not in bad.stderr
+    quiet = subprocess.run([*cmd, '-o', str(tmp_path / 'q'), '--duration', '1.0',
+                            '/never/published'], env=env, capture_output=True, text=True,
+                           timeout=60)
+    assert quiet.returncode == 0 and 'recorded 0 messages' in quiet.stdout
+    assert 'warning: no message on /never/published' in quiet.stderr

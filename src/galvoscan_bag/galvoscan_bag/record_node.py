@@ -317,10 +317,17 @@ def main(argv: Sequence[str] | None = None) -> int:
                 node.destroy_node()
             bag.close()
             rclpy.try_shutdown()
+    if not bag.path.exists():  # never opened (e.g. the folder cannot be made): no summary
+        return status
     counts = bag.counts
     print(f'recorded {sum(counts.values())} messages to {bag.path}')
     for topic, count in sorted(counts.items()):
         print(f'  {topic}: {count}')
+    silent = sorted(t for t in (topics or []) if not counts.get(t if t.startswith('/')
+                                                              else '/' + t))
+    if silent:
+        print(f'galvoscan record: warning: no message on {", ".join(silent)} (no publisher, '
+              'a misspelt name, or another ROS_DOMAIN_ID?)', file=sys.stderr)
     return status
 
 
