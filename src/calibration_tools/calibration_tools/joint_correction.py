@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from calibration_tools.laser_plane import view_voltages
 from calibration_tools.registration import (
     RegistrationErrors,
     apply_transform,
@@ -53,12 +54,10 @@ from calibration_tools.registration import (
     registration_errors,
 )
 from calibration_tools.sphere_fit import fit_sphere
-from calibration_tools.stages import CaptureView, StageResult
+from calibration_tools.stages import VOLTAGE_TOL, StageResult
 
 log = logging.getLogger('galvoscan.calibration.joint_correction')
 
-#: G1 voltages closer than this are the same grid node, V.
-VOLTAGE_TOL = 1e-3
 REGISTRATIONS = ('icp', 'sphere')
 
 
@@ -205,11 +204,7 @@ def reconstruct_nodes(views, model, *, extractor_config=None, min_points: int = 
     plain = dataclasses.replace(model, correction=None)
     groups: dict[tuple, NodeCloud] = {}
     for i, view in enumerate(views):
-        if not isinstance(view, CaptureView):
-            raise ValueError(f'views[{i}] must be a CaptureView, got {type(view).__name__}')
-        volts = np.asarray(view.voltages, dtype=np.float64)
-        if volts.shape != (4,) or not np.all(np.isfinite(volts)):
-            raise ValueError(f'views[{i}].voltages must be 4 finite volts, got {view.voltages!r}')
+        volts = view_voltages(i, view)
         if not view.laser_on:
             continue
         stripe = extract(np.ascontiguousarray(view.image), extractor_config)
@@ -301,18 +296,7 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
     ValueError
         Bad arguments, or no node registered (the reasons are in the message).
     """
-    if registration not in REGISTRATIONS:
-        raise ValueError(f'registration must be one of {REGISTRATIONS}, got {registration!r}')
-    if not sphere_radius > 0:
-        raise ValueError(f'sphere_radius must be > 0 m, got {sphere_radius!r}')
-    ref_v = np.asarray(reference_voltages, dtype=np.float64)
-    if ref_v.shape != (2,) or not np.all(np.isfinite(ref_v)):
-        raise ValueError(f'reference_voltages must be 2 finite volts, got {reference_voltages!r}')
-    ref_key = (round(ref_v[0] / VOLTAGE_TOL), round(ref_v[1] / VOLTAGE_TOL))
-    for i, n in enumerate(nodes):
-        if not isinstance(n, NodeCloud):
-            raise ValueError(f'nodes[{i}] must be a NodeCloud, got {type(n).__name__}')
-
+    ref_key = _check_arguments(nodes, registration, sphere_radius, reference_voltages)
     results: dict[int, NodeResult] = {}
 
     def skip(i, why, status='skipped'):
@@ -333,14 +317,36 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
                              icp_max_distance=icp_max_distance,
                              icp_max_iterations=icp_max_iterations,
                              min_fitness=min_fitness, icp_tolerance=icp_tolerance)
+    registered = _registered(results)
+    ordered = [results[i] for i in range(len(nodes))]
+    return JointCorrectionResult(table=_correction_table(nodes, table), nodes=ordered,
+                                 errors=_error_figures(registered))
+
+
+def _check_arguments(nodes, registration, sphere_radius, reference_voltages) -> tuple:
+    """Check :func:`compute_joint_correction`'s arguments; the reference G1 voltages' key."""
+    if registration not in REGISTRATIONS:
+        raise ValueError(f'registration must be one of {REGISTRATIONS}, got {registration!r}')
+    if not sphere_radius > 0:
+        raise ValueError(f'sphere_radius must be > 0 m, got {sphere_radius!r}')
+    ref_v = np.asarray(reference_voltages, dtype=np.float64)
+    if ref_v.shape != (2,) or not np.all(np.isfinite(ref_v)):
+        raise ValueError(f'reference_voltages must be 2 finite volts, got {reference_voltages!r}')
+    ref_key = (round(ref_v[0] / VOLTAGE_TOL), round(ref_v[1] / VOLTAGE_TOL))
+    for i, n in enumerate(nodes):
+        if not isinstance(n, NodeCloud):
+            raise ValueError(f'nodes[{i}] must be a NodeCloud, got {type(n).__name__}')
+    return ref_key
+
+
+def _registered(results) -> list:
+    """The results of the registered nodes (ValueError with every reason when none is)."""
     registered = [r for r in results.values() if r.status == 'registered']
     if not registered:
         reasons = [f'pose {r.pose_index} U1 ({r.u1_pan:.4f}, {r.u1_tilt:.4f}) V: {r.reason}'
                    for r in results.values() if r.reason]
         raise ValueError(f'joint_correction: no node could be registered; {reasons}')
-    ordered = [results[i] for i in range(len(nodes))]
-    return JointCorrectionResult(table=_correction_table(nodes, table), nodes=ordered,
-                                 errors=_error_figures(registered))
+    return registered
 
 
 def _fit_spheres(nodes, results, skip, *, sphere_radius, viewpoint, min_points,

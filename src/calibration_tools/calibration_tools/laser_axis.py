@@ -39,6 +39,7 @@ from calibration_tools.laser_plane import (
     board_stripe_points,
     plane_from_stripes,
 )
+from calibration_tools.sphere_fit import finite_rows
 from calibration_tools.stages import StageResult
 
 log = logging.getLogger('galvoscan.calibration.laser_axis')
@@ -91,13 +92,7 @@ class AxisFit:
 
 
 def _unit_planes(planes) -> np.ndarray:
-    pl = np.asarray(planes, dtype=np.float64)
-    if pl.ndim != 2 or pl.shape[1] != 4:
-        raise ValueError(f'planes must have shape (m, 4), got {pl.shape}')
-    if pl.shape[0] < 2:
-        raise ValueError(f'planes must hold at least 2 planes, got {pl.shape[0]}')
-    if not np.all(np.isfinite(pl)):
-        raise ValueError('planes must be finite')
+    pl = finite_rows(planes, 'planes', 2, width=4, rows='planes', n='m')
     norms = np.linalg.norm(pl[:, :3], axis=1)
     if np.any(norms < 1e-12):
         raise ValueError('planes must have non-zero normals')
@@ -192,32 +187,10 @@ def fit_axis(planes, voltages=None, *, weights=None, anchor=(0.0, 0.0, 0.0),
     if method not in METHODS:
         raise ValueError(f'method must be one of {METHODS}, got {method!r}')
     n, evals, evecs = _axis_direction(N, w, method, reference_dir)
-    # P = anchor + B y with B spanning the plane perpendicular to n.
-    B = evecs[:, 1:]
-    A = N @ B
-    rhs = -(e + N @ a)
-    if fit_offset:
-        if m < 3:
-            raise ValueError('fit_offset needs at least 3 planes')
-        A = np.column_stack([A, -np.ones(m)])
-    sol, *_ = np.linalg.lstsq(A * sw[:, None], rhs * sw, rcond=None)
-    P = a + B @ sol[:2]
-    rho = float(sol[2]) if fit_offset else 0.0
+    P, rho = _axis_point(N, e, evecs[:, 1:], a, sw, fit_offset)
     dist = N @ P + e - rho
-    cosines = N @ n
-    cone = float(np.arcsin(np.clip((w @ cosines) / w.sum(), -1.0, 1.0)))
-    if method == 'cone':
-        angle = np.abs(np.arcsin(np.clip(cosines, -1.0, 1.0)) - cone)
-    else:
-        angle = np.arcsin(np.clip(np.abs(cosines), 0.0, 1.0))
-
-    ref = 0
-    u = None
-    if voltages is not None:
-        u = np.asarray(voltages, dtype=np.float64)
-        if u.shape != (m,) or not np.all(np.isfinite(u)):
-            raise ValueError(f'voltages must be finite with shape ({m},), got {u.shape}')
-        ref = int(np.argmin(np.abs(u)))
+    cone, angle = _plane_angles(N, n, w, method)
+    u, ref = _tilt_voltages(voltages, m)
     rot = plane_rotation_angles(pl, n, ref)
     k, poly, fit_rms = (None, (), None) if u is None else _angle_per_volt(u, rot, sw, poly_degree)
     return AxisFit(direction=n, point=P, offset=rho, cone_angle=cone, eigenvalues=evals,
@@ -262,6 +235,48 @@ def _axis_direction(N, w, method: str, reference_dir):
     elif n[np.argmax(np.abs(n))] < 0.0:
         n = -n
     return n, evals, evecs
+
+
+def _axis_point(N, e, B, a, sw, fit_offset: bool):
+    """The axis point P [m] nearest the anchor a, and the plane offset rho [m] (or 0).
+
+    P = a + B y, with B (3, 2) spanning the plane perpendicular to the axis; y (and rho) in
+    weighted least squares over the planes (normals N (m, 3), offsets e (m,)).
+    """
+    m = N.shape[0]
+    A = N @ B
+    rhs = -(e + N @ a)
+    if fit_offset:
+        if m < 3:
+            raise ValueError('fit_offset needs at least 3 planes')
+        A = np.column_stack([A, -np.ones(m)])
+    sol, *_ = np.linalg.lstsq(A * sw[:, None], rhs * sw, rcond=None)
+    P = a + B @ sol[:2]
+    rho = float(sol[2]) if fit_offset else 0.0
+    return P, rho
+
+
+def _plane_angles(N, n, w, method: str):
+    """The cone angle [rad], and each plane's angle to the axis (or to the cone) [rad]."""
+    cosines = N @ n
+    cone = float(np.arcsin(np.clip((w @ cosines) / w.sum(), -1.0, 1.0)))
+    if method == 'cone':
+        angle = np.abs(np.arcsin(np.clip(cosines, -1.0, 1.0)) - cone)
+    else:
+        angle = np.arcsin(np.clip(np.abs(cosines), 0.0, 1.0))
+    return cone, angle
+
+
+def _tilt_voltages(voltages, m: int):
+    """Checked G2 voltages (m,) or None, and the index of the plane nearest U = 0 (else 0)."""
+    ref = 0
+    u = None
+    if voltages is not None:
+        u = np.asarray(voltages, dtype=np.float64)
+        if u.shape != (m,) or not np.all(np.isfinite(u)):
+            raise ValueError(f'voltages must be finite with shape ({m},), got {u.shape}')
+        ref = int(np.argmin(np.abs(u)))
+    return u, ref
 
 
 def _angle_per_volt(u, rot, sw, poly_degree: int):

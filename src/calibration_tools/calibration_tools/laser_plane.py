@@ -39,12 +39,11 @@ from calibration_tools.small_board import (
     detect_board,
     inside_convex_hull,
 )
-from calibration_tools.stages import CaptureView, StageResult
+from calibration_tools.sphere_fit import finite_rows
+from calibration_tools.stages import VOLTAGE_TOL, CaptureView, StageResult
 
 log = logging.getLogger('galvoscan.calibration.laser_plane')
 
-#: Voltages closer than this are the same setting, V (16-bit DAC over +-10 V is 0.3 mV).
-VOLTAGE_TOL = 1e-3
 
 
 # ----------------------------------------------------------------------------- plane fit
@@ -121,13 +120,7 @@ def fit_plane_svd(points, *, weights=None, k_sigma: float = 4.0,
     -------
     PlaneFit
     """
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f'points must have shape (n, 3), got {p.shape}')
-    if p.shape[0] < 3:
-        raise ValueError(f'points must hold at least 3 points, got {p.shape[0]}')
-    if not np.all(np.isfinite(p)):
-        raise ValueError('points must be finite')
+    p = finite_rows(points, 'points', 3)
     if not k_sigma > 0:
         raise ValueError(f'k_sigma must be > 0, got {k_sigma}')
     n = p.shape[0]
@@ -384,15 +377,22 @@ def _reject(collection: StripeCollection, message: str):
     collection.rejected.append(message)
 
 
+def view_voltages(i: int, view) -> np.ndarray:
+    """The voltages of ``views[i]``, shape (4,), volts, after checking that it is a
+    :class:`CaptureView` with 4 finite voltages (else ValueError naming ``views[i]``)."""
+    if not isinstance(view, CaptureView):
+        raise ValueError(f'views[{i}] must be a CaptureView, got {type(view).__name__}')
+    volts = np.asarray(view.voltages, dtype=np.float64)
+    if volts.shape != (4,) or not np.all(np.isfinite(volts)):
+        raise ValueError(f'views[{i}].voltages must be 4 finite volts, got {view.voltages!r}')
+    return volts
+
+
 def _check_views(views):
     if not isinstance(views, (list, tuple)):
         raise ValueError(f'views must be a list of CaptureView, got {type(views).__name__}')
     for i, v in enumerate(views):
-        if not isinstance(v, CaptureView):
-            raise ValueError(f'views[{i}] must be a CaptureView, got {type(v).__name__}')
-        volts = np.asarray(v.voltages, dtype=np.float64)
-        if volts.shape != (4,) or not np.all(np.isfinite(volts)):
-            raise ValueError(f'views[{i}].voltages must be 4 finite volts, got {v.voltages!r}')
+        view_voltages(i, v)
         img = np.asarray(v.image)
         if img.ndim != 2:
             raise ValueError(f'views[{i}].image must have shape (H, W), got {img.shape}')
@@ -434,8 +434,6 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
     -------
     StripeCollection
     """
-    from reconstructor.model import v0_T_v
-
     _check_views(views)
     check_small_board(board)
     out = StripeCollection()
@@ -454,23 +452,13 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
             continue
         p_v, why = _stripe_on_board(view, pose, corners, board, model, extractor_config,
                                     hull_margin_px, edge_margin, min_stripe_points)
+        if not why:
+            stripe, why = _stripe_line_in_v0(i, view, pose, p_v, model, line_k_sigma,
+                                             min_stripe_points)
         if why:
             _reject(out, f'{label}: {why}')
             continue
-        # A plane cuts the board in a straight line: drop stripe points off it (extraction
-        # errors where the stripe crosses the pattern's edges).
-        _, _, keep, line_rms = fit_line_trimmed(p_v, k_sigma=line_k_sigma)
-        if keep.sum() < min_stripe_points:
-            _reject(out, f'{label}: {int(keep.sum())} stripe points '
-                         f'on a line < {min_stripe_points}')
-            continue
-        T = v0_T_v(model, volts[0], volts[1])
-        p_v0 = p_v[keep] @ T[:3, :3].T + T[:3, 3]
-        out.stripes.append(StripeOnBoard(view_index=i, pose_index=int(view.pose_index),
-                                         u2_tilt=float(volts[3]), points_v0=p_v0,
-                                         pnp_rms_px=pose.reprojection_rms_px,
-                                         line_rms=line_rms,
-                                         n_trimmed=int((~keep).sum())))
+        out.stripes.append(stripe)
     return out
 
 
@@ -539,6 +527,26 @@ def _stripe_on_board(view, pose, corners, board, model, extractor_config,
         return None, (f'{p_v.shape[0]} stripe points away from pattern edges '
                       f'< {min_stripe_points}')
     return p_v, ''
+
+
+def _stripe_line_in_v0(i, view, pose, p_v, model, line_k_sigma: float,
+                       min_stripe_points: int):
+    """The stripe points (V, metres) on their line, taken into V0: a
+    :class:`StripeOnBoard`, or ``(None, why)``."""
+    from reconstructor.model import v0_T_v
+
+    volts = np.asarray(view.voltages, dtype=np.float64)
+    # A plane cuts the board in a straight line: drop stripe points off it (extraction
+    # errors where the stripe crosses the pattern's edges).
+    _, _, keep, line_rms = fit_line_trimmed(p_v, k_sigma=line_k_sigma)
+    if keep.sum() < min_stripe_points:
+        return None, f'{int(keep.sum())} stripe points on a line < {min_stripe_points}'
+    T = v0_T_v(model, volts[0], volts[1])
+    p_v0 = p_v[keep] @ T[:3, :3].T + T[:3, 3]
+    return StripeOnBoard(view_index=i, pose_index=int(view.pose_index),
+                         u2_tilt=float(volts[3]), points_v0=p_v0,
+                         pnp_rms_px=pose.reprojection_rms_px, line_rms=line_rms,
+                         n_trimmed=int((~keep).sum())), ''
 
 
 def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,

@@ -18,18 +18,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibration_tools.sphere_fit import finite_rows
+
 log = logging.getLogger('galvoscan.calibration.registration')
 
 
 def _cloud(points, name: str, min_n: int = 3) -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f'{name} must have shape (n, 3), got {p.shape}')
-    if p.shape[0] < min_n:
-        raise ValueError(f'{name} must hold at least {min_n} points, got {p.shape[0]}')
-    if not np.all(np.isfinite(p)):
-        raise ValueError(f'{name} must be finite')
-    return p
+    """Checked point cloud, shape (n, 3), metres (:func:`sphere_fit.finite_rows`)."""
+    return finite_rows(points, name, min_n)
 
 
 def _transform(T, name='init') -> np.ndarray:

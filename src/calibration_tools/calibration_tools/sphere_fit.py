@@ -41,15 +41,53 @@ class SphereFit:
         return int(np.count_nonzero(self.inliers))
 
 
-def _points(points, name='points', min_n=4) -> np.ndarray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f'{name} must have shape (n, 3), got {p.shape}')
+def finite_rows(a, name: str = 'points', min_n: int = 4, *, width: int = 3,
+                rows: str = 'points', n: str = 'n') -> np.ndarray:
+    """An array of row vectors (points, planes), checked.
+
+    Parameters
+    ----------
+    a : array_like, shape (n, width)
+    name : str
+        Its name in the error messages.
+    min_n : int
+        Fewest rows accepted.
+    width : int
+        Length of a row (3 for points).
+    rows : str
+        What a row is, in the messages ('points', 'planes').
+    n : str
+        Name of the row count in the shape message.
+
+    Returns
+    -------
+    ndarray, shape (n, width), float64
+
+    Raises
+    ------
+    ValueError
+        Another shape, fewer than ``min_n`` rows, or a value that is not finite.
+    """
+    p = np.asarray(a, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != width:
+        raise ValueError(f'{name} must have shape ({n}, {width}), got {p.shape}')
     if p.shape[0] < min_n:
-        raise ValueError(f'{name} must hold at least {min_n} points, got {p.shape[0]}')
+        raise ValueError(f'{name} must hold at least {min_n} {rows}, got {p.shape[0]}')
     if not np.all(np.isfinite(p)):
         raise ValueError(f'{name} must be finite')
     return p
+
+
+def _kasa(q: np.ndarray):
+    """Closed-form (Kasa) sphere or circle through centred points ``q``, shape (n, d).
+
+    Solves ``|q|^2 = 2 c.q + k`` in least squares; returns ``c``, shape (d,), and the squared
+    radius ``k + |c|^2``.
+    """
+    A = np.column_stack([2.0 * q, np.ones(len(q))])
+    sol, *_ = np.linalg.lstsq(A, np.sum(q * q, axis=1), rcond=None)
+    c = sol[:-1]
+    return c, sol[-1] + c @ c
 
 
 def fit_sphere_algebraic(points):
@@ -69,17 +107,13 @@ def fit_sphere_algebraic(points):
     ValueError
         Coplanar points (the sphere is undetermined: give its radius to :func:`fit_sphere`).
     """
-    p = _points(points)
+    p = finite_rows(points)
     m = p.mean(axis=0)
     q = p - m  # centred for conditioning
     s = np.linalg.svd(q, compute_uv=False)
     if s[2] <= 1e-9 * s[0]:
         raise ValueError('points are coplanar: a sphere through them is undetermined')
-    A = np.column_stack([2.0 * q, np.ones(len(q))])
-    b = np.sum(q * q, axis=1)
-    sol, *_ = np.linalg.lstsq(A, b, rcond=None)
-    c = sol[:3]
-    r2 = sol[3] + c @ c
+    c, r2 = _kasa(q)
     if not r2 > 0:
         raise ValueError('algebraic sphere fit failed (negative squared radius)')
     return c + m, float(np.sqrt(r2))
@@ -90,7 +124,8 @@ def fit_circle_3d(points):
 
     Parameters
     ----------
-    points : array_like, shape (n, 3), metres, n >= 3, not collinear
+    points : array_like, shape (n, 3), metres
+        n >= 3, not all collinear; more than 3 need not lie exactly on one plane or circle.
 
     Returns
     -------
@@ -99,17 +134,14 @@ def fit_circle_3d(points):
         Unit normal of the circle's plane.
     radius : float, metres
     """
-    p = _points(points, min_n=3)
+    p = finite_rows(points, min_n=3)
     m = p.mean(axis=0)
     _, s, vt = np.linalg.svd(p - m, full_matrices=False)
     if s[1] <= 1e-9 * s[0]:
         raise ValueError('points are collinear: no circle through them')
     e1, e2, n = vt
     uv = np.column_stack([(p - m) @ e1, (p - m) @ e2])
-    A = np.column_stack([2.0 * uv, np.ones(len(uv))])
-    sol, *_ = np.linalg.lstsq(A, np.sum(uv * uv, axis=1), rcond=None)
-    c2 = sol[:2]
-    r2 = sol[2] + c2 @ c2
+    c2, r2 = _kasa(uv)
     return m + c2[0] * e1 + c2[1] * e2, n, float(np.sqrt(max(r2, 0.0)))
 
 
@@ -181,24 +213,11 @@ def fit_sphere(points, *, radius=None, viewpoint=(0.0, 0.0, 0.0), inlier_tol: fl
     ValueError
         Bad arguments, or no sphere hypothesis with at least 4 inliers.
     """
-    p = _points(points, min_n=3 if radius is not None else 4)
+    p = finite_rows(points, min_n=3 if radius is not None else 4)
     vp, hint, R = _fit_arguments(viewpoint, centre_hint, radius, inlier_tol)
     c, r = _ransac(p, R, vp, inlier_tol, int(trials), seed, sample_window)
-    inl = np.abs(np.linalg.norm(p - c, axis=1) - r) <= inlier_tol
-    # When the inliers are one planar arc, re-decide between the two mirror centres.
-    for _ in range(10):
-        q = p[inl]
-        c0 = _mirror_centre(q, c, R, hint, vp)
-        if refine:
-            c, r = _refine(q, c0, R if R is not None else r, R is not None)
-        else:
-            c = c0
-        res = np.linalg.norm(p - c, axis=1) - r
-        sigma = 1.4826 * np.median(np.abs(res[inl] - np.median(res[inl])))
-        new = np.abs(res) <= max(k_sigma * sigma, inlier_tol / 4.0)
-        if new.sum() < 4 or np.array_equal(new, inl):
-            break
-        inl = new
+    c, r, inl = _refit_with_rejection(p, c, r, R, hint, vp, refine=refine, k_sigma=k_sigma,
+                                      inlier_tol=inlier_tol)
     res = np.linalg.norm(p[inl] - c, axis=1) - r
     return SphereFit(centre=np.asarray(c, dtype=np.float64), radius=float(r),
                      rms=float(np.sqrt(np.mean(res * res))), inliers=inl)
@@ -280,3 +299,27 @@ def _mirror_centre(q, c, R, hint, vp):
         return min(cands, key=lambda x: np.linalg.norm(x - hint))
     return max(cands, key=lambda x: (round(_facing_fraction(q, x, vp), 2),
                                      np.linalg.norm(x - vp)))
+
+
+def _refit_with_rejection(p, c, r, R, hint, vp, *, refine: bool, k_sigma: float,
+                          inlier_tol: float):
+    """Refit the RANSAC sphere to its inliers, rejecting by MAD, until they stop changing.
+
+    Returns the centre (3,) [m], the radius [m] and the inlier mask (n,).
+    """
+    inl = np.abs(np.linalg.norm(p - c, axis=1) - r) <= inlier_tol
+    # When the inliers are one planar arc, re-decide between the two mirror centres.
+    for _ in range(10):
+        q = p[inl]
+        c0 = _mirror_centre(q, c, R, hint, vp)
+        if refine:
+            c, r = _refine(q, c0, R if R is not None else r, R is not None)
+        else:
+            c = c0
+        res = np.linalg.norm(p - c, axis=1) - r
+        sigma = 1.4826 * np.median(np.abs(res[inl] - np.median(res[inl])))
+        new = np.abs(res) <= max(k_sigma * sigma, inlier_tol / 4.0)
+        if new.sum() < 4 or np.array_equal(new, inl):
+            break
+        inl = new
+    return c, r, inl

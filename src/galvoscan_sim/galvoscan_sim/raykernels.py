@@ -231,18 +231,38 @@ def inside_solid(ptype, R, T, prm, x, y, z, tol):
     return False
 
 
+@njit(cache=True, inline='always')
+def _until_plane(px, py, pz, ux, uy, uz, dist, nx, ny, nz, c):
+    """Length of the segment p + t u, 0 < t < dist, up to where it meets the plane
+    n . x + c = 0; ``dist`` when it does not."""
+    den = ux * nx + uy * ny + uz * nz
+    tm = dist
+    if den != 0.0:
+        t = -(px * nx + py * ny + pz * nz + c) / den
+        if 0.0 < t < dist:
+            tm = t
+    return tm
+
+
+@njit(cache=True, inline='always')
+def _inside_fan(sheet, sx, sy, sz):
+    """The offset s from a point to the fan's apex is on the inner side of both fan edges
+    (``sheet`` layout of :func:`laser_windows`)."""
+    if sx * sheet[7] + sy * sheet[8] + sz * sheet[9] > 0.0:
+        return False
+    if sx * sheet[10] + sy * sheet[11] + sz * sheet[12] > 0.0:
+        return False
+    return True
+
+
 @njit(cache=True)
 def _free(ptype, R, T, prm, px, py, pz, tx, ty, tz, mirror):
     """Nothing blocks the segment from p towards t, up to the mirror plane."""
     dx, dy, dz = tx - px, ty - py, tz - pz
     dist = math.sqrt(dx * dx + dy * dy + dz * dz)
     dx, dy, dz = dx / dist, dy / dist, dz / dist
-    den = dx * mirror[0] + dy * mirror[1] + dz * mirror[2]
-    tm = dist
-    if den != 0.0:
-        t = -(px * mirror[0] + py * mirror[1] + pz * mirror[2] + mirror[3]) / den
-        if 0.0 < t < dist:
-            tm = t
+    tm = _until_plane(px, py, pz, dx, dy, dz, dist, mirror[0], mirror[1], mirror[2],
+                      mirror[3])
     return not is_blocked(ptype, R, T, prm, px, py, pz, dx, dy, dz, tm - EPS)
 
 
@@ -262,9 +282,7 @@ def _accept(ptype, R, T, prm, VTW, intr, center, cam_mirror, sheet, x, y, z, nx,
     sx, sy, sz = sheet[4] - x, sheet[5] - y, sheet[6] - z
     if nx * sx + ny * sy + nz * sz <= 0.0:
         return False, v, nx, ny, nz
-    if sx * sheet[7] + sy * sheet[8] + sz * sheet[9] > 0.0:
-        return False, v, nx, ny, nz
-    if sx * sheet[10] + sy * sheet[11] + sz * sheet[12] > 0.0:
+    if not _inside_fan(sheet, sx, sy, sz):
         return False, v, nx, ny, nz
     if inside_solid(ptype, R, T, prm, x, y, z, 1e-9):
         return False, v, nx, ny, nz
@@ -393,6 +411,18 @@ def circle_crossings(ptype, R, T, prm, VTW, intr, center, cam_mirror, sheet, cc,
     return m
 
 
+@njit(cache=True, inline='always')
+def _clip_interval(lo, hi, g0, g1):
+    """[lo, hi] cut to the parameters s with g0 + s g1 >= 0 (empty: hi = -inf)."""
+    if g1 > 0:
+        lo = max(lo, -g0 / g1)
+    elif g1 < 0:
+        hi = min(hi, -g0 / g1)
+    elif g0 < 0:
+        hi = -np.inf
+    return lo, hi
+
+
 @njit(cache=True)
 def sheet_segments(center, e1, e2, half, normal, fobj, two, plane, hs, viewer, source,
                    max_length, A_out, B_out, N_out, obj_out, two_out):
@@ -424,12 +454,7 @@ def sheet_segments(center, e1, e2, half, normal, fobj, two, plane, hs, viewer, s
         # |a0 + s da| <= half0, |b0 + s db| <= half1, then the half-spaces
         for g0, g1 in ((half[f, 0] - a0, -da), (half[f, 0] + a0, da),
                        (half[f, 1] - b0, -db), (half[f, 1] + b0, db)):
-            if g1 > 0:
-                lo = max(lo, -g0 / g1)
-            elif g1 < 0:
-                hi = min(hi, -g0 / g1)
-            elif g0 < 0:
-                hi = -np.inf
+            lo, hi = _clip_interval(lo, hi, g0, g1)
         px = center[f, 0] + a0 * e1[f, 0] + b0 * e2[f, 0]
         py = center[f, 1] + a0 * e1[f, 1] + b0 * e2[f, 1]
         pz = center[f, 2] + a0 * e1[f, 2] + b0 * e2[f, 2]
@@ -441,12 +466,7 @@ def sheet_segments(center, e1, e2, half, normal, fobj, two, plane, hs, viewer, s
             wx, wy, wz = hs[k, 1, 0], hs[k, 1, 1], hs[k, 1, 2]
             g0 = (px - qx) * wx + (py - qy) * wy + (pz - qz) * wz
             g1 = Dx * wx + Dy * wy + Dz * wz
-            if g1 > 0:
-                lo = max(lo, -g0 / g1)
-            elif g1 < 0:
-                hi = min(hi, -g0 / g1)
-            elif g0 < 0:
-                hi = -np.inf
+            lo, hi = _clip_interval(lo, hi, g0, g1)
         if not (hi > lo) or not math.isfinite(lo) or not math.isfinite(hi):
             continue
         A_out[m, 0], A_out[m, 1], A_out[m, 2] = px + lo * Dx, py + lo * Dy, pz + lo * Dz
@@ -520,18 +540,8 @@ def ambient_pixels(ptype, R, T, prm, pobj, cam, xy, foot_scale, center, albedo, 
     footprint angle [rad] used to anti-alias textures.
     """
     n = xy.shape[0]
-    ox = np.empty(n)
-    oy = np.empty(n)
-    oz = np.empty(n)
-    dx = np.empty(n)
-    dy = np.empty(n)
-    dz = np.empty(n)
-    soa_camera_rays(cam, np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]), ox,
-                    oy, oz, dx, dy, dz)
-    tb = np.empty(n)
-    pb = np.empty(n, np.int64)
-    ab = np.empty(n, np.int64)
-    soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab)
+    ox, oy, oz, dx, dy, dz, tb, pb, ab = _trace_closest(
+        ptype, R, T, prm, cam, np.ascontiguousarray(xy[:, 0]), np.ascontiguousarray(xy[:, 1]))
     for i in range(n):
         p = pb[i]
         if p < 0:
@@ -554,7 +564,11 @@ def ambient_pixels(ptype, R, T, prm, pobj, cam, xy, foot_scale, center, albedo, 
 # ---------------------------------------------------------------------------------------
 # Structure-of-arrays passes: one primitive at a time over all rays (vectorisable loops).
 # IEEE inf/NaN semantics are kept (no 'nnan'/'ninf' fast-math flags).
+# The helpers of these passes are inline='always': inlined into the Numba IR of the
+# kernels, they are compiled with the kernels' fast-math flags, exactly as if written out.
 _FM = {'nsz', 'arcp', 'contract', 'afn', 'reassoc'}
+#: ``ctr`` of :func:`_soa_local_ray` for no shift (x - 0.0 is x exactly; folded away).
+_NO_SHIFT = (0.0, 0.0, 0.0)
 
 
 @njit(cache=True, fastmath=_FM)
@@ -592,6 +606,50 @@ def soa_camera_rays(cam, xs, ys, ox, oy, oz, dx, dy, dz):
         dz[i] = w20 * ax + w21 * ay + w22 * az
 
 
+@njit(cache=True, inline='always')
+def _soa_frame(R, T, p):
+    """Pose of primitive p for the SoA passes: ``W_R_O`` as a row-major 9-tuple and
+    ``W_t_O`` as a 3-tuple (hoisted out of the ray loops)."""
+    rot = (R[p, 0, 0], R[p, 0, 1], R[p, 0, 2], R[p, 1, 0], R[p, 1, 1], R[p, 1, 2],
+           R[p, 2, 0], R[p, 2, 1], R[p, 2, 2])
+    return rot, (T[p, 0], T[p, 1], T[p, 2])
+
+
+@njit(cache=True, inline='always')
+def _soa_local_ray(rot, tr, ctr, ox, oy, oz, dx, dy, dz, i):
+    """Ray i of the arrays (o, d) in the primitive's frame (see :func:`_soa_frame`),
+    origin taken relative to the local point ``ctr``: (lx, ly, lz, ex, ey, ez) =
+    (R^T (o - t) - ctr, R^T d)."""
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = rot
+    tx, ty, tz = tr
+    cx, cy, cz = ctr
+    qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
+    lx = r00 * qx + r10 * qy + r20 * qz - cx
+    ly = r01 * qx + r11 * qy + r21 * qz - cy
+    lz = r02 * qx + r12 * qy + r22 * qz - cz
+    ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
+    ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
+    ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+    return lx, ly, lz, ex, ey, ez
+
+
+@njit(cache=True, inline='always')
+def _soa_slab_box(lx, ly, lz, ex, ey, ez, a0, a1, a2, b0, b1, b2):
+    """Slab test of the local ray l + t e with the box [a, b] (no component of e may be
+    zero): (t_in, t_out, axis of the entry face)."""
+    ix, iy, iz = 1.0 / ex, 1.0 / ey, 1.0 / ez
+    t1, t2 = (a0 - lx) * ix, (b0 - lx) * ix
+    nx_, fx_ = min(t1, t2), max(t1, t2)
+    t1, t2 = (a1 - ly) * iy, (b1 - ly) * iy
+    ny_, fy_ = min(t1, t2), max(t1, t2)
+    t1, t2 = (a2 - lz) * iz, (b2 - lz) * iz
+    nz_, fz_ = min(t1, t2), max(t1, t2)
+    tin = max(nx_, max(ny_, nz_))
+    tout = min(fx_, min(fy_, fz_))
+    ax = 0 if (nx_ >= ny_ and nx_ >= nz_) else (1 if ny_ >= nz_ else 2)
+    return tin, tout, ax
+
+
 @njit(cache=True, fastmath=_FM)
 def soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab):
     """Closest hits of rays (o, d) given as coordinate arrays; writes t (inf: none),
@@ -603,31 +661,14 @@ def soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab):
         ab[i] = 0
     for p in range(ptype.shape[0]):
         kind = ptype[p]
-        tx, ty, tz = T[p, 0], T[p, 1], T[p, 2]
-        r00, r01, r02 = R[p, 0, 0], R[p, 0, 1], R[p, 0, 2]
-        r10, r11, r12 = R[p, 1, 0], R[p, 1, 1], R[p, 1, 2]
-        r20, r21, r22 = R[p, 2, 0], R[p, 2, 1], R[p, 2, 2]
+        rot, tr = _soa_frame(R, T, p)
         a0, a1, a2 = prm[p, 0], prm[p, 1], prm[p, 2]
         b0, b1, b2 = prm[p, 3], prm[p, 4], prm[p, 5]
         if kind == BOX:
             for i in range(n):
-                qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
-                lx = r00 * qx + r10 * qy + r20 * qz
-                ly = r01 * qx + r11 * qy + r21 * qz
-                lz = r02 * qx + r12 * qy + r22 * qz
-                ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
-                ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
-                ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
-                ix, iy, iz = 1.0 / ex, 1.0 / ey, 1.0 / ez
-                t1, t2 = (a0 - lx) * ix, (b0 - lx) * ix
-                nx_, fx_ = min(t1, t2), max(t1, t2)
-                t1, t2 = (a1 - ly) * iy, (b1 - ly) * iy
-                ny_, fy_ = min(t1, t2), max(t1, t2)
-                t1, t2 = (a2 - lz) * iz, (b2 - lz) * iz
-                nz_, fz_ = min(t1, t2), max(t1, t2)
-                tin = max(nx_, max(ny_, nz_))
-                tout = min(fx_, min(fy_, fz_))
-                ax = 0 if (nx_ >= ny_ and nx_ >= nz_) else (1 if ny_ >= nz_ else 2)
+                lx, ly, lz, ex, ey, ez = _soa_local_ray(rot, tr, _NO_SHIFT, ox, oy, oz, dx, dy,
+                                                        dz, i)
+                tin, tout, ax = _soa_slab_box(lx, ly, lz, ex, ey, ez, a0, a1, a2, b0, b1, b2)
                 hit = (tin <= tout) and (tin > EPS) and (tin < tb[i])
                 tb[i] = tin if hit else tb[i]
                 pb[i] = p if hit else pb[i]
@@ -635,13 +676,8 @@ def soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab):
         elif kind == SPHERE:
             cx, cy, cz, r = a0, a1, a2, b0
             for i in range(n):
-                qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
-                lx = r00 * qx + r10 * qy + r20 * qz - cx
-                ly = r01 * qx + r11 * qy + r21 * qz - cy
-                lz = r02 * qx + r12 * qy + r22 * qz - cz
-                ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
-                ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
-                ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+                lx, ly, lz, ex, ey, ez = _soa_local_ray(rot, tr, (cx, cy, cz), ox, oy, oz, dx,
+                                                        dy, dz, i)
                 b = lx * ex + ly * ey + lz * ez
                 disc = b * b - (lx * lx + ly * ly + lz * lz - r * r)
                 t = -b - math.sqrt(max(disc, 0.0))
@@ -650,13 +686,8 @@ def soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab):
                 pb[i] = p if hit else pb[i]
         else:
             for i in range(n):
-                qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
-                lx = r00 * qx + r10 * qy + r20 * qz
-                ly = r01 * qx + r11 * qy + r21 * qz
-                lz = r02 * qx + r12 * qy + r22 * qz
-                ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
-                ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
-                ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+                lx, ly, lz, ex, ey, ez = _soa_local_ray(rot, tr, _NO_SHIFT, ox, oy, oz, dx, dy,
+                                                        dz, i)
                 t = -lz / ez
                 hit = ((t > EPS) and (t < tb[i]) and (abs(lx + t * ex) <= a0)
                        and (abs(ly + t * ey) <= a1))
@@ -672,30 +703,13 @@ def soa_blocked(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tmax, out):
         out[i] = False
     for p in range(ptype.shape[0]):
         kind = ptype[p]
-        tx, ty, tz = T[p, 0], T[p, 1], T[p, 2]
-        r00, r01, r02 = R[p, 0, 0], R[p, 0, 1], R[p, 0, 2]
-        r10, r11, r12 = R[p, 1, 0], R[p, 1, 1], R[p, 1, 2]
-        r20, r21, r22 = R[p, 2, 0], R[p, 2, 1], R[p, 2, 2]
+        rot, tr = _soa_frame(R, T, p)
         a0, a1, a2 = prm[p, 0], prm[p, 1], prm[p, 2]
         b0, b1, b2 = prm[p, 3], prm[p, 4], prm[p, 5]
         for i in range(n):
-            qx, qy, qz = ox[i] - tx, oy[i] - ty, oz[i] - tz
-            lx = r00 * qx + r10 * qy + r20 * qz
-            ly = r01 * qx + r11 * qy + r21 * qz
-            lz = r02 * qx + r12 * qy + r22 * qz
-            ex = r00 * dx[i] + r10 * dy[i] + r20 * dz[i]
-            ey = r01 * dx[i] + r11 * dy[i] + r21 * dz[i]
-            ez = r02 * dx[i] + r12 * dy[i] + r22 * dz[i]
+            lx, ly, lz, ex, ey, ez = _soa_local_ray(rot, tr, _NO_SHIFT, ox, oy, oz, dx, dy, dz, i)
             if kind == BOX:
-                ix, iy, iz = 1.0 / ex, 1.0 / ey, 1.0 / ez
-                t1, t2 = (a0 - lx) * ix, (b0 - lx) * ix
-                nx_, fx_ = min(t1, t2), max(t1, t2)
-                t1, t2 = (a1 - ly) * iy, (b1 - ly) * iy
-                ny_, fy_ = min(t1, t2), max(t1, t2)
-                t1, t2 = (a2 - lz) * iz, (b2 - lz) * iz
-                nz_, fz_ = min(t1, t2), max(t1, t2)
-                tin = max(nx_, max(ny_, nz_))
-                tout = min(fx_, min(fy_, fz_))
+                tin, tout, _ = _soa_slab_box(lx, ly, lz, ex, ey, ez, a0, a1, a2, b0, b1, b2)
                 hit = (tin <= tout) and (tout > EPS) and (tin < tmax[i])
             elif kind == SPHERE:
                 qx, qy, qz = lx - a0, ly - a1, lz - a2
@@ -708,6 +722,26 @@ def soa_blocked(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tmax, out):
                 hit = ((t > EPS) and (t < tmax[i]) and (abs(lx + t * ex) <= a0)
                        and (abs(ly + t * ey) <= a1))
             out[i] = out[i] or hit
+
+
+@njit(cache=True, inline='always')
+def _ray_arrays(n):
+    """Uninitialised coordinate arrays (x, y, z of origins, then of directions) of n rays."""
+    return np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+
+
+@njit(cache=True, inline='always')
+def _trace_closest(ptype, R, T, prm, cam, xs, ys):
+    """Pixel rays (x, y, 1) off the G1 mirrors (:func:`soa_camera_rays`) and their closest
+    hits (:func:`soa_closest`): (ox, oy, oz, dx, dy, dz, t, primitive, box axis), each (n,)."""
+    n = xs.shape[0]
+    ox, oy, oz, dx, dy, dz = _ray_arrays(n)
+    soa_camera_rays(cam, xs, ys, ox, oy, oz, dx, dy, dz)
+    tb = np.empty(n)
+    pb = np.empty(n, np.int64)
+    ab = np.empty(n, np.int64)
+    soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab)
+    return ox, oy, oz, dx, dy, dz, tb, pb, ab
 
 
 @njit(cache=True, inline='always')
@@ -729,20 +763,10 @@ def _hit_normal(ptype, R, T, prm, p, ax, px, py, pz, dx, dy, dz):
     return s * R[p, 0, 2], s * R[p, 1, 2], s * R[p, 2, 2]
 
 
-@njit(cache=True)
-def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, v0, half, sheet,
-                  sigma, scale, speckle, z, zoff, band, b0, foot_scale):
-    """Render the laser stripe into ``band`` (rows b0.. of the image), window by window.
-
-    Window j covers rows v0[j] - half[j] .. v0[j] + half[j] of column cols[j]. A pixel's
-    ray is traced off the G1 mirrors into the scene; its value is
-    ``scale * albedo * cos(incidence) / distance * exp(-delta^2 / 2 sigma^2)`` times the
-    speckle factor ``max(0, 1 + speckle * z)`` where the laser reaches the hit point (it
-    faces the fan's apex, lies inside the fan, and the segment to the last G2 mirror is
-    free), else the pixel is left alone. ``sheet`` packs: [0:4] centre plane, [4:7]
-    virtual apex, [7:10] and [10:13] inward edge normals, [13:17] last G2 mirror plane.
-    Returns the number of pixels drawn.
-    """
+@njit(cache=True, inline='always')
+def _window_pixels(grid, cols, v0, half):
+    """Pixels of the row windows (see :func:`laser_windows`), clipped to the image: their
+    rows and columns, and their normalised coordinates (x, y) from ``grid``, each (n,)."""
     H = grid.shape[0]
     n = 0
     for j in range(cols.shape[0]):
@@ -760,26 +784,20 @@ def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, 
     for i in range(n):
         xs[i] = grid[rows[i], cc[i], 0]
         ys[i] = grid[rows[i], cc[i], 1]
-    ox = np.empty(n)
-    oy = np.empty(n)
-    oz = np.empty(n)
-    dx = np.empty(n)
-    dy = np.empty(n)
-    dz = np.empty(n)
-    soa_camera_rays(cam, xs, ys, ox, oy, oz, dx, dy, dz)
-    tb = np.empty(n)
-    pb = np.empty(n, np.int64)
-    ab = np.empty(n, np.int64)
-    soa_closest(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab)
-    # lit candidates and their shadow segments towards the last G2 mirror
+    return rows, cc, xs, ys
+
+
+@njit(cache=True, inline='always')
+def _lit_candidates(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet, sigma,
+                    scale):
+    """Traced pixels whose hit point the laser may reach (within 5 sigma of the sheet,
+    facing the apex, inside the fan), with their shadow segments towards the last G2
+    mirror. Returns (m, pixel index, segment start x, y, z, unit direction x, y, z, length,
+    stripe value before speckle and albedo); the arrays are valid up to m."""
+    n = ox.shape[0]
     m = 0
     idx = np.empty(n, np.int64)
-    sx_ = np.empty(n)
-    sy_ = np.empty(n)
-    sz_ = np.empty(n)
-    ux_ = np.empty(n)
-    uy_ = np.empty(n)
-    uz_ = np.empty(n)
+    sx_, sy_, sz_, ux_, uy_, uz_ = _ray_arrays(n)
     tm_ = np.empty(n)
     val_ = np.empty(n)
     for i in range(n):
@@ -797,30 +815,29 @@ def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, 
         cos_i = (nx * sx + ny * sy + nzz * sz) / dist
         if cos_i <= 0.0:
             continue
-        if sx * sheet[7] + sy * sheet[8] + sz * sheet[9] > 0.0:
-            continue
-        if sx * sheet[10] + sy * sheet[11] + sz * sheet[12] > 0.0:
+        if not _inside_fan(sheet, sx, sy, sz):
             continue
         ux, uy, uz = sx / dist, sy / dist, sz / dist
-        den = ux * sheet[13] + uy * sheet[14] + uz * sheet[15]
-        tm = dist
-        if den != 0.0:
-            tmm = -(px * sheet[13] + py * sheet[14] + pz * sheet[15] + sheet[16]) / den
-            if 0.0 < tmm < dist:
-                tm = tmm
+        tm = _until_plane(px, py, pz, ux, uy, uz, dist, sheet[13], sheet[14], sheet[15],
+                          sheet[16])
         idx[m] = i
         sx_[m], sy_[m], sz_[m] = px, py, pz
         ux_[m], uy_[m], uz_[m] = ux, uy, uz
         tm_[m] = tm - EPS
         val_[m] = scale * cos_i / dist * math.exp(-0.5 * (delta / sigma) ** 2)
         m += 1
-    blocked = np.empty(m, np.bool_)
-    soa_blocked(ptype, R, T, prm, sx_[:m], sy_[:m], sz_[:m], ux_[:m], uy_[:m], uz_[:m],
-                tm_[:m], blocked)
+    return m, idx, sx_, sy_, sz_, ux_, uy_, uz_, tm_, val_
+
+
+@njit(cache=True, inline='always')
+def _draw_lit(pobj, albedo, tex, oR, oT, cam, pb, rows, cc, idx, px_, py_, pz_, val_,
+              blocked, speckle, z, zoff, band, b0, foot_scale):
+    """Write the unblocked candidates into ``band``: value times the speckle factor (draws
+    from ``z`` cyclically from ``zoff``) times the albedo at the point. Returns the count."""
     nz_ = z.shape[0]
     kz = zoff
     drawn = 0
-    for q in range(m):
+    for q in range(blocked.shape[0]):
         if blocked[q]:
             continue
         i = idx[q]
@@ -832,13 +849,38 @@ def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, 
         o = pobj[pb[i]]
         a = albedo[o]
         if tex[o, 0] != TEX_NONE:
-            px, py, pz = sx_[q], sy_[q], sz_[q]
+            px, py, pz = px_[q], py_[q], pz_[q]
             vx, vy, vz = px - cam[32], py - cam[33], pz - cam[34]
             foot = math.sqrt(vx * vx + vy * vy + vz * vz) * foot_scale
             a = albedo_at(tex, oR, oT, albedo, o, px, py, pz, foot)
         band[rows[i] - b0, cc[i]] = val * a
         drawn += 1
     return drawn
+
+
+@njit(cache=True)
+def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, v0, half, sheet,
+                  sigma, scale, speckle, z, zoff, band, b0, foot_scale):
+    """Render the laser stripe into ``band`` (rows b0.. of the image), window by window.
+
+    Window j covers rows v0[j] - half[j] .. v0[j] + half[j] of column cols[j]. A pixel's
+    ray is traced off the G1 mirrors into the scene; its value is
+    ``scale * albedo * cos(incidence) / distance * exp(-delta^2 / 2 sigma^2)`` times the
+    speckle factor ``max(0, 1 + speckle * z)`` where the laser reaches the hit point (it
+    faces the fan's apex, lies inside the fan, and the segment to the last G2 mirror is
+    free), else the pixel is left alone. ``sheet`` packs: [0:4] centre plane, [4:7]
+    virtual apex, [7:10] and [10:13] inward edge normals, [13:17] last G2 mirror plane.
+    Returns the number of pixels drawn.
+    """
+    rows, cc, xs, ys = _window_pixels(grid, cols, v0, half)
+    ox, oy, oz, dx, dy, dz, tb, pb, ab = _trace_closest(ptype, R, T, prm, cam, xs, ys)
+    m, idx, sx_, sy_, sz_, ux_, uy_, uz_, tm_, val_ = _lit_candidates(
+        ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet, sigma, scale)
+    blocked = np.empty(m, np.bool_)
+    soa_blocked(ptype, R, T, prm, sx_[:m], sy_[:m], sz_[:m], ux_[:m], uy_[:m], uz_[:m],
+                tm_[:m], blocked)
+    return _draw_lit(pobj, albedo, tex, oR, oT, cam, pb, rows, cc, idx, sx_, sy_, sz_, val_,
+                     blocked, speckle, z, zoff, band, b0, foot_scale)
 
 
 @njit(cache=True)

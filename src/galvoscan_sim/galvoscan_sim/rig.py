@@ -21,14 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from .camera import CameraModel
-from .config import (
-    ConfigError,
-    Section,
-    read_shipped_or_file,
-    read_yaml_text,
-    shipped_names,
-)
+from .config import ConfigError, Section
 from .galvo import Dac, GalvoHead, MirrorDrive
+from .readers import FileKind, as_rays, read_pose
 from .spatial import (
     invert_transform,
     make_transform,
@@ -40,6 +35,7 @@ from .spatial import (
 
 RIG_FORMAT_VERSION = 1
 RIG_DIR = Path(__file__).resolve().parent / 'rigs'
+RIG_FILES = FileKind(RIG_FORMAT_VERSION, RIG_DIR)
 
 #: Fixed factor of DESIGN.md: maps C to G before the mirrors, with l = 0 (added below).
 _M0_ROT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -271,12 +267,7 @@ def trace_off_planes(origins, directions, planes):
         Hit points on the last mirror, reflected directions, and whether every mirror was
         met in front of the ray (t > 0).
     """
-    o = np.asarray(origins, dtype=np.float64)
-    d = np.asarray(directions, dtype=np.float64)
-    if o.ndim != 2 or o.shape[1] != 3:
-        raise ValueError(f'origins: expected shape (n, 3), got {o.shape}')
-    if d.shape != o.shape:
-        raise ValueError(f'directions: expected shape {o.shape}, got {d.shape}')
+    o, d = as_rays(origins, directions)
     ok = np.ones(len(o), dtype=bool)
     for n, c in planes:
         dn = d @ n
@@ -478,12 +469,7 @@ class Rig:
 # ====================================================================== loading
 
 def _pose(sec: Section, name: str) -> np.ndarray:
-    p = sec.section(name)
-    t = p.vector('translation', 3, -20.0, 20.0, 'm',
-                 hint='metres expected, not millimetres')
-    r = p.vector('rotation_vector', 3, -4.0 * math.pi, 4.0 * math.pi, 'rad')
-    p.finish()
-    return make_transform(rotation_from_vector(r), t)
+    return read_pose(sec.section(name), 20.0)
 
 
 def _drive(sec: Section, name: str, imp: Section | None, full_scale: float) -> MirrorDrive:
@@ -511,17 +497,19 @@ def _mirror_imperfection(imp: Section, name: str):
     return s, offset, tilt
 
 
-def rig_from_dict(data: dict, source: str) -> Rig:
-    """Build a :class:`Rig` from a parsed rig file (see ``rigs/reference.yaml``).
+def _galvo_head(sec: Section, d: float, pan_imp, tilt_imp, full_scale: float) -> GalvoHead:
+    """Pan and tilt drives of a head section with their mirrors' imperfections (as read by
+    :func:`_mirror_imperfection`), pan axis to tilt axis ``d`` [m]."""
+    pan_s, pan_off, pan_tilt = pan_imp
+    tilt_s, tilt_off, tilt_tilt = tilt_imp
+    return GalvoHead.build(d, _drive(sec, 'pan', pan_s, full_scale),
+                           _drive(sec, 'tilt', tilt_s, full_scale), pan_off, pan_tilt,
+                           tilt_off, tilt_tilt)
 
-    Raises
-    ------
-    ConfigError
-        Naming ``source``, the key and what was expected.
-    """
-    top = Section(data, source)
-    name = top.header(RIG_FORMAT_VERSION)
 
+def _read_camera(top: Section) -> tuple[tuple, tuple]:
+    """The ``camera`` section: (the :class:`CameraModel` arguments before ``distortion``,
+    the :class:`ImageFormation` arguments up to ``black_level``)."""
     cam = top.section('camera')
     width = cam.integer('width', 16, 20000, 'px')
     height = cam.integer('height', 16, 20000, 'px')
@@ -537,12 +525,36 @@ def rig_from_dict(data: dict, source: str) -> Rig:
     bit_depth = cam.integer('bit_depth', 8, 8, 'bit')
     black_level = cam.number('black_level', 0.0, 64.0, 'DN')
     cam.finish()
+    return ((width, height, pixel_size, fx, fy, cx, cy),
+            (exposure, cal_exposure, full_well, bit_depth, black_level))
 
+
+def _read_dac(top: Section) -> Dac:
     dac_s = top.section('dac')
     dac = Dac(dac_s.integer('bits', 8, 24, 'bit'),
               dac_s.number('full_scale', 0.1, 100.0, 'V'))
     dac_s.finish()
+    return dac
 
+
+@dataclass
+class _Imperfections:
+    """The ``imperfections`` section of a rig file; ``section`` and the mirrors' sections
+    (``mirrors[key] = (section, surface offset, axis tilt)``) are finished later, once the
+    heads have read their drive errors from them."""
+
+    section: Section
+    distortion: np.ndarray
+    mount: np.ndarray
+    fan_roll: float
+    fan_offset: float
+    mirrors: dict
+    #: the ``image`` subsection as :class:`ImageFormation` takes it: shot noise, read
+    #: noise, speckle contrast, psf sigma, ambient light in laser frames
+    image: tuple
+
+
+def _read_imperfections(top: Section) -> _Imperfections:
     imp = top.section('imperfections')
     distortion = imp.vector('lens_distortion', 5, -50.0, 50.0, '(plumb_bob k1 k2 p1 p2 k3)')
     mount = imp.vector('camera_mount_rotation', 3, -0.05, 0.05, 'rad')
@@ -559,29 +571,32 @@ def rig_from_dict(data: dict, source: str) -> Rig:
     psf = img.number('psf_sigma', 0.0, 10.0, 'px')
     ambient_laser = img.boolean('ambient_in_laser_frames')
     img.finish()
+    return _Imperfections(imp, distortion, mount, fan_roll, fan_offset, mirrors,
+                          (shot, read_noise, speckle, psf, ambient_laser))
 
+
+def _read_heads(top: Section, imp: _Imperfections, dac: Dac):
+    """The ``g1`` and ``g2`` sections: (l, d, g1, G_T_G2, g2); finishes the mirrors'
+    imperfection sections."""
+    mirrors = imp.mirrors
     g1s = top.section('g1')
     l = g1s.number('l', 0.005, 1.0, 'm', hint='metres expected; 83.45 mm is 0.08345')
     d = g1s.number('d', 0.002, 0.5, 'm', hint='metres expected; 22.14 mm is 0.02214')
-    pan_s, pan_off, pan_tilt = mirrors['g1_pan']
-    tilt_s, tilt_off, tilt_tilt = mirrors['g1_tilt']
-    g1 = GalvoHead.build(d, _drive(g1s, 'pan', pan_s, dac.full_scale),
-                         _drive(g1s, 'tilt', tilt_s, dac.full_scale), pan_off, pan_tilt,
-                         tilt_off, tilt_tilt)
+    g1 = _galvo_head(g1s, d, mirrors['g1_pan'], mirrors['g1_tilt'], dac.full_scale)
     g1s.finish()
 
     g2s = top.section('g2')
     d2 = g2s.number('d', 0.002, 0.5, 'm', hint='metres expected, not millimetres')
     G_T_G2 = _pose(g2s, 'pose_in_g1')
-    p2_s, p2_off, p2_tilt = mirrors['g2_pan']
-    t2_s, t2_off, t2_tilt = mirrors['g2_tilt']
-    g2 = GalvoHead.build(d2, _drive(g2s, 'pan', p2_s, dac.full_scale),
-                         _drive(g2s, 'tilt', t2_s, dac.full_scale), p2_off, p2_tilt, t2_off,
-                         t2_tilt)
+    g2 = _galvo_head(g2s, d2, mirrors['g2_pan'], mirrors['g2_tilt'], dac.full_scale)
     g2s.finish()
     for s, _, _ in mirrors.values():
         s.finish()
+    return l, d, g1, G_T_G2, g2
 
+
+def _read_laser(top: Section, imp: _Imperfections) -> LaserSource:
+    """The ``laser`` section, with the fan's roll and offset imperfections applied."""
     las = top.section('laser')
     position = las.vector('source_position', 3, -1.0, 1.0, 'm',
                           hint='metres expected, not millimetres')
@@ -595,10 +610,14 @@ def rig_from_dict(data: dict, source: str) -> Rig:
     peak_rate = las.number('peak_rate', 0.0, 1e12, 'e-/s')
     ref_dist = las.number('reference_distance', 0.05, 20.0, 'm')
     las.finish()
-    rolled = rotation_about(direction, fan_roll) @ fan_normal
-    laser = LaserSource(position + fan_offset * fan_normal, direction, rolled, fan_angle,
-                        line_width / 4.0, peak_rate, ref_dist)
+    rolled = rotation_about(direction, imp.fan_roll) @ fan_normal
+    return LaserSource(position + imp.fan_offset * fan_normal, direction, rolled, fan_angle,
+                       line_width / 4.0, peak_rate, ref_dist)
 
+
+def _read_world_and_light(top: Section):
+    """The ``world`` and ``illumination`` sections: (W_T_G, the :class:`ImageFormation`
+    arguments from ``ambient_rate`` on)."""
     world = top.section('world')
     W_T_G = _pose(world, 'pose_g1')
     world.finish()
@@ -608,30 +627,57 @@ def rig_from_dict(data: dict, source: str) -> Rig:
     light_dir = unit(ill.vector('light_direction', 3, -1.0, 1.0, '(unit vector, world)'))
     directional = ill.number('directional_fraction', 0.0, 1.0, '(fraction)')
     ill.finish()
-    imp.finish()
-    top.finish()
+    return W_T_G, (ambient_rate, light_dir, directional)
 
-    image = ImageFormation(exposure, cal_exposure, full_well, bit_depth, black_level, shot,
-                           read_noise, speckle, psf, ambient_laser, ambient_rate, light_dir,
-                           directional)
-    camera = CameraModel(width, height, pixel_size, fx, fy, cx, cy, distortion)
-    M0 = make_transform(_M0_ROT, (-l, 0.0, 0.0))
-    G_T_C = M0 @ make_transform(rotation_from_vector(mount), np.zeros(3))
-    geometric = bool(
-        np.any(mount != 0.0) or fan_roll != 0.0 or fan_offset != 0.0
+
+def _is_geometric(imp: _Imperfections, g1: GalvoHead, g2: GalvoHead) -> bool:
+    """Whether any geometric imperfection (mount, fan, mirrors, drives) is non-zero."""
+    mirrors, mount = imp.mirrors, imp.mount
+    return bool(
+        np.any(mount != 0.0) or imp.fan_roll != 0.0 or imp.fan_offset != 0.0
         or any(off != 0.0 or np.any(tl != 0.0) for _, off, tl in mirrors.values())
         or any(dr.zero_offset != 0.0 or dr.gain_error != 0.0 or any(dr.nonlinearity)
                for dr in (g1.pan_drive, g1.tilt_drive, g2.pan_drive, g2.tilt_drive)))
-    imperf = {k: v for k, v in data.get('imperfections', {}).items()}
-    rig = Rig(name, source, camera, image, l, d, g1, g2, G_T_C, G_T_G2, laser, dac, W_T_G,
-              imperf, geometric)
-    # The laser must actually reach both G2 mirrors at the rest position.
+
+
+def _check_laser_reaches_g2(rig: Rig, source: str) -> None:
+    """The laser must actually reach both G2 mirrors at the rest position."""
     try:
         th = rig.mirror_angles(np.zeros(4))
         rig.laser_sheet_G(th[2], th[3])
     except ValueError as exc:
         raise ConfigError(source, 'laser', f'a laser that hits both G2 mirrors ({exc})') \
             from exc
+
+
+def rig_from_dict(data: dict, source: str) -> Rig:
+    """Build a :class:`Rig` from a parsed rig file (see ``rigs/reference.yaml``).
+
+    Raises
+    ------
+    ConfigError
+        Naming ``source``, the key and what was expected; also when the laser misses a
+        G2 mirror at the rest position.
+    """
+    top, name = RIG_FILES.open(data, source)
+    lens, sensor = _read_camera(top)
+    dac = _read_dac(top)
+    imp = _read_imperfections(top)
+    l, d, g1, G_T_G2, g2 = _read_heads(top, imp, dac)
+    laser = _read_laser(top, imp)
+    W_T_G, light = _read_world_and_light(top)
+    imp.section.finish()
+    top.finish()
+
+    image = ImageFormation(*sensor, *imp.image, *light)
+    camera = CameraModel(*lens, imp.distortion)
+    M0 = make_transform(_M0_ROT, (-l, 0.0, 0.0))
+    G_T_C = M0 @ make_transform(rotation_from_vector(imp.mount), np.zeros(3))
+    geometric = _is_geometric(imp, g1, g2)
+    imperf = {k: v for k, v in data.get('imperfections', {}).items()}
+    rig = Rig(name, source, camera, image, l, d, g1, g2, G_T_C, G_T_G2, laser, dac, W_T_G,
+              imperf, geometric)
+    _check_laser_reaches_g2(rig, source)
     return rig
 
 
@@ -648,14 +694,14 @@ def load_rig(name_or_path) -> Rig:
     ConfigError
         The file is missing, malformed, or has a missing/implausible/unknown key.
     """
-    return rig_from_dict(*read_shipped_or_file(name_or_path, RIG_DIR))
+    return rig_from_dict(*RIG_FILES.read(name_or_path))
 
 
 def load_rig_text(text: str, source: str = '<rig yaml>') -> Rig:
     """Load a rig from YAML text."""
-    return rig_from_dict(read_yaml_text(text, source), source)
+    return rig_from_dict(*RIG_FILES.read_text(text, source))
 
 
 def shipped_rigs() -> list[str]:
     """Names of the rig files shipped with the package."""
-    return shipped_names(RIG_DIR)
+    return RIG_FILES.shipped()

@@ -27,17 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from . import raykernels as rk
-from .config import (
-    ConfigError,
-    Section,
-    read_shipped_or_file,
-    read_yaml_text,
-    shipped_names,
-)
-from .spatial import invert_transform, make_transform, rotation_from_vector
+from .config import ConfigError, Section
+from .readers import MM_HINT, FileKind, as_rays, read_pose
+from .spatial import invert_transform
 
 SCENE_FORMAT_VERSION = 1
 SCENE_DIR = Path(__file__).resolve().parent / 'scenes'
+SCENE_FILES = FileKind(SCENE_FORMAT_VERSION, SCENE_DIR)
 OBJECT_TYPES = ('plane', 'box', 'stair_block', 'sphere', 'flat_plate', 'checkerboard',
                 'circle_board')
 #: Rays start this far [m] beyond their origin when testing for hits (self-intersection).
@@ -200,7 +196,9 @@ class Hits:
     points: np.ndarray
 
 
-def _box_hit(o, d, box: _Box):
+def _box_slabs(o, d, box: _Box):
+    """Slab test of rays (o, d) (n, 3) with the box: (t_in, t_out), each (n,), and the
+    per-axis entry parameters tn (n, 3)."""
     with np.errstate(divide='ignore', invalid='ignore'):
         inv = 1.0 / d
         t1 = (box.lo - o) * inv
@@ -209,6 +207,11 @@ def _box_hit(o, d, box: _Box):
     tf = np.maximum(t1, t2)
     t_in = np.maximum(np.maximum(tn[:, 0], tn[:, 1]), tn[:, 2])
     t_out = np.minimum(np.minimum(tf[:, 0], tf[:, 1]), tf[:, 2])
+    return t_in, t_out, tn
+
+
+def _box_hit(o, d, box: _Box):
+    t_in, t_out, tn = _box_slabs(o, d, box)
     hit = (t_in <= t_out) & (t_in > EPS)
     return np.where(hit, t_in, np.inf), tn
 
@@ -216,14 +219,7 @@ def _box_hit(o, d, box: _Box):
 def _box_blocks(o, d, box: _Box, t_max):
     """Segments that pass through the box's interior before t_max (a segment that starts
     on the box's surface and goes into it counts; one that leaves it does not)."""
-    with np.errstate(divide='ignore', invalid='ignore'):
-        inv = 1.0 / d
-        t1 = (box.lo - o) * inv
-        t2 = (box.hi - o) * inv
-    tn = np.minimum(t1, t2)
-    tf = np.maximum(t1, t2)
-    t_in = np.maximum(np.maximum(tn[:, 0], tn[:, 1]), tn[:, 2])
-    t_out = np.minimum(np.minimum(tf[:, 0], tf[:, 1]), tf[:, 2])
+    t_in, t_out, _ = _box_slabs(o, d, box)
     return (t_in <= t_out) & (t_out > EPS) & (t_in < t_max)
 
 
@@ -391,12 +387,7 @@ class Scene:
         directions : ndarray, shape (n, 3)
             Unit directions.
         """
-        o = np.asarray(origins, dtype=np.float64)
-        d = np.asarray(directions, dtype=np.float64)
-        if o.ndim != 2 or o.shape[1] != 3:
-            raise ValueError(f'origins: expected shape (n, 3), got {o.shape}')
-        if d.shape != o.shape:
-            raise ValueError(f'directions: expected shape {o.shape}, got {d.shape}')
+        o, d = as_rays(origins, directions)
         n = len(o)
         best = np.full(n, np.inf)
         obj = np.full(n, -1, dtype=int)
@@ -566,14 +557,10 @@ class Scene:
 # ====================================================================== loading
 
 def _pose(sec: Section) -> np.ndarray:
-    p = sec.section('pose')
-    t = p.vector('translation', 3, -50.0, 50.0, 'm', hint='metres expected, not millimetres')
-    r = p.vector('rotation_vector', 3, -4.0 * math.pi, 4.0 * math.pi, 'rad', default=[0, 0, 0])
-    p.finish()
-    return make_transform(rotation_from_vector(r), t)
+    return read_pose(sec.section('pose'), 50.0, default=[0, 0, 0])
 
 
-_MM = 'metres expected, not millimetres'
+_MM = MM_HINT
 
 
 def _object(sec: Section, index: int, names: set) -> SceneObject:
@@ -654,8 +641,7 @@ def scene_from_dict(data: dict, source: str) -> Scene:
     ConfigError
         Naming ``source``, the key and what was expected.
     """
-    top = Section(data, source)
-    name = top.header(SCENE_FORMAT_VERSION)
+    top, name = SCENE_FILES.open(data, source)
     items = top.raw('objects', 'a list of objects')
     if not isinstance(items, list) or not items:
         raise top.error('objects', 'a non-empty list of objects', items)
@@ -675,17 +661,17 @@ def load_scene(name_or_path) -> Scene:
     name_or_path : str or Path
         A shipped scene name (see :func:`shipped_scenes`) or a path to a YAML file.
     """
-    return scene_from_dict(*read_shipped_or_file(name_or_path, SCENE_DIR))
+    return scene_from_dict(*SCENE_FILES.read(name_or_path))
 
 
 def load_scene_text(text: str, source: str = '<scene yaml>') -> Scene:
     """Load a scene from YAML text (e.g. the SetScene service's ``scene_yaml``)."""
-    return scene_from_dict(read_yaml_text(text, source), source)
+    return scene_from_dict(*SCENE_FILES.read_text(text, source))
 
 
 def shipped_scenes() -> list[str]:
     """Names of the scene files shipped with the package."""
-    return shipped_names(SCENE_DIR)
+    return SCENE_FILES.shipped()
 
 
 __all__ = ['ConfigError', 'Hits', 'OBJECT_TYPES', 'Scene', 'SceneObject', 'load_scene',
