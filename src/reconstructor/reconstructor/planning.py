@@ -24,8 +24,15 @@ AIM_TOLERANCE = 1e-6
 
 
 def _off_axis(model: RigModel, u, point) -> np.ndarray:
-    """Where ``point`` (V0) lies off the optical axis of the view at G1 ``u``: (x/z, y/z)."""
-    q = rigid_inverse(v0_T_v(model, u[0], u[1])) @ np.append(point, 1.0)
+    """Where ``point`` (V0) lies off the optical axis of the view at G1 ``u``: (x/z, y/z).
+
+    The view's pose includes the model's joint correction, as triangulation and
+    ``predict_pixels`` apply it.
+    """
+    T = v0_T_v(model, u[0], u[1])
+    if model.correction is not None:
+        T = np.asarray(model.correction.V0c_T_V0(u[0], u[1]), dtype=np.float64) @ T
+    q = rigid_inverse(T) @ np.append(point, 1.0)
     return q[:2] / q[2] if q[2] > 0 else np.array([1e3, 1e3])
 
 

@@ -83,3 +83,29 @@ def test_where_newton_fails_the_bounded_search_still_aims(monkeypatch):
     expected = planning.aim_g1(model, p)
     monkeypatch.setattr(planning, '_newton_aim', lambda model, point, u: np.array([9.0, 9.0]))
     np.testing.assert_allclose(planning.aim_g1(model, p), expected, atol=1e-7)
+
+
+def test_the_aim_includes_the_joint_correction():
+    """With a correction table, the aimed target lands on the principal point as
+    ``predict_pixels`` (and triangulation) see the view: correction included."""
+    from scipy.spatial.transform import Rotation
+
+    from reconstructor.correction import CorrectionTable
+
+    pans, tilts = np.linspace(-10, 10, 5), np.linspace(-10, 10, 5)
+    T = np.tile(np.eye(4), (5, 5, 1, 1))
+    rng = np.random.default_rng(3)
+    for a in range(5):
+        for b in range(5):
+            T[a, b, :3, :3] = Rotation.from_rotvec(rng.normal(0, 2e-3, 3)).as_matrix()
+            T[a, b, :3, 3] = rng.normal(0, 5e-4, 3)
+    model = dataclasses.replace(nominal_example_rig(), correction=CorrectionTable(pans, tilts, T))
+    plain = dataclasses.replace(model, correction=None)
+    pp = np.array([model.intrinsics.cx, model.intrinsics.cy])
+    for p in _targets(7, 12):
+        u = planning.aim_g1(model, p)
+        if not np.all(np.isfinite(u)):
+            continue
+        uv, ok = predict_pixels(model, p[None], u[0], u[1])
+        assert ok[0] and np.abs(uv[0] - pp).max() < 0.02
+        assert np.abs(u - planning.aim_g1(plain, p)).max() > 1e-4  # the correction matters
