@@ -67,6 +67,19 @@ def _summary(file: Path, fh):
     return reader, summary
 
 
+def _channel_counts(file: Path, reader, summary) -> dict[int, int]:
+    """Messages per channel id: the statistics record, or counted where a file has none."""
+    if summary.statistics is not None:
+        return dict(summary.statistics.channel_message_counts)
+    counts: dict[int, int] = {}
+    try:
+        for _, channel, _ in reader.iter_messages(log_time_order=False):
+            counts[channel.id] = counts.get(channel.id, 0) + 1
+    except (McapError, EOFError, ValueError) as err:
+        raise BagReadError(f'{file}: {err}; {_recover_hint(file.parent)}') from None
+    return counts
+
+
 def _topic_type(channel, summary, meta: dict) -> str:
     schema = summary.schemas.get(channel.schema_id)
     if schema is not None and schema.name:
@@ -86,8 +99,8 @@ def read_topics(path: Path | str) -> list[TopicInfo]:
     infos: dict[str, TopicInfo] = {}
     for file in files:
         with open(file, 'rb') as fh:
-            _, summary = _summary(file, fh)
-            counts = summary.statistics.channel_message_counts if summary.statistics else {}
+            reader, summary = _summary(file, fh)
+            counts = _channel_counts(file, reader, summary)
             for cid, channel in summary.channels.items():
                 known = infos.get(channel.topic)
                 count = int(counts.get(cid, 0)) + (known.count if known else 0)
@@ -150,7 +163,7 @@ def read_messages(
     expected = sum(t.count for t in infos if t.topic in wanted)
     if not wanted:
         return
-    files, metadata = _files(path)
+    files, _ = _files(path)
     types = {t.topic: t.msgtype for t in infos}
     streams = [_file_messages(file, wanted, types) for file in files]
     n = 0

@@ -116,6 +116,11 @@ class BagRecorder(Node):
         self._flush_timer = self.create_timer(0.1, self._flush_if_due)
         self._discover()
 
+    def silent_topics(self) -> list[str]:
+        """The requested topics (resolved names) with no message recorded, sorted."""
+        counts = self.bag.counts
+        return sorted(t for t in self._wanted if not counts.get(t))
+
     @property
     def subscribed_topics(self) -> list[str]:
         """Topics with an active subscription."""
@@ -313,6 +318,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         status = 1
     finally:
         with signals_ignored():
+            silent = [] if node is None or args.all else node.silent_topics()
             if node is not None:
                 node.destroy_node()
             bag.close()
@@ -323,8 +329,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f'recorded {sum(counts.values())} messages to {bag.path}')
     for topic, count in sorted(counts.items()):
         print(f'  {topic}: {count}')
-    silent = sorted(t for t in (topics or []) if not counts.get(t if t.startswith('/')
-                                                              else '/' + t))
     if silent:
         print(f'galvoscan record: warning: no message on {", ".join(silent)} (no publisher, '
               'a misspelt name, or another ROS_DOMAIN_ID?)', file=sys.stderr)

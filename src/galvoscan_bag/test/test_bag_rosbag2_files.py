@@ -138,3 +138,20 @@ def test_a_file_whose_messages_do_not_come_out_is_an_error(tmp_path):
         writer.finish()
     with pytest.raises(BagReadError, match='read 1 messages'):
         list(read_messages(bag.with_suffix('.mcap')))
+
+
+def test_a_file_without_statistics_is_counted_by_reading_it(tmp_path):
+    """The Statistics record is optional in MCAP: without it, counts come from the messages."""
+    path = tmp_path / 'nostats.mcap'
+    with open(path, 'wb') as stream:
+        writer = McapFileWriter(stream, use_statistics=False)
+        writer.start(profile='ros2', library='test')
+        schema = writer.register_schema('std_msgs/msg/UInt32', 'ros2msg', b'uint32 data')
+        channel = writer.register_channel('/a', 'cdr', schema)
+        for i in range(7):
+            writer.add_message(channel, log_time=i, data=bytes([0, 1, 0, 0, i, 0, 0, 0]),
+                               publish_time=i)
+        writer.finish()
+    (info,) = read_topics(path)
+    assert info.count == 7
+    assert [m.log_time_ns for m in read_messages(path)] == list(range(7))
