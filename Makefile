@@ -11,15 +11,16 @@ PY := $(VENV)/bin/python
 STAMP_DEPS := $(VENV)/.stamp-deps
 STAMP_MSGS := $(VENV)/.stamp-msgs
 STAMP_SRC := $(VENV)/.stamp-src
+STAMP_APT := $(VENV)/.stamp-apt
 MSG_FILES := $(shell find msgs -type f 2>/dev/null)
 SRC_META := $(wildcard src/*/setup.py src/*/setup.cfg src/*/package.xml)
 DEMO_OUT ?= out
 PYTEST_ARGS ?=
 
-.PHONY: setup test lint pytest explore demo clean distclean
+.PHONY: setup test-deps test lint pytest explore demo clean distclean
 
 setup: $(STAMP_SRC)
-	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan' \
+	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan_view, galvoscan' \
 	  || { echo "[setup] the venv is broken: run 'make distclean' and try again"; exit 1; }
 
 $(STAMP_DEPS): requirements.txt constraints.txt tools/setup_venv.sh
@@ -34,11 +35,17 @@ $(STAMP_SRC): $(STAMP_MSGS) $(SRC_META)
 	tools/setup_venv.sh src
 	@touch $@
 
+$(STAMP_APT): tools/apt-packages.txt tools/setup_venv.sh | $(STAMP_DEPS)
+	tools/setup_venv.sh apt
+	@touch $@
+
+test-deps: setup $(STAMP_APT)
+
 lint: setup
 	$(VENV)/bin/ruff check .
 
 # pytest exits 5 when it collects no tests; that is a failure here, and says so.
-pytest: setup
+pytest: test-deps
 	@$(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "ERROR: pytest collected no tests"; fi; exit $$rc
 

@@ -19,7 +19,7 @@ SRC = Path(__file__).resolve().parents[1] / 'src'
 #: Layers, top to bottom: a package imports only packages of lower layers (and itself).
 LAYERS = (
     ('galvoscan',),
-    ('calibration_tools', 'galvo_driver'),
+    ('calibration_tools', 'galvo_driver', 'galvoscan_view'),
     ('reconstructor', 'stripe_extractor', 'galvoscan_sim', 'galvoscan_bag'),
     ('galvoscan_common',),
 )

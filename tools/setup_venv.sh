@@ -4,6 +4,7 @@
 #   tools/setup_venv.sh deps   create .venv, install pinned wheels (requirements.txt + constraints.txt)
 #   tools/setup_venv.sh msgs   build msgs/ (galvoscan_msgs) with cmake into the venv prefix
 #   tools/setup_venv.sh src    install the src/ packages into the venv (editable)
+#   tools/setup_venv.sh apt    install the Debian packages the tests need (tools/apt-packages.txt)
 #
 # The Makefile calls each step only when its inputs changed. Nothing outside the
 # repository is modified.
@@ -63,10 +64,29 @@ step_msgs() {
 step_src() {
   echo "[setup] installing src packages (editable)"
   local args=()
-  for p in galvoscan_common galvoscan_sim galvoscan_bag galvo_driver stripe_extractor reconstructor calibration_tools galvoscan; do
+  for p in galvoscan_common galvoscan_sim galvoscan_bag galvo_driver stripe_extractor reconstructor calibration_tools galvoscan_view galvoscan; do
     args+=(-e "src/$p")
   done
   "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation --use-pep517 "${args[@]}"
+}
+
+step_apt() {
+  local wanted=() missing=()
+  mapfile -t wanted < <(grep -vE '^\s*(#|$)' tools/apt-packages.txt)
+  for p in "${wanted[@]}"; do
+    dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")
+  done
+  [ ${#missing[@]} -eq 0 ] && return 0
+  echo "[setup] installing Debian packages: ${missing[*]}"
+  local sudo=()
+  if [ "$(id -u)" -ne 0 ]; then
+    command -v sudo >/dev/null || { echo "[setup] need root (or sudo) to install: ${missing[*]}"; exit 1; }
+    sudo=(sudo)
+  fi
+  export DEBIAN_FRONTEND=noninteractive
+  "${sudo[@]}" apt-get update -qq >/dev/null \
+    && "${sudo[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null \
+    || { echo "[setup] apt-get install ${missing[*]} failed"; exit 1; }
 }
 
 for s in "$@"; do "step_$s"; done
