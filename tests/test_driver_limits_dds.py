@@ -6,6 +6,7 @@ import time
 
 import pytest
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
 from galvoscan_msgs.srv import GetScanProgress, StartScan
 from rclpy.node import Node
 
@@ -63,6 +64,16 @@ def test_huge_scans_are_refused_and_the_next_completes(spawn, ros_env, tmp_path)
             assert time.monotonic() < deadline, p.message
             time.sleep(0.1)
         assert p.frames_done == 20 and p.frames_dropped == 0
+        # the driver's diagnostics count what it published; refusals are answers, not failures
+        diag = []
+        node.create_subscription(DiagnosticArray, 'diagnostics', diag.append, 10)
+        deadline = time.monotonic() + 10
+        while not diag and time.monotonic() < deadline:
+            ex.spin_once(timeout_sec=0.1)
+        values = {kv.key: kv.value for kv in diag[0].status[0].values}
+        assert diag[0].status[0].name == 'galvo_driver: galvo driver'
+        assert values['frames_published'] == '20' and values['scans'] == '1', values
+        assert values['callback_errors'] == '0' and values['scan/state'] == 'done', values
         assert proc.poll() is None
     finally:
         ex.shutdown()

@@ -8,6 +8,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from galvoscan_msgs.msg import StripeCenters
 from galvoscan_msgs.srv import LoadCalibration, SaveScan
 from rclpy.node import Node
@@ -161,6 +162,18 @@ def test_reconstructor_node(rig, tmp_path):
     while 'skipping frame: malformed_cdr' not in proc.log_path.read_text():
         assert time.monotonic() < deadline, proc.log_path.read_text()
         time.sleep(0.1)
+    # ... and counted in the node's diagnostics, which turn WARN
+    diag = []
+    node.create_subscription(DiagnosticArray, 'diagnostics', diag.append, 10)
+    r.spin_until(lambda: any(s.name == 'reconstructor: reconstruction' for m in diag
+                             for s in m.status), 10)
+    status = next(s for m in diag for s in m.status if s.name == 'reconstructor: reconstruction')
+    values = {kv.key: kv.value for kv in status.values}
+    assert status.level == DiagnosticStatus.WARN, values
+    assert values['frames'] == '3' and values['callback_errors'] == '0', values
+    for cause, n in (('array_length_mismatch', 1), ('nonfinite_voltage', 1),
+                     ('voltage_out_of_range', 1), ('malformed_cdr', 3)):
+        assert values[f'skipped/{cause}'] == str(n), values
 
     # the accumulated scan arrives on the latched topic, also for a late subscriber
     time.sleep(0.8)

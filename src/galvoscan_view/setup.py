@@ -15,7 +15,7 @@ setup(
     zip_safe=False,
     maintainer='galvoscan developers',
     maintainer_email='galvoscan-dev@example.com',
-    description='galvoscan view: a Foxglove WebSocket bridge and a browser page on the running graph',
+    description='galvoscan view: Foxglove WebSocket bridge and browser page on the graph',
     license='Apache-2.0',
     entry_points={'console_scripts': []},
 )

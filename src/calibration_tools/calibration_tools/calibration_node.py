@@ -44,6 +44,8 @@ from calibration_tools import stage_runner
 from calibration_tools.registry import plan
 from calibration_tools.stages import STAGES, apply_result
 from galvoscan_bag.writer import BagWriter
+from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subscription
+from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.executor import call_service
 from reconstructor import calibration_file
 
@@ -51,14 +53,17 @@ from reconstructor import calibration_file
 class _Capture(Node):
     """The node that talks to the driver and records, spun only while a capture runs."""
 
-    def __init__(self, context):
+    def __init__(self, context, errors: CallbackErrors):
         super().__init__('calibration_capture', context=context)
         self.writer = None
         self.frames = 0
         self.states = 0
         qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
-        self.create_subscription(Image, 'camera/image_raw', self._on_image, qos, raw=True)
-        self.create_subscription(GalvoState, 'galvo/state', self._on_state, qos, raw=True)
+        log = self.get_logger()
+        self.create_subscription(Image, 'camera/image_raw', guard_subscription(
+            'camera/image_raw', self._on_image, log, errors), qos, raw=True)
+        self.create_subscription(GalvoState, 'galvo/state', guard_subscription(
+            'galvo/state', self._on_state, log, errors), qos, raw=True)
         self.clients_ = {n: self.create_client(t, n) for n, t in (
             ('scan/start', StartScan), ('scan/progress', GetScanProgress),
             ('sim/set_scene', SetScene))}
@@ -89,12 +94,21 @@ class CalibrationNode(Node):
             description='reduced capture plans (tests)'))
         self._last_bags = {}
         self.calibration = self._initial()
-        self.create_service(CaptureCalibration, 'calibration/capture', self._on_capture)
-        self.create_service(ComputeCalibration, 'calibration/compute', self._on_compute)
-        self.create_service(LoadCalibration, 'calibration/load', self._on_load)
-        self.create_service(SaveCalibration, 'calibration/save', self._on_save)
+        self.callback_errors = CallbackErrors()
+        self.counters = {'captures': 0, 'computes': 0, 'frames_recorded': 0}
+        for srv_type, name, callback in (
+                (CaptureCalibration, 'calibration/capture', self._on_capture),
+                (ComputeCalibration, 'calibration/compute', self._on_compute),
+                (LoadCalibration, 'calibration/load', self._on_load),
+                (SaveCalibration, 'calibration/save', self._on_save)):
+            self.create_service(srv_type, name, guard_service(
+                name, callback, self.get_logger(), self.callback_errors))
+        publish_periodically(
+            self, 'calibration', lambda: self.counters, self.callback_errors,
+            message=lambda: ('calibration loaded' if self.calibration is not None
+                             else 'no calibration loaded'))
         self._cap_executor = SingleThreadedExecutor(context=self.context)
-        self._cap = _Capture(self.context)
+        self._cap = _Capture(self.context, self.callback_errors)
         self._cap_executor.add_node(self._cap)
 
     def _initial(self):
@@ -185,6 +199,8 @@ class CalibrationNode(Node):
             self.get_logger().error(resp.message)
             return resp
         self._last_bags[stage] = bags
+        self.counters['captures'] += 1
+        self.counters['frames_recorded'] += frames
         resp.success = frames > 0
         resp.bag_path, resp.frames_recorded = str(run_dir), frames
         resp.poses = len({s.pose_index for s in steps})
@@ -223,6 +239,7 @@ class CalibrationNode(Node):
             self.get_logger().error(resp.message)
             return resp
         self.calibration = new
+        self.counters['computes'] += 1
         resp.success = True
         resp.samples_used, resp.samples_rejected = result.samples_used, result.samples_rejected
         r = result.residuals

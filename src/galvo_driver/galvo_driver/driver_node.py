@@ -40,6 +40,7 @@ from galvo_driver import patterns
 from galvo_driver.backend import BackendError
 from galvoscan_common import cdr, intra
 from galvoscan_common.boundary import CallbackErrors, guard_service
+from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay')
@@ -110,6 +111,15 @@ class GalvoDriverNode(LifecycleNode):
                 (SetScene, 'sim/set_scene', self._on_set_scene)):
             self.create_service(srv_type, name, guard_service(
                 name, callback, self.get_logger(), self.callback_errors))
+        #: totals over the node's life (the scan's own counts are in self._scan)
+        self._totals = {'frames_published': 0, 'frames_dropped': 0, 'faults': 0}
+        publish_periodically(
+            self, 'galvo driver', self._counters, self.callback_errors,
+            message=lambda: (f"{self._scan['state']}"
+                             + (f" {self._scan['scan_id']}: {self._scan['done']}/"
+                                f"{self._scan['total']} frames" if self._scan['scan_id'] else '')
+                             + ('' if self.backend is not None else '; not configured')),
+            warn=('faults', 'frames_dropped'))
         if self.get_parameter('autostart').value:
             self.trigger_configure()
             if self.backend is not None:
@@ -200,7 +210,7 @@ class GalvoDriverNode(LifecycleNode):
         if self._timer is not None and self._poll_period == period:
             return
         self._stop_timer()
-        self._timer = self.create_timer(period, self._tick)
+        self._timer = self.create_timer(period, self._tick_boundary)
         self._poll_period = period
 
     def _close(self):
@@ -243,6 +253,22 @@ class GalvoDriverNode(LifecycleNode):
         info.header.frame_id = self.get_parameter('camera_frame_id').value
         return info
 
+    def _counters(self) -> dict:
+        return {**self._totals, 'scans': self._scan_count,
+                'backend': self.backend.name if self.backend is not None else '',
+                'scan': {k: self._scan[k] for k in ('state', 'done', 'total', 'dropped')}}
+
+    def _tick_boundary(self):
+        """The poll timer as a boundary: anything unexpected puts the galvos in safe state."""
+        try:
+            self._tick()
+        except Exception as exc:  # noqa: BLE001 - a node never dies; the rig goes safe
+            n = self.callback_errors.add('poll')
+            self._totals['faults'] += 1
+            self.get_logger().error(f'poll failed, going safe: {exc!r} (failure {n})')
+            self._scan['state'] = 'fault'
+            self.make_safe()
+
     def _tick(self):
         if self.backend is None:
             return
@@ -251,6 +277,7 @@ class GalvoDriverNode(LifecycleNode):
         except BackendError as exc:
             self.get_logger().error(f'backend fault, going safe: {exc}')
             self._scan['state'] = 'fault'
+            self._totals['faults'] += 1
             self.make_safe()
             return
         for frame in frames:
@@ -259,6 +286,7 @@ class GalvoDriverNode(LifecycleNode):
         if fault and self._scan['state'] == 'running':
             self.get_logger().error(f'backend fault, scan aborted in safe state: {fault}')
             self._scan['state'] = 'fault'
+            self._totals['faults'] += 1
             self.make_safe()
         if self._scan['state'] == 'running' and not self.backend.running:
             self._scan['state'] = 'done'
@@ -275,9 +303,11 @@ class GalvoDriverNode(LifecycleNode):
         if scan['last_seq'] is not None and frame.seq != scan['last_seq'] + 1:
             gap = frame.seq - scan['last_seq'] - 1
             scan['dropped'] += max(gap, 0)
+            self._totals['frames_dropped'] += max(gap, 0)
             self.get_logger().warning(f"sequence gap: {scan['last_seq']} -> {frame.seq}")
         scan['last_seq'] = frame.seq
         scan['done'] += 1
+        self._totals['frames_published'] += 1
         sec, nanosec = _stamp(frame)
         state = cdr.GalvoState(
             cdr.Header(sec, nanosec, self.get_parameter('output_frame_id').value),

@@ -77,15 +77,18 @@ def guard_service(name: str, callback: Callable[[Any, Any], Any], logger,
     return guarded
 
 
-def guard_subscription(name: str, callback: Callable[[Any], None], logger,
-                       errors: CallbackErrors) -> Callable[[Any], None]:
-    """``callback(message)`` that logs and counts a failure instead of raising."""
+def guard_subscription(name: str, callback: Callable[..., None], logger,
+                       errors: CallbackErrors) -> Callable[..., None]:
+    """``callback(message)`` (or a timer's ``callback()``) that logs and counts a failure.
 
-    def guarded(message) -> None:
+    What failed is skipped: the message is dropped, the timer fires again next period.
+    """
+
+    def guarded(*args) -> None:
         try:
-            callback(message)
+            callback(*args)
         except Exception as exc:  # noqa: BLE001 - the boundary: a bad message is skipped
             n = errors.add(name)
-            logger.error(f'{name}: message skipped: {_describe(exc)} (failure {n})')
+            logger.error(f'{name}: skipped: {_describe(exc)} (failure {n})')
 
     return guarded

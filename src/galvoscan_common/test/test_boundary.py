@@ -67,3 +67,29 @@ def test_interrupts_are_not_swallowed():
         pass
     else:
         raise AssertionError('KeyboardInterrupt was swallowed')
+
+
+def test_failures_show_in_the_diagnostics_status():
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    from galvoscan_common.diagnostics import status
+
+    errors = CallbackErrors()
+    counters = {'frames': 7, 'skipped': {'laser_off': 2, 'malformed_cdr': 0}}
+    ok = status('n: work', counters, errors, '7 frames', warn=('skipped/malformed_cdr',))
+    values = {kv.key: kv.value for kv in ok.values}
+    assert ok.level == DiagnosticStatus.OK and ok.message == '7 frames'
+    assert values == {'frames': '7', 'skipped/laser_off': '2', 'skipped/malformed_cdr': '0',
+                      'callback_errors': '0'}
+    counters['skipped']['malformed_cdr'] = 1
+    assert status('n: work', counters, errors, warn=('skipped/malformed_cdr',)).level == \
+        DiagnosticStatus.WARN
+
+    timer = guard_subscription('poll', lambda: 1 / 0, _Logger(), errors)
+    timer()
+    timer()
+    bad = status('n: work', {'frames': 7}, errors, '7 frames')
+    values = {kv.key: kv.value for kv in bad.values}
+    assert bad.level == DiagnosticStatus.WARN
+    assert values['callback_errors'] == '2' and values['callback_errors/poll'] == '2'
+    assert bad.message == '7 frames; 2 failed callbacks'

@@ -79,7 +79,7 @@ class ViewState:
     image: ImageView | None = None
     galvo: GalvoView | None = None
     transforms: dict = field(default_factory=dict)    # child frame -> TransformView
-    progress: dict = field(default_factory=dict)      # e.g. {'frames_done': 10, 'frames_total': 25}
+    progress: dict = field(default_factory=dict)      # e.g. {'frames_done': 10, ...}
     diagnostics: dict = field(default_factory=dict)   # status name -> {key: value (str)}
     counts: dict = field(default_factory=dict)        # messages received, by topic
 

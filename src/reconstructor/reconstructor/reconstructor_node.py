@@ -45,7 +45,8 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from galvoscan_common import cdr
-from galvoscan_common.boundary import CallbackErrors, guard_service
+from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subscription
+from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.executor import run_node
 from galvoscan_common.frame import VOLTAGE_LIMIT
 from reconstructor import calibration_file
@@ -103,9 +104,12 @@ class ReconstructorNode(Node):
         self._last_scan = None
         self._last_frame_time = None
         self._last_marker = 0.0
-        self.create_subscription(StripeCenters, 'stripe/centers', self._on_centers,
-                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE),
-                                 raw=True)
+        self.callback_errors = CallbackErrors()
+        log = self.get_logger()
+        self.create_subscription(
+            StripeCenters, 'stripe/centers',
+            guard_subscription('stripe/centers', self._on_centers, log, self.callback_errors),
+            QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE), raw=True)
         # a deep history: a reliable writer drops what a slow reader has not acknowledged
         # once KEEP_LAST overflows, and frames come at up to 1 kHz
         self._pub_points = self.create_publisher(
@@ -114,13 +118,21 @@ class ReconstructorNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._pub_scan = self.create_publisher(PointCloud2, 'points/scan', latched)
         self._pub_markers = self.create_publisher(MarkerArray, 'markers', 10)
-        self.callback_errors = CallbackErrors()
         for srv_type, name, callback in (
                 (LoadCalibration, 'reconstructor/reload_calibration', self._on_reload),
                 (SaveScan, 'reconstructor/save_scan', self._on_save)):
             self.create_service(srv_type, name, guard_service(
-                name, callback, self.get_logger(), self.callback_errors))
-        self.create_timer(0.05, self._check_scan_end)
+                name, callback, log, self.callback_errors))
+        self.create_timer(0.05, guard_subscription(
+            'scan_end_check', self._check_scan_end, log, self.callback_errors))
+        publish_periodically(
+            self, 'reconstruction', lambda: self.counters, self.callback_errors,
+            message=lambda: (f"{self.counters['frames']} frames, {self.counters['points']} "
+                             f"points, {self.counters['scans']} scans"
+                             + ('' if self.model is not None else '; no calibration loaded')),
+            warn=tuple(f'skipped/{c}' for c in (
+                'malformed_cdr', 'exception', 'array_length_mismatch', 'nonfinite_voltage',
+                'voltage_out_of_range')))
 
     # -- configuration ----------------------------------------------------------------
     def _on_set_parameters(self, params):

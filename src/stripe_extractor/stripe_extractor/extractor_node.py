@@ -52,7 +52,7 @@ from __future__ import annotations
 
 import time
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from galvoscan_msgs.msg import GalvoState, StripeCenters
 from rcl_interfaces.msg import (
     FloatingPointRange,
@@ -71,6 +71,8 @@ from rclpy.qos import (
 from sensor_msgs.msg import Image
 
 from galvoscan_common import cdr, intra
+from galvoscan_common.boundary import CallbackErrors, guard_subscription
+from galvoscan_common.diagnostics import status as diagnostic_status
 from galvoscan_common.executor import run_node
 
 from .config import (
@@ -122,6 +124,7 @@ class StripeExtractorNode(Node):
         self._config = self._config_from({})
         self._pairer = StampPairer(self.get_parameter('pairing_buffer_size').value)
         # written by the executor thread
+        self.callback_errors = CallbackErrors()
         self._counts = {'images_received': 0, 'states_received': 0, 'dropped_busy': 0,
                         'frames_offloaded': 0}
         self._counts.update({f'skipped_{c}': 0
@@ -145,7 +148,7 @@ class StripeExtractorNode(Node):
         self._start_extraction_thread(self.get_parameter('extraction_thread').value)
         self._subscribe_inputs()
         self._diag_timer = self.create_timer(
-            self.get_parameter('diagnostics_period').value, self.publish_diagnostics)
+            self.get_parameter('diagnostics_period').value, self._publish_diagnostics_guarded)
         self.get_logger().info(
             f'ready: {self._config}' + (' (images and states handed over in-process)'
                                         if self._bus_subs else ''))
@@ -233,20 +236,22 @@ class StripeExtractorNode(Node):
         burst of ``IMAGE_QUEUE_DEPTH`` frames.
         """
         self._bus, self._bus_subs = intra.bus_for(self.context), []
+        log = self.get_logger()
+        on_image = guard_subscription('camera/image_raw', self._on_image, log,
+                                      self.callback_errors)
+        on_state = guard_subscription('galvo/state', self._on_state, log, self.callback_errors)
         if self.get_parameter('intra_process').value:
             self._bus_subs = [
-                self._bus.subscribe(self.resolve_topic_name('camera/image_raw'),
-                                    self._on_image),
-                self._bus.subscribe(self.resolve_topic_name('galvo/state'), self._on_state)]
+                self._bus.subscribe(self.resolve_topic_name('camera/image_raw'), on_image),
+                self._bus.subscribe(self.resolve_topic_name('galvo/state'), on_state)]
         else:
             image_qos = QoSProfile(depth=IMAGE_QUEUE_DEPTH,
                                    reliability=qos_profile_sensor_data.reliability,
                                    durability=qos_profile_sensor_data.durability,
                                    history=HistoryPolicy.KEEP_LAST)
-            self.create_subscription(Image, 'camera/image_raw', self._on_image, image_qos,
-                                     raw=True)
+            self.create_subscription(Image, 'camera/image_raw', on_image, image_qos, raw=True)
             self.create_subscription(
-                GalvoState, 'galvo/state', self._on_state,
+                GalvoState, 'galvo/state', on_state,
                 QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT,
                            history=HistoryPolicy.KEEP_LAST), raw=True)
 
@@ -278,7 +283,7 @@ class StripeExtractorNode(Node):
             elif p.name == 'diagnostics_period':
                 self._diag_timer.cancel()
                 self.destroy_timer(self._diag_timer)
-                self._diag_timer = self.create_timer(p.value, self.publish_diagnostics)
+                self._diag_timer = self.create_timer(p.value, self._publish_diagnostics_guarded)
         self.get_logger().info(f'parameters now {self._config}')
 
     # ---- data path --------------------------------------------------------------------
@@ -388,17 +393,19 @@ class StripeExtractorNode(Node):
         c['skipped_total'] = sum(v for k, v in self._counts.items() if k.startswith('skipped_'))
         return c
 
+    def _publish_diagnostics_guarded(self) -> None:
+        guard_subscription('diagnostics', self.publish_diagnostics, self.get_logger(),
+                           self.callback_errors)()
+
     def publish_diagnostics(self) -> None:
         c = self.counters()
-        status = DiagnosticStatus()
-        status.name = f'{self.get_name()}: stripe extraction'
-        status.hardware_id = ''
         bad = c['skipped_total'] + c['extraction_errors'] + c['dropped_busy']
-        status.level = DiagnosticStatus.WARN if bad else DiagnosticStatus.OK
         mean_ms = 1e3 * self._extract_s / max(c['frames_extracted'], 1)
-        status.message = (f'{c["centers_published"]} published, {bad} frames skipped or '
-                          f'dropped, {mean_ms:.3f} ms mean extraction')
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in sorted(c.items())]
+        status = diagnostic_status(
+            f'{self.get_name()}: stripe extraction', c, self.callback_errors,
+            f'{c["centers_published"]} published, {bad} frames skipped or dropped, '
+            f'{mean_ms:.3f} ms mean extraction',
+            warn=('skipped_total', 'extraction_errors', 'dropped_busy'))
         status.values.append(KeyValue(key='extraction_ms_mean', value=f'{mean_ms:.4f}'))
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
