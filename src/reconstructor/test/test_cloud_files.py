@@ -85,3 +85,50 @@ def test_bad_input_is_refused_and_writes_nothing(tmp_path):
                       b'end_header\n1\n')
     with pytest.raises(ValueError, match='does not match'):
         load_cloud(other)
+
+
+def _pcl_tool(name):
+    """PCL's own converter (Debian pcl-tools, installed by `make test`)."""
+    import shutil
+
+    path = shutil.which(name)
+    assert path, f'{name} not found: Debian pcl-tools (make test installs it)'
+    return path
+
+
+def test_pcl_reads_our_pcd_and_writes_every_field_to_ply(tmp_path):
+    """PCL's pcl_pcd2ply loads our PCD with every field; its binary PLY holds them unchanged."""
+    import subprocess
+
+    cloud = _cloud()
+    save_cloud(cloud, tmp_path / 'ours.pcd')
+    out = subprocess.run([_pcl_tool('pcl_pcd2ply'), '-format', '1', '-use_camera', '0',
+                          str(tmp_path / 'ours.pcd'), str(tmp_path / 'pcl.ply')],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert 'Available dimensions: x y z intensity width' in out.stdout, out.stdout
+    vertex = PlyData.read(str(tmp_path / 'pcl.ply'))['vertex']
+    assert [p.name for p in vertex.properties] == list(CLOUD_DTYPE.names)
+    for name in CLOUD_DTYPE.names:
+        np.testing.assert_array_equal(vertex[name], cloud[name])
+
+
+@pytest.mark.parametrize('fmt', ['0', '1'])  # PCL's ascii and binary PCD
+def test_pcl_reads_our_ply_and_writes_every_field_to_pcd(tmp_path, fmt):
+    """PCL's pcl_ply2pcd loads our PLY with every field; pypcd4 reads them back from its PCD."""
+    import subprocess
+
+    cloud = _cloud()
+    save_cloud(cloud, tmp_path / 'ours.ply')
+    out = subprocess.run([_pcl_tool('pcl_ply2pcd'), '-format', fmt, str(tmp_path / 'ours.ply'),
+                          str(tmp_path / 'pcl.pcd')], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert 'Available dimensions: x y z intensity width' in out.stdout, out.stdout
+    pc = PointCloud.from_path(tmp_path / 'pcl.pcd')
+    assert tuple(pc.fields) == CLOUD_DTYPE.names and pc.points == len(cloud)
+    back = pc.numpy(CLOUD_DTYPE.names)
+    for i, name in enumerate(CLOUD_DTYPE.names):
+        if fmt == '1':
+            np.testing.assert_array_equal(back[:, i], cloud[name])
+        else:  # PCL prints 8 significant digits; float32 needs 9 to be exact
+            np.testing.assert_allclose(back[:, i], cloud[name], rtol=1e-7, atol=0)
