@@ -3,8 +3,9 @@
 Built on the ``mcap`` package's indexed reader, independent of the bag's metadata.yaml: a
 bag recorded by rosbag2 (Jazzy or older: schema names with or without ``/msg/``, any
 metadata version, several files, or no metadata.yaml at all) reads the same as our own,
-whatever QoS its metadata and its channels record. Chunk CRCs are checked where the writer
-stored them; a damaged chunk raises :class:`BagReadError` naming ``galvoscan bag-recover``,
+whatever QoS its metadata and its channels record. Chunk, data-section and summary CRCs
+are checked where the writer stored them (:mod:`.sections`); a mismatch raises
+:class:`BagReadError` naming ``galvoscan bag-recover``,
 which keeps every intact chunk (:mod:`.recover`). So does a file without its summary (a
 killed writer). A bag whose summary counts messages that the reader does not yield is an
 error, never a silently short result. No rclpy here.
@@ -23,6 +24,7 @@ from rosbags.interfaces import Qos
 from rosbags.typesys.store import Typestore
 
 from .bagdir import BagLayoutError, bag_files, message_type, metadata_topics, offered_qos
+from .sections import section_crc_errors
 from .typestore import default_typestore
 
 
@@ -149,8 +151,8 @@ def read_messages(
     ValueError
         A requested topic is not in the bag.
     BagReadError
-        Not an MCAP bag, a file without summary, a chunk whose CRC does not match, or fewer
-        messages than the files' statistics count.
+        Not an MCAP bag, a file without summary, a chunk, data-section or summary CRC that
+        does not match, or fewer messages than the files' statistics count.
     """
     infos = read_topics(path)
     if topics is not None:
@@ -175,7 +177,18 @@ def read_messages(
                            f'files count {expected}; {_recover_hint(path)}')
 
 
+def _check_sections(file: Path) -> None:
+    """The data-section and summary CRCs, where the writer stored them."""
+    try:
+        errors = section_crc_errors(file)
+    except ValueError as err:
+        raise BagReadError(f'{file}: {err}; {_recover_hint(file.parent)}') from None
+    if errors:
+        raise BagReadError(f'{file}: {"; ".join(errors)}; {_recover_hint(file.parent)}')
+
+
 def _file_messages(file: Path, wanted: set, types: dict) -> Iterator[BagMessage]:
+    _check_sections(file)
     with open(file, 'rb') as fh:
         reader, _ = _summary(file, fh)
         try:

@@ -33,6 +33,7 @@ from rosbags.rosbag2 import StoragePlugin
 from rosbags.typesys import Stores, get_types_from_idl, get_types_from_msg, get_typestore
 
 from .bagdir import BagLayoutError, bag_files, message_type, metadata_topics, offered_qos
+from .sections import section_crc_errors
 from .writer import _Writer
 
 
@@ -362,7 +363,13 @@ def recover_bag(source: Path | str, output: Path | str | None = None) -> Recover
         recovery = _Recovery(writer, report, metadata)
         complete = True
         for path in files:
-            complete = recovery.read_file(path) and complete
+            damaged_before = len(report.damaged)
+            whole = recovery.read_file(path)
+            if whole and len(report.damaged) == damaged_before:
+                # every chunk intact: a mismatch is outside them (schema, channel, index)
+                report.damaged += [f'{path.name}: {err} (outside every chunk; the chunks '
+                                   'recovered are intact)' for err in section_crc_errors(path)]
+            complete = whole and complete
         report.complete = complete and not report.damaged
     except BaseException:
         writer.abort()

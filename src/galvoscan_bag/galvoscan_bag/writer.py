@@ -47,6 +47,7 @@ from rosbags.rosbag2.storage_mcap import (
 )
 from rosbags.typesys.store import Typestore
 
+from .sections import write_section_crcs
 from .typestore import default_typestore
 
 #: A chunk is always closed above this many bytes (rosbags' value); chunk_size may only be lower.
@@ -63,8 +64,6 @@ _CHUNK_HEADER = struct.Struct('<BQQQQIIQ')  # opcode, length, start, end, size, 
 
 #: The ROS distribution the bags are written for (metadata.yaml ``ros_distro``).
 ROS_DISTRO = 'jazzy'
-_FOOTER_SIZE = 1 + 8 + 8 + 8 + 4  # opcode, length, summary start, summary offset start, crc
-_DATA_END_SIZE = 1 + 8 + 4  # opcode, length, data section crc
 
 
 class _CrcFile:
@@ -222,30 +221,7 @@ class _ZeroCopyMcapStorage(McapWriter):
         tracker = self.bio
         metadata = metadata.replace('ros_distro: rosbags', f'ros_distro: {ROS_DISTRO}')
         super().close(version, metadata)
-        _write_section_crcs(self.path, tracker)
-
-
-def _write_section_crcs(path: Path, tracker: _CrcFile) -> None:
-    """Fill in the DataEnd (data section) and Footer (summary) CRCs of a closed MCAP file.
-
-    The data-section CRC covers every byte before the DataEnd record (leading magic
-    included); the summary CRC covers the summary section and the footer up to its CRC.
-    """
-    with path.open('r+b') as f:
-        f.seek(-(8 + _FOOTER_SIZE), os.SEEK_END)
-        footer_start = f.tell()
-        footer = f.read(_FOOTER_SIZE)
-        opcode, _, summary_start, _ = struct.unpack_from('<BQQQ', footer)
-        data_end = summary_start - _DATA_END_SIZE
-        data_crc = tracker.crc_before(data_end)
-        if opcode != 0x02 or data_crc is None:
-            return  # not the layout this writer makes: leave the CRCs at 0 (none)
-        f.seek(data_end + 9)
-        f.write(struct.pack('<I', data_crc))
-        f.seek(summary_start)
-        summary = f.read(footer_start - summary_start) + footer[:_FOOTER_SIZE - 4]
-        f.seek(footer_start + _FOOTER_SIZE - 4)
-        f.write(struct.pack('<I', zlib.crc32(summary)))
+        write_section_crcs(self.path, tracker.crc_before)
 
 
 class _Writer(Writer):

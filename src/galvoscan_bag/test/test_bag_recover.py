@@ -403,3 +403,73 @@ def test_message_indexes_point_at_their_messages(tmp_path):
     assert checked == 12 + 4  # every message is indexed (images at i = 5, 7, 9, 11)
     got = [(m.topic, m.log_time_ns) for m in read_messages(tmp_path / 'ix')]
     assert len(got) == 16 and got[-1] == ('/galvo/state', 111)
+
+
+def _complete_bag(tmp_path, name='whole'):
+    bag = BagWriter(tmp_path / name, chunk_size=800, flush_interval=None).open()
+    bag.add_topic('/galvo/state', 'galvoscan_msgs/msg/GalvoState')
+    written = []
+    for i in range(25):
+        written.append(('/galvo/state', 5000 + i, cdr(galvo_state(i))))
+        bag.write('/galvo/state', written[-1][2], 5000 + i)
+    bag.close()
+    return next((tmp_path / name).glob('*.mcap')), written
+
+
+def test_section_crcs_catch_a_flip_outside_every_chunk(tmp_path):
+    """A flipped byte in the schema text (no chunk CRC covers it) fails the data-section CRC:
+    the reader refuses the file, recovery keeps every message and names the mismatch."""
+    from galvoscan_bag.reader import BagReadError
+    from galvoscan_bag.sections import read_tail, section_crc_errors
+
+    mcap, written = _complete_bag(tmp_path)
+    data = bytearray(mcap.read_bytes())
+    with open(mcap, 'rb') as fh:
+        tail = read_tail(fh)
+    assert tail.data_crc and tail.summary_crc  # our writer stores both
+    assert section_crc_errors(mcap) == []
+    at = data.index(b'float64 g1_pan_voltage')  # the first copy: the Schema record in data
+    assert at < tail.data_end
+    data[at + 2] ^= 0x01  # 'float64' -> 'flnat64'
+    mcap.write_bytes(bytes(data))
+    (errors,) = section_crc_errors(mcap)
+    assert 'data-section CRC' in errors and f'before offset {tail.data_end}' in errors
+    with pytest.raises(BagReadError, match='data-section CRC.*bag-recover'):
+        list(read_messages(mcap.parent))
+    report = recover_bag(mcap.parent, tmp_path / 'out')
+    assert report.messages == len(written) and report.chunks_damaged == 0
+    assert not report.complete and len(report.damaged) == 1
+    assert 'data-section CRC' in report.damaged[0] and 'outside every chunk' in report.damaged[0]
+
+
+def test_summary_crc_catches_a_flip_in_the_summary(tmp_path):
+    from galvoscan_bag.reader import BagReadError
+    from galvoscan_bag.sections import read_tail, section_crc_errors
+
+    mcap, _ = _complete_bag(tmp_path)
+    data = bytearray(mcap.read_bytes())
+    with open(mcap, 'rb') as fh:
+        tail = read_tail(fh)
+    at = data.index(b'float64 g1_pan_voltage', tail.summary_start)  # the summary's copy
+    data[at + 2] ^= 0x01
+    mcap.write_bytes(bytes(data))
+    assert [e.split(' ')[0] for e in section_crc_errors(mcap)] == ['summary']
+    with pytest.raises(BagReadError, match='summary CRC'):
+        list(read_messages(mcap.parent))
+
+
+def test_a_file_without_section_crcs_is_read(tmp_path):
+    """0 stored means 'not computed' (as many writers leave it): nothing to check."""
+    from galvoscan_bag.sections import read_tail, section_crc_errors
+
+    mcap, written = _complete_bag(tmp_path)
+    data = bytearray(mcap.read_bytes())
+    with open(mcap, 'rb') as fh:
+        tail = read_tail(fh)
+    data[tail.data_end + 9:tail.data_end + 13] = bytes(4)
+    data[-12:-8] = bytes(4)  # the footer's summary CRC, before the closing magic
+    mcap.write_bytes(bytes(data))
+    with open(mcap, 'rb') as fh:
+        assert read_tail(fh)[1::3] == (0, 0)
+    assert section_crc_errors(mcap) == []
+    assert [(m.topic, m.log_time_ns, m.data) for m in read_messages(mcap.parent)] == written

@@ -155,3 +155,17 @@ def test_a_file_without_statistics_is_counted_by_reading_it(tmp_path):
     (info,) = read_topics(path)
     assert info.count == 7
     assert [m.log_time_ns for m in read_messages(path)] == list(range(7))
+
+
+def test_our_summary_crc_agrees_with_the_mcap_cpp_writer_of_rosbag2():
+    """rosbag2's files store summary CRCs (no data-section CRC): ours must compute the same."""
+    from galvoscan_bag.sections import read_tail, section_crc_errors, summary_crc
+
+    files = sorted(DATA.rglob('*.mcap'))
+    assert len(files) >= 10
+    for file in files:
+        with open(file, 'rb') as fh:
+            tail = read_tail(fh)
+            assert tail.summary_crc != 0, file
+            assert summary_crc(fh, tail) == tail.summary_crc, file
+        assert section_crc_errors(file) == [], file
