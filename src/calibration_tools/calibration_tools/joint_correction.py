@@ -178,7 +178,8 @@ class JointCorrectionResult:
 
 
 # ----------------------------------------------------------------------------- reconstruction
-def reconstruct_nodes(views, model, *, extractor_config=None, min_points: int = 1):
+def reconstruct_nodes(views, model, *, extractor_config=None, min_points: int = 1,
+                      use_correction: bool = False):
     """Extract and triangulate laser-on views, grouped into nodes (pose, G1 voltages).
 
     Parameters
@@ -186,7 +187,8 @@ def reconstruct_nodes(views, model, *, extractor_config=None, min_points: int = 
     views : list of CaptureView
         Laser-off views are ignored.
     model : reconstructor.model.RigModel
-        Used without its joint correction (the correction is what is being measured).
+        Used without its joint correction (the correction is what is being measured),
+        unless ``use_correction``.
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
     min_points : int
         Views with fewer triangulated points contribute nothing (logged).
@@ -201,7 +203,7 @@ def reconstruct_nodes(views, model, *, extractor_config=None, min_points: int = 
 
     if not isinstance(views, (list, tuple)):
         raise ValueError(f'views must be a list of CaptureView, got {type(views).__name__}')
-    plain = dataclasses.replace(model, correction=None)
+    plain = model if use_correction else dataclasses.replace(model, correction=None)
     groups: dict[tuple, NodeCloud] = {}
     for i, view in enumerate(views):
         volts = view_voltages(i, view)
