@@ -8,6 +8,8 @@
     galvoscan calibrate STAGE ...
     galvoscan evaluate [--rig FILE] [--seed N] [--quick] [--out DIR]
     galvoscan demo [--out DIR]  (evaluate on the reference rig; what `make demo` runs)
+    galvoscan view [--ws-port 8765] [--http-port 8080] [--host 0.0.0.0] [--no-browser-page]
+                                (Foxglove WebSocket and a browser page on the running graph)
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ DELEGATED = {
     'calibrate': 'galvoscan.offline:main',
     'scan': 'galvoscan.scan_client:main',
     'evaluate': 'galvoscan.evaluate:main',
+    'view': 'galvoscan_view.view_node:main',
 }
 
 

@@ -337,6 +337,57 @@ BAD_IMAGE_CAUSES = ('unsupported_encoding', 'zero_size', 'step_too_small', 'data
                     'too_small', 'malformed_cdr')
 
 
+#: numpy type code (no byte order) of each sensor_msgs/PointField datatype.
+_POINT_FIELD_CODES = {code: dt.str[1:] for dt, code in POINT_FIELD_TYPES.items()}
+
+
+def parse_point_cloud(data) -> tuple[Header, np.ndarray]:
+    """A serialised sensor_msgs/PointCloud2 as its header and a structured array of points.
+
+    Each PointField becomes a field of the array's dtype at its offset (a sub-array when its
+    ``count`` > 1), in the cloud's byte order; the array is a read-only view of ``data``
+    (a copy when rows are padded), of shape (height * width,).
+
+    Raises
+    ------
+    CdrError
+        Not a well-formed PointCloud2, or fields / sizes that do not describe its data.
+    """
+    r = Reader(data)
+    header = read_header(r)
+    height, width = r.unpack('II', 4, 'height and width')
+    fields = []
+    for i in range(r.u32('fields')):
+        name = r.string(f'fields[{i}].name')
+        offset = r.u32(f'fields[{i}].offset')
+        code = _POINT_FIELD_CODES.get(r.u8(f'fields[{i}].datatype'))
+        count = r.u32(f'fields[{i}].count')
+        if code is None or count == 0:
+            raise CdrError(f'fields[{i}] ({name}): bad datatype or count {count}')
+        fields.append((name, code, offset, count))
+    big = r.u8('is_bigendian')
+    point_step, row_step = r.unpack('II', 4, 'point_step and row_step')
+    raw = r.octets('data')
+    r.u8('is_dense')
+    r.done('PointCloud2')
+    order = '>' if big else '<'
+    try:
+        dtype = np.dtype({'names': [f[0] for f in fields],
+                          'formats': [(order + f[1], (f[3],)) if f[3] > 1 else order + f[1]
+                                      for f in fields],
+                          'offsets': [f[2] for f in fields], 'itemsize': point_step})
+    except (ValueError, TypeError) as exc:
+        raise CdrError(f'PointCloud2 fields do not fit point_step {point_step}: {exc}') \
+            from None
+    if row_step < width * point_step or len(raw) != row_step * height:
+        raise CdrError(f'PointCloud2: {len(raw)} data bytes for {height} rows of '
+                           f'row_step {row_step}, width {width} x point_step {point_step}')
+    if row_step == width * point_step:
+        return header, np.frombuffer(raw, dtype, count=width * height)
+    rows = np.frombuffer(raw, np.uint8).reshape(height, row_step)[:, :width * point_step]
+    return header, np.ascontiguousarray(rows).view(dtype).reshape(-1)
+
+
 class BadImageError(ValueError):
     """The message cannot be read as an image; ``cause`` is one of :data:`BAD_IMAGE_CAUSES`."""
 
