@@ -454,8 +454,12 @@ def main(argv=None) -> int:
     state, page = ViewState(), None
     try:
         if not args.no_browser_page:
-            from galvoscan_view.web import serve_page
-
+            try:
+                from galvoscan_view.web import serve_page
+            except ImportError as exc:
+                print(f'galvoscan view: the browser page is not part of this install ({exc}); '
+                      'run with --no-browser-page for Foxglove only', file=sys.stderr)
+                return 2
             try:
                 page = serve_page(state, args.host, args.http_port)
             except OSError as exc:
