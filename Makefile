@@ -12,15 +12,18 @@ STAMP_DEPS := $(VENV)/.stamp-deps
 STAMP_MSGS := $(VENV)/.stamp-msgs
 STAMP_SRC := $(VENV)/.stamp-src
 STAMP_APT := $(VENV)/.stamp-apt
-MSG_FILES := $(shell find msgs -type f 2>/dev/null)
+# three.js vendored for the view page; the stamp sits beside the files, so removing them redoes it
+WEB := src/galvoscan_view/web
+STAMP_WEB := src/galvoscan_view/galvoscan_view/static/vendor/.stamp-web
+MSG_FILES := $(shell find msgs msgs_vendor -type f 2>/dev/null)
 SRC_META := $(wildcard src/*/setup.py src/*/setup.cfg src/*/package.xml)
 DEMO_OUT ?= out
 PYTEST_ARGS ?=
 
 .PHONY: setup test-deps test lint pytest explore demo clean distclean
 
-setup: $(STAMP_SRC)
-	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan_view, galvoscan' \
+setup: $(STAMP_SRC) $(STAMP_WEB)
+	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, tf2_msgs.msg, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan_view, galvoscan' \
 	  || { echo "[setup] the venv is broken: run 'make distclean' and try again"; exit 1; }
 
 $(STAMP_DEPS): requirements.txt constraints.txt tools/setup_venv.sh
@@ -33,6 +36,10 @@ $(STAMP_MSGS): $(STAMP_DEPS) $(MSG_FILES)
 
 $(STAMP_SRC): $(STAMP_MSGS) $(SRC_META)
 	tools/setup_venv.sh src
+	@touch $@
+
+$(STAMP_WEB): $(WEB)/package.json $(WEB)/package-lock.json tools/setup_venv.sh
+	tools/setup_venv.sh web
 	@touch $@
 
 $(STAMP_APT): tools/apt-packages.txt tools/setup_venv.sh | $(STAMP_DEPS)

@@ -2,9 +2,10 @@
 # Set up .venv for galvoscan without a system ROS install.
 #
 #   tools/setup_venv.sh deps   create .venv, install pinned wheels (requirements.txt + constraints.txt)
-#   tools/setup_venv.sh msgs   build msgs/ (galvoscan_msgs) with cmake into the venv prefix
+#   tools/setup_venv.sh msgs   build msgs_vendor/tf2_msgs and msgs/ (galvoscan_msgs) with cmake into the venv prefix
 #   tools/setup_venv.sh src    install the src/ packages into the venv (editable)
 #   tools/setup_venv.sh apt    install the Debian packages the tests need (tools/apt-packages.txt)
+#   tools/setup_venv.sh web    vendor three.js (npm, src/galvoscan_view/web) into the view page's static/vendor
 #
 # The Makefile calls each step only when its inputs changed. Nothing outside the
 # repository is modified.
@@ -42,23 +43,28 @@ step_msgs() {
     sed -i -e "s#/opt/python/cp311-cp311/lib/python3.11/site-packages/numpy/_core/include#$npinc#g" \
            -e "s#/opt/python/cp311-cp311/include/python3.11#$pyinc#g" "$f"
   done
-  local build=$ROOT/build/msgs
-  rm -rf "$build"
-  mkdir -p "$build"
-  echo "[setup] building galvoscan_msgs"
-  (
-    cd "$build"
-    export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
-    # The generators run with the venv's python and must find its site-packages.
-    export PATH=$VENV/bin:$PATH
-    cmake "$ROOT/msgs" -DCMAKE_INSTALL_PREFIX="$VENV" -DPython3_EXECUTABLE="$PY" \
-          -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >cmake.log 2>&1 \
-      || { tail -40 cmake.log; echo "[setup] cmake configure of msgs failed (log: $build/cmake.log)"; exit 1; }
-    make -j"$(nproc)" install >make.log 2>&1 \
-      || { tail -40 make.log; echo "[setup] build of msgs failed (log: $build/make.log)"; exit 1; }
-  )
-  (cd /tmp && env -u AMENT_PREFIX_PATH "$PY" -c 'import galvoscan_msgs.msg, galvoscan_msgs.srv')
-  echo "[setup] galvoscan_msgs installed into .venv"
+  # tf2_msgs (msgs_vendor/, upstream's interface files; no PyPI wheel has it), then ours.
+  local src name build
+  for src in msgs_vendor/tf2_msgs msgs; do
+    name=$(sed -n 's#.*<name>\(.*\)</name>.*#\1#p' "$src/package.xml")
+    build=$ROOT/build/$src
+    rm -rf "$build"
+    mkdir -p "$build"
+    echo "[setup] building $name"
+    (
+      cd "$build"
+      export AMENT_PREFIX_PATH=$VENV CMAKE_PREFIX_PATH=$VENV
+      # The generators run with the venv's python and must find its site-packages.
+      export PATH=$VENV/bin:$PATH
+      cmake "$ROOT/$src" -DCMAKE_INSTALL_PREFIX="$VENV" -DPython3_EXECUTABLE="$PY" \
+            -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release >cmake.log 2>&1 \
+        || { tail -40 cmake.log; echo "[setup] cmake configure of $src failed (log: $build/cmake.log)"; exit 1; }
+      make -j"$(nproc)" install >make.log 2>&1 \
+        || { tail -40 make.log; echo "[setup] build of $src failed (log: $build/make.log)"; exit 1; }
+    )
+  done
+  (cd /tmp && env -u AMENT_PREFIX_PATH "$PY" -c 'import galvoscan_msgs.msg, galvoscan_msgs.srv, tf2_msgs.msg, tf2_msgs.srv, tf2_msgs.action')
+  echo "[setup] galvoscan_msgs and tf2_msgs installed into .venv"
 }
 
 step_src() {
@@ -87,6 +93,31 @@ step_apt() {
   "${sudo[@]}" apt-get update -qq >/dev/null \
     && "${sudo[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null \
     || { echo "[setup] apt-get install ${missing[*]} failed"; exit 1; }
+}
+
+step_web() {
+  # three.js for the browser page of galvoscan view, at the exact version of
+  # src/galvoscan_view/web/package-lock.json, copied into the package's static/vendor:
+  # the page loads nothing from the internet at run time.
+  local web=src/galvoscan_view/web vendor=src/galvoscan_view/galvoscan_view/static/vendor
+  command -v npm >/dev/null \
+    || { echo "[setup] npm (Node.js) is needed to vendor three.js for the view page"; exit 1; }
+  echo "[setup] vendoring three.js for the view page (npm ci)"
+  (cd "$web" && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error) \
+    || { echo "[setup] npm ci in $web failed"; exit 1; }
+  local three=$web/node_modules/three
+  rm -rf "$vendor"
+  mkdir -p "$vendor"
+  cp "$three/build/three.module.js" "$three/build/three.core.js" "$vendor/"
+  cp "$three/LICENSE" "$vendor/three.LICENSE"
+  # OrbitControls imports the bare name 'three', which a browser resolves only through an
+  # import map (an inline script, which the page's Content-Security-Policy forbids): point
+  # it at the file beside it instead.
+  sed "s#from 'three';#from './three.module.js';#" \
+    "$three/examples/jsm/controls/OrbitControls.js" >"$vendor/OrbitControls.js"
+  if grep -q "from 'three'" "$vendor/OrbitControls.js"; then
+    echo "[setup] OrbitControls.js still imports 'three' by name"; exit 1
+  fi
 }
 
 for s in "$@"; do "step_$s"; done

@@ -10,7 +10,7 @@ setup(
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
     ],
-    package_data={package_name: ['fastdds_profile.xml']},
+    package_data={package_name: ['fastdds_profile.xml', 'fastdds_multihost.xml']},
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='galvoscan developers',

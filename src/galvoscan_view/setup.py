@@ -11,6 +11,9 @@ setup(
         ('share/' + package_name, ['package.xml']),
     ],
     include_package_data=True,
+    # the browser page; static/vendor holds three.js, put there by `make setup` (npm)
+    package_data={package_name: ['static/*.html', 'static/*.js', 'static/*.css', 'static/*.svg',
+                                 'static/vendor/*.js', 'static/vendor/*.LICENSE']},
     install_requires=['setuptools'],
     zip_safe=False,
     maintainer='galvoscan developers',

@@ -21,6 +21,8 @@ starts (glibc, OpenBLAS and Fast DDS read them at start-up); :func:`tune_this_pr
 applies the malloc part to the running process with ``mallopt`` and sets the Fast DDS
 profile for participants it creates later (call it before ``rclpy.init``). Both leave
 settings the user already made alone, and the profile is only used with Fast DDS.
+``GALVOSCAN_DDS=multihost`` selects ``fastdds_multihost.xml`` instead, for a graph spread
+over hosts (UDP only; see that file).
 """
 
 from __future__ import annotations
@@ -49,6 +51,10 @@ ENV = {
 
 #: Fast DDS participant profile with a shared-memory segment that holds many images.
 FASTDDS_PROFILE = Path(__file__).with_name('fastdds_profile.xml')
+#: Profile for a graph spread over hosts: UDPv4 only, socket buffers for images (its comments).
+FASTDDS_MULTIHOST_PROFILE = Path(__file__).with_name('fastdds_multihost.xml')
+#: ``GALVOSCAN_DDS`` value -> the profile it selects; unset or empty is ``local``.
+FASTDDS_PROFILES = {'local': FASTDDS_PROFILE, 'multihost': FASTDDS_MULTIHOST_PROFILE}
 #: Where Fast DDS looks for a default profile: 2.x (ROS 2 Jazzy ships 2.14) reads only
 #: ``FASTRTPS_DEFAULT_PROFILES_FILE``, 3.x only ``FASTDDS_DEFAULT_PROFILES_FILE``.
 PROFILE_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
@@ -73,12 +79,35 @@ def child_env(env: dict | None = None) -> dict:
     return out
 
 
+def fastdds_profile(env) -> Path:
+    """The galvoscan Fast DDS profile that ``env``'s ``GALVOSCAN_DDS`` selects.
+
+    ``local`` (the default) is :data:`FASTDDS_PROFILE`; ``multihost`` is
+    :data:`FASTDDS_MULTIHOST_PROFILE`, which needs discovery beyond this host.
+
+    Raises
+    ------
+    ValueError
+        An unknown ``GALVOSCAN_DDS``, or ``multihost`` with discovery kept on localhost.
+    """
+    choice = env.get('GALVOSCAN_DDS') or 'local'
+    if choice not in FASTDDS_PROFILES:
+        raise ValueError(f'GALVOSCAN_DDS={choice!r}: expected one of '
+                         f"{', '.join(FASTDDS_PROFILES)}")
+    if choice == 'multihost' and (env.get('ROS_AUTOMATIC_DISCOVERY_RANGE') == 'LOCALHOST'
+                                  or env.get('ROS_LOCALHOST_ONLY') == '1'):
+        raise ValueError('GALVOSCAN_DDS=multihost needs ROS_AUTOMATIC_DISCOVERY_RANGE=SUBNET '
+                         '(discovery is kept on localhost, and shared memory added back)')
+    return FASTDDS_PROFILES[choice]
+
+
 def _add_fastdds_profile(env) -> None:
-    """Point Fast DDS at :data:`FASTDDS_PROFILE` unless a profile or another RMW is chosen."""
+    """Point Fast DDS at :func:`fastdds_profile` unless a profile or another RMW is chosen."""
     rmw = env.get('RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp')
     if rmw.startswith('rmw_fastrtps') and not any(env.get(k) for k in PROFILE_VARS):
+        profile = fastdds_profile(env)
         for key in PROFILE_VARS:
-            env[key] = str(FASTDDS_PROFILE)
+            env[key] = str(profile)
 
 
 def tune_this_process() -> bool:

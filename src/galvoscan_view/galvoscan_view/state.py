@@ -82,6 +82,7 @@ class ViewState:
     progress: dict = field(default_factory=dict)      # e.g. {'frames_done': 10, ...}
     diagnostics: dict = field(default_factory=dict)   # status name -> {key: value (str)}
     counts: dict = field(default_factory=dict)        # messages received, by topic
+    reference: CloudView | None = None  # the cloud the page measures the live cloud against
 
     def _bump(self, key: str) -> None:
         # caller holds the lock
@@ -142,10 +143,16 @@ class ViewState:
             self.diagnostics[name] = dict(values)
             self._bump('diagnostics')
 
+    def set_reference(self, reference: CloudView | None) -> None:
+        """Set (or clear, with ``None``) the reference cloud the page colours errors against."""
+        with self._lock:
+            self.reference = reference
+            self._bump('reference')
+
     def snapshot(self) -> dict:
         """A consistent shallow copy of every entry (arrays are not copied: never mutate them)."""
         with self._lock:
             return {'version': self._version, 'cloud': self.cloud, 'image': self.image,
                     'galvo': self.galvo, 'transforms': dict(self.transforms),
                     'progress': dict(self.progress), 'diagnostics': dict(self.diagnostics),
-                    'counts': dict(self.counts)}
+                    'counts': dict(self.counts), 'reference': self.reference}

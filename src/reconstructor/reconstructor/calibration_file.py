@@ -13,6 +13,8 @@ Layout (``format_version: 1``)::
         bags: [{path: ..., sha256: ...}]
         residuals: {reprojection_rms_px: 0.1, ...}
     joint_correction: {...}                  # optional, see calibration_tools
+    cell_T_v0: [[...], [...], [...], [0, 0, 0, 1]]  # optional: pose of V0 in the robot
+                                             # cell (4x4 rigid, row by row, metres)
 
 Loading validates structure, units (plausible magnitudes) and consistency and fails with a
 ValueError that names the file and the key. Writing goes to a temporary file in the same
@@ -32,10 +34,12 @@ import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import yaml
 
 from reconstructor.correction import CorrectionTable
 from reconstructor.model import RigModel
+from reconstructor.tf_frames import check_cell_T_v0
 
 FORMAT_VERSION = 1
 SOURCES = ('calibrated', 'simulator_truth')
@@ -65,6 +69,7 @@ class Calibration:
     source: str = 'calibrated'
     stages: dict = field(default_factory=dict)
     joint_correction: dict | None = None
+    cell_T_v0: np.ndarray | None = None  # (4, 4) [m]: V0 in the robot cell, when known
     created: str = ''
     path: str = ''
     content_hash: str = ''
@@ -80,6 +85,10 @@ class Calibration:
         }
         if self.joint_correction is not None:
             data['joint_correction'] = copy.deepcopy(self.joint_correction)
+        if self.cell_T_v0 is not None:  # as it is: validate() judges it
+            cell = self.cell_T_v0
+            data['cell_T_v0'] = cell.tolist() if isinstance(cell, np.ndarray) else \
+                copy.deepcopy(cell)
         return data
 
 
@@ -154,8 +163,28 @@ def validate(data, origin='calibration') -> Calibration:
         except ValueError as exc:
             raise ValueError(f'{origin}: in joint_correction: {exc}') from None
         model = dataclasses.replace(model, correction=table)
+    cell_T_v0 = None
+    if data.get('cell_T_v0') is not None:
+        cell_T_v0 = _cell_T_v0(data['cell_T_v0'], origin)
     return Calibration(model=model, source=source, stages=stages, joint_correction=jc,
-                       created=str(data.get('created', '')))
+                       cell_T_v0=cell_T_v0, created=str(data.get('created', '')))
+
+
+def _cell_T_v0(value, origin) -> np.ndarray:
+    """The file's ``cell_T_v0``: 4 rows of 4 numbers, rigid, translation under 100 m."""
+    rows_ok = isinstance(value, list) and len(value) == 4 and all(
+        isinstance(row, list) and len(row) == 4 for row in value)
+    if not rows_ok:
+        raise ValueError(f'{origin}: cell_T_v0 must be a 4x4 matrix: 4 rows of 4 numbers, '
+                         f'got {value!r}')
+    for i, row in enumerate(value):
+        for j, v in enumerate(row):
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f'{origin}: cell_T_v0[{i}][{j}] must be a number, got {v!r}')
+    try:
+        return check_cell_T_v0(value)
+    except ValueError as exc:
+        raise ValueError(f'{origin}: {exc}') from None
 
 
 def load(path) -> Calibration:

@@ -11,6 +11,13 @@ Publishes
                      ``scan_max_points`` (then the scan goes on in the next cloud)
     markers          visualization_msgs/MarkerArray: the current laser plane and the camera's
                      field of view, for an rviz-style viewer
+    /tf_static       tf2_msgs/TFMessage (tf2's static QoS): ``cell_frame`` -> ``frame_id``
+                     (the calibration file's ``cell_T_v0``, else the parameter) and
+                     ``virtual_camera_frame`` -> ``camera_frame``; re-sent whole when the
+                     calibration or these parameters change
+    /tf              tf2_msgs/TFMessage: ``frame_id`` -> ``virtual_camera_frame`` at each
+                     frame's G1 voltages and stamp, at most ``tf_rate_max`` times a second
+                     (the tree: :mod:`reconstructor.tf_frames`)
 Services
     reconstructor/reload_calibration  galvoscan_msgs/LoadCalibration (empty path: same file)
     reconstructor/save_scan           galvoscan_msgs/SaveScan (.ply or .pcd, via open3d)
@@ -31,7 +38,7 @@ from pathlib import Path
 import numpy as np
 from galvoscan_msgs.msg import StripeCenters
 from galvoscan_msgs.srv import LoadCalibration, SaveScan
-from geometry_msgs.msg import Point
+from geometry_msgs.msg import Point, TransformStamped
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -39,9 +46,11 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import Marker, MarkerArray
 
 from galvoscan_common import cdr
@@ -49,9 +58,13 @@ from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subsc
 from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.executor import run_node
 from galvoscan_common.frame import VOLTAGE_LIMIT
-from reconstructor import calibration_file
+from galvoscan_common.tf_tree import tq_from_transform
+from reconstructor import calibration_file, tf_frames
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
+
+#: The parameters the TF tree is built from (see reconstructor.tf_frames).
+TF_PARAMETERS = ('cell_frame', 'frame_id', 'virtual_camera_frame', 'camera_frame', 'cell_T_v0')
 
 #: Default bound of the accumulated scan cloud [points]: 20 bytes each, so 200 MB, about
 #: 28 s of continuous scanning at 500 fps with 720 points per frame.
@@ -83,6 +96,7 @@ class ReconstructorNode(Node):
         self.declare_parameter('marker_range', 0.65, ParameterDescriptor(
             description='distance at which the field of view is drawn [m]',
             floating_point_range=[FloatingPointRange(from_value=0.05, to_value=10.0, step=0.0)]))
+        self._declare_tf_parameters()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._cache_parameters)
         self._cache_parameters()
@@ -118,6 +132,12 @@ class ReconstructorNode(Node):
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self._pub_scan = self.create_publisher(PointCloud2, 'points/scan', latched)
         self._pub_markers = self.create_publisher(MarkerArray, 'markers', 10)
+        # tf2's QoS: the static broadcaster's (latched, depth 1) and the broadcaster's
+        self._pub_tf_static = self.create_publisher(TFMessage, '/tf_static', latched)
+        self._pub_tf = self.create_publisher(
+            TFMessage, '/tf', QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
+        self._tf_limiter = tf_frames.RateLimiter()
+        self._publish_static_tf()
         for srv_type, name, callback in (
                 (LoadCalibration, 'reconstructor/reload_calibration', self._on_reload),
                 (SaveScan, 'reconstructor/save_scan', self._on_save)):
@@ -125,6 +145,8 @@ class ReconstructorNode(Node):
                 name, callback, log, self.callback_errors))
         self.create_timer(0.05, guard_subscription(
             'scan_end_check', self._check_scan_end, log, self.callback_errors))
+        self.create_timer(0.05, guard_subscription(
+            'tf_flush', self._flush_tf, log, self.callback_errors))
         publish_periodically(
             self, 'reconstruction', lambda: self.counters, self.callback_errors,
             message=lambda: (f"{self.counters['frames']} frames, {self.counters['points']} "
@@ -135,17 +157,68 @@ class ReconstructorNode(Node):
                 'voltage_out_of_range')))
 
     # -- configuration ----------------------------------------------------------------
+    def _declare_tf_parameters(self):
+        self.declare_parameter('cell_frame', 'world', ParameterDescriptor(
+            description='frame of the robot cell; /tf_static carries cell_frame -> frame_id'))
+        self.declare_parameter('cell_T_v0', np.eye(4).ravel().tolist(), ParameterDescriptor(
+            description='pose of V0 in cell_frame, 16 numbers row by row (rigid, metres), '
+                        "used when the calibration file has no 'cell_T_v0'",
+            dynamic_typing=True))
+        self.declare_parameter('virtual_camera_frame', 'v', ParameterDescriptor(
+            description='frame of the virtual camera V (moves with G1, on /tf)'))
+        self.declare_parameter('camera_frame', 'camera_optical', ParameterDescriptor(
+            description="the images' frame_id: V in the optical convention ('' for none)"))
+        self.declare_parameter('tf_rate_max', 50.0, ParameterDescriptor(
+            description='most /tf messages per second (one per frame up to it; 0: none) [Hz]',
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=10000.0,
+                                                     step=0.0)]))
+
     def _on_set_parameters(self, params):
         for p in params:
             if p.type_ == p.Type.DOUBLE and not math.isfinite(p.value):
                 return SetParametersResult(successful=False, reason=f'{p.name} must be finite')
+        values = {p.name: p.value for p in params if p.name in TF_PARAMETERS}
+        if values:
+            if 'cell_T_v0' in values and next(p for p in params if p.name == 'cell_T_v0') \
+                    .type_ not in (Parameter.Type.DOUBLE_ARRAY, Parameter.Type.INTEGER_ARRAY):
+                return SetParametersResult(successful=False,
+                                           reason='cell_T_v0 must be a list of 16 numbers')
+            problem = self._tf_problem({**self._tf_values(), **values})
+            if problem:
+                return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)
+
+    def _tf_values(self):
+        return {name: self.get_parameter(name).value for name in TF_PARAMETERS}
+
+    @staticmethod
+    def _tf_problem(values) -> str:
+        """Why these TF parameter values cannot be used ('' when they can)."""
+        try:
+            tf_frames.FrameNames(values['cell_frame'], values['frame_id'],
+                                 values['virtual_camera_frame'], values['camera_frame'])
+            tf_frames.check_cell_T_v0(list(values['cell_T_v0']), 'cell_T_v0')
+        except ValueError as exc:
+            return str(exc)
+        return ''
 
     def _cache_parameters(self, _params=None):
         # read per frame: a dict lookup instead of rclpy's get_parameter
         self._p = {name: self.get_parameter(name).value for name in (
             'frame_id', 'min_ray_plane_angle', 'scan_end_timeout', 'scan_max_points',
-            'marker_period', 'marker_range')}
+            'marker_period', 'marker_range', 'tf_rate_max')}
+        values = self._tf_values()
+        problem = self._tf_problem(values)
+        if problem:  # only a start-up value can be bad here; later sets are refused
+            self.get_logger().error(f'no TF published: {problem}')
+            self._frames = None
+        else:
+            self._frames = tf_frames.FrameNames(values['cell_frame'], values['frame_id'],
+                                                values['virtual_camera_frame'],
+                                                values['camera_frame'])
+            self._cell_T_v0_param = list(values['cell_T_v0'])
+        if hasattr(self, '_pub_tf_static'):
+            self._publish_static_tf()
 
     def _load(self, path):
         try:
@@ -153,6 +226,8 @@ class ReconstructorNode(Node):
         except ValueError as exc:
             return False, f'calibration not loaded: {exc}'
         self.calibration, self.model = cal, cal.model
+        if hasattr(self, '_pub_tf_static'):
+            self._publish_static_tf()
         note = ' (SIMULATOR TRUTH, not a calibration)' if cal.source == 'simulator_truth' else ''
         return True, f'calibration loaded from {cal.path}{note}'
 
@@ -197,6 +272,7 @@ class ReconstructorNode(Node):
             return self._skip('array_length_mismatch')
         self._last_frame_time = time.monotonic()
         self.counters['frames'] += 1
+        self._offer_tf(msg.header, g.g1_pan_voltage, g.g1_tilt_voltage)
         if not g.laser_on:
             return self._skip('laser_off')
         res = triangulate(self.model, np.column_stack([u, v]), g.g1_pan_voltage,
@@ -248,6 +324,36 @@ class ReconstructorNode(Node):
         header = cdr.Header(sec, nanosec, self._p['frame_id'])
         self._pub_scan.publish(cdr.serialize_point_cloud(parts, header))
         self.get_logger().info(f'{why}: {points} points on points/scan')
+
+    # -- tf ---------------------------------------------------------------------------
+    def _publish_static_tf(self):
+        """All static transforms in one message (a new one replaces the latched one)."""
+        if self._frames is None:
+            return
+        from_file = self.calibration.cell_T_v0 if self.calibration is not None else None
+        cell_T_v0, source = tf_frames.cell_T_v0_source(from_file, self._cell_T_v0_param)
+        sec, nanosec = divmod(self.get_clock().now().nanoseconds, 1_000_000_000)
+        self._pub_tf_static.publish(_tf_message(
+            tf_frames.static_edges(self._frames, cell_T_v0), sec, nanosec))
+        self.get_logger().info(f'/tf_static: {self._frames.cell} -> {self._frames.v0} from the '
+                               f'{source}')
+
+    def _offer_tf(self, header, u1_pan, u1_tilt):
+        item = (header.sec, header.nanosec, u1_pan, u1_tilt)
+        if self._tf_limiter.offer(item, time.monotonic(), self._p['tf_rate_max']):
+            self._publish_tf(item)
+
+    def _flush_tf(self):
+        item = self._tf_limiter.due(time.monotonic(), self._p['tf_rate_max'])
+        if item:
+            self._publish_tf(item)
+
+    def _publish_tf(self, item):
+        sec, nanosec, u1_pan, u1_tilt = item
+        if self._frames is None or self.model is None:
+            return
+        edge = tf_frames.virtual_camera_edge(self._frames, self.model, u1_pan, u1_tilt)
+        self._pub_tf.publish(_tf_message([edge], sec, nanosec))
 
     # -- markers ----------------------------------------------------------------------
     def _maybe_markers(self, header, volts):
@@ -323,6 +429,21 @@ class ReconstructorNode(Node):
         resp.success, resp.path, resp.points = True, str(Path(path).resolve()), scan.shape[0]
         resp.message = f'saved {scan.shape[0]} points to {resp.path}'
         return resp
+
+
+def _tf_message(edges, sec: int, nanosec: int) -> TFMessage:
+    """A tf2_msgs/TFMessage of :class:`reconstructor.tf_frames.Edge` s, all at one stamp."""
+    out = TFMessage()
+    for edge in edges:
+        tf = TransformStamped()
+        tf.header.stamp.sec, tf.header.stamp.nanosec = int(sec), int(nanosec)
+        tf.header.frame_id, tf.child_frame_id = edge.parent, edge.child
+        t, q = tq_from_transform(edge.parent_T_child)
+        tr, rot = tf.transform.translation, tf.transform.rotation
+        tr.x, tr.y, tr.z = (float(v) for v in t)
+        rot.x, rot.y, rot.z, rot.w = (float(v) for v in q)
+        out.transforms.append(tf)
+    return out
 
 
 def main(args=None):

@@ -1,0 +1,414 @@
+"""The browser page in a real browser: Debian's headless Chromium, driven over the Chrome
+DevTools Protocol (CDP) with the ``websockets`` client the project already has.
+
+(a) in-process: a ViewState holds a synthetic stair cloud (seeded), an image with its
+    stripe and a scan's progress; the page is served and opened, and the test waits for the
+    point count, takes a screenshot and reads the 3D canvas back;
+(b) end to end: the simulated graph (``galvoscan run --one-process``) and ``galvoscan view``
+    as processes on a private ROS domain, scans started with ``galvoscan scan``, the page
+    opened on the view's HTTP port until the scanned stair block shows.
+
+Both check that the page requested nothing but its own origin, threw no exception and was
+refused nothing by its Content-Security-Policy. The last screenshot is also copied to
+``/tmp/view_screenshot.png`` for a person to look at.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import io
+import json
+import os
+import re
+import shutil
+import signal
+import struct
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from PIL import Image
+from websockets.sync.client import connect
+
+from galvoscan_view.state import CloudView, ImageView, ViewState
+from galvoscan_view.web import serve_page
+
+CHROMIUM = shutil.which('chromium') or '/usr/bin/chromium'
+SCREENSHOT_COPY = Path('/tmp/view_screenshot.png')
+WIDTH, HEIGHT = 1400, 900
+#: The 3D view's background (app.js: scene.background 0x23272e).
+BACKGROUND = np.array([0x23, 0x27, 0x2e])
+
+
+class Chromium:
+    """One headless Chromium with one page, driven over CDP.
+
+    Events of the page (requests, exceptions, console and log entries) are kept in
+    ``events`` as they arrive between command answers.
+    """
+
+    def __init__(self, tmp_path: Path):
+        assert os.access(CHROMIUM, os.X_OK), \
+            f'{CHROMIUM} not found: Debian chromium (make test installs it)'
+        profile = tmp_path / 'chromium-profile'
+        self.log_path = tmp_path / 'chromium.log'
+        args = [CHROMIUM, '--headless=new', '--remote-debugging-port=0',
+                f'--user-data-dir={profile}', '--no-first-run', '--no-default-browser-check',
+                '--disable-extensions', '--disable-background-networking', '--disable-sync',
+                '--disable-component-update', '--use-angle=swiftshader',
+                '--enable-unsafe-swiftshader', f'--window-size={WIDTH},{HEIGHT}',
+                '--force-device-scale-factor=1', '--hide-scrollbars', 'about:blank']
+        if os.geteuid() == 0:   # Chromium refuses to run as root with its sandbox
+            args.insert(1, '--no-sandbox')
+        with open(self.log_path, 'wb') as log:
+            self.proc = subprocess.Popen(args, stdout=log, stderr=subprocess.STDOUT,
+                                         start_new_session=True)
+        port = self._devtools_port(profile / 'DevToolsActivePort')
+        with urllib.request.urlopen(f'http://127.0.0.1:{port}/json/list', timeout=10) as r:
+            target = next(t for t in json.load(r) if t['type'] == 'page')
+        self._stack = contextlib.ExitStack()
+        self.ws = self._stack.enter_context(
+            connect(target['webSocketDebuggerUrl'], max_size=None, open_timeout=30,
+                    close_timeout=1))
+        self.next_id, self.events = 0, []
+        for domain in ('Page', 'Runtime', 'Network', 'Log'):
+            self.call(f'{domain}.enable')
+        self.call('Emulation.setDeviceMetricsOverride', width=WIDTH, height=HEIGHT,
+                  deviceScaleFactor=1, mobile=False)
+
+    def _devtools_port(self, path: Path, timeout: float = 30.0) -> int:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            assert self.proc.poll() is None, self.log_path.read_text()
+            if path.exists() and path.read_text().strip():
+                return int(path.read_text().split()[0])
+            time.sleep(0.05)
+        raise AssertionError(f'Chromium did not start:\n{self.log_path.read_text()}')
+
+    def call(self, method: str, timeout: float = 30.0, **params):
+        """The result of one CDP command (events that arrive meanwhile go to ``events``)."""
+        self.next_id += 1
+        self.ws.send(json.dumps({'id': self.next_id, 'method': method, 'params': params}))
+        deadline = time.monotonic() + timeout
+        while True:
+            msg = json.loads(self.ws.recv(timeout=max(0.01, deadline - time.monotonic())))
+            if msg.get('id') == self.next_id:
+                if 'error' in msg:
+                    raise RuntimeError(f'{method}: {msg["error"]}')
+                return msg['result']
+            self.events.append(msg)
+
+    def evaluate(self, expression: str):
+        """The value of a JavaScript expression in the page (promises awaited)."""
+        result = self.call('Runtime.evaluate', expression=expression, returnByValue=True,
+                           awaitPromise=True)
+        if 'exceptionDetails' in result:
+            raise RuntimeError(f'{expression}: {result["exceptionDetails"]}')
+        return result['result'].get('value')
+
+    def navigate(self, url: str, timeout: float = 30.0) -> None:
+        """Open ``url`` and wait until its document has loaded."""
+        self.call('Page.navigate', url=url)
+        self.wait_for(f"location.href === {json.dumps(url)} && "
+                      "document.readyState === 'complete'", timeout)
+
+    def wait_for(self, expression: str, timeout: float, why=lambda: ''):
+        """Poll ``expression`` until it is truthy; its value."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            value = self.evaluate(expression)
+            if value:
+                return value
+            time.sleep(0.2)
+        raise AssertionError(f'timed out waiting for {expression}\n{why()}\n'
+                             f'problems: {self.problems("")}')
+
+    def screenshot(self) -> np.ndarray:
+        """(H, W, 3) uint8 of the page as shown."""
+        data = self.call('Page.captureScreenshot', format='png')['data']
+        return np.asarray(Image.open(io.BytesIO(base64.b64decode(data))).convert('RGB'))
+
+    def requested_urls(self) -> list[str]:
+        return [e['params']['request']['url'] for e in self.events
+                if e.get('method') == 'Network.requestWillBeSent']
+
+    def problems(self, origin: str) -> list[str]:
+        """Exceptions, console errors, log errors (CSP refusals among them) and requests to
+        anywhere but ``origin``."""
+        out = []
+        for e in self.events:
+            method, p = e.get('method'), e.get('params', {})
+            if method == 'Runtime.exceptionThrown':
+                out.append(f'exception: {p["exceptionDetails"]}')
+            elif method == 'Runtime.consoleAPICalled' and p['type'] in ('error', 'assert'):
+                out.append(f'console.{p["type"]}: {p["args"]}')
+            elif method == 'Log.entryAdded' and p['entry']['level'] == 'error':
+                out.append(f'log: {p["entry"]["text"]} ({p["entry"].get("url", "")})')
+        out += [f'request to {u}' for u in self.requested_urls()
+                if not u.startswith((origin, 'blob:', 'data:'))]
+        return out
+
+    def close(self) -> None:
+        """Stop Chromium, then drop the connection (no close handshake to wait for)."""
+        os.killpg(self.proc.pid, signal.SIGTERM)
+        try:
+            self.proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.proc.pid, signal.SIGKILL)
+            self.proc.wait()
+        finally:
+            self._stack.close()
+
+
+@pytest.fixture
+def chromium(tmp_path):
+    browser = Chromium(tmp_path)
+    yield browser
+    browser.close()
+
+
+# ---- what the page shows, read back ------------------------------------------------------------
+
+
+POINTS_SHOWN = "Number(document.getElementById('point-count').dataset.drawn)"
+
+
+def page_figures(browser: Chromium) -> dict:
+    return browser.evaluate("""(() => {
+        const count = document.getElementById('point-count');
+        const image = document.getElementById('image');
+        return {total: Number(count.dataset.total), drawn: Number(count.dataset.drawn),
+                text: count.textContent, image_seq: image.dataset.seq,
+                stripe: Number(image.dataset.stripePoints || 0),
+                progress: document.getElementById('progress-text').textContent,
+                legend: document.getElementById('legend-title').textContent,
+                diagnostics: document.querySelectorAll('#diagnostics .status').length,
+                empty_hidden: document.getElementById('cloud-empty').hidden};
+    })()""")
+
+
+def canvas_pixels(browser: Chromium) -> np.ndarray:
+    """(H, W, 3) uint8 of the 3D canvas's own pixels (its drawing buffer is preserved)."""
+    url = browser.evaluate("document.querySelector('#view3d canvas').toDataURL('image/png')")
+    data = base64.b64decode(url.split(',', 1)[1])
+    return np.asarray(Image.open(io.BytesIO(data)).convert('RGB'))
+
+
+def drawn_colours(pixels: np.ndarray) -> np.ndarray:
+    """(K, 3) the pixels of the canvas that are not its background."""
+    flat = pixels.reshape(-1, 3).astype(int)
+    return flat[np.abs(flat - BACKGROUND).max(axis=1) > 24]
+
+
+def save_screenshot(shot: np.ndarray, path: Path) -> None:
+    Image.fromarray(shot).save(path)
+    shutil.copyfile(path, SCREENSHOT_COPY)
+
+
+# ---- (a) in-process ----------------------------------------------------------------------------
+
+
+def stair_cloud(seed: int = 11) -> np.ndarray:
+    """(N, 3) float32 [m] in v0: light-section stripes over a plate 700 mm away with three
+    10 mm steps toward the scanner (z down 10, 20, 30 mm), 0.05 mm noise."""
+    rng = np.random.default_rng(seed)
+    xs = np.arange(-0.06, 0.06, 0.0015)           # one stripe every 1.5 mm
+    ys = np.arange(-0.045, 0.045, 0.0004)         # a centre every 0.4 mm along it
+    x, y = (a.ravel() for a in np.meshgrid(xs, ys))
+    step = np.clip(np.floor((x + 0.02) / 0.02) + 1, 0, 3) * (np.abs(y) < 0.03)
+    z = 0.7 - 0.01 * step + rng.normal(0, 5e-5, x.shape)
+    return np.column_stack([x, y, z]).astype(np.float32)
+
+
+def colour_classes(pixels: np.ndarray) -> dict:
+    """Pixel counts of the drawn canvas by viridis region: violet (low), teal (middle),
+    yellow (high)."""
+    d = drawn_colours(pixels)
+    r, g, b = d[:, 0], d[:, 1], d[:, 2]
+    return {'drawn': len(d), 'violet': int(((b > g + 40) & (r > 40)).sum()),
+            'teal': int(((g > 110) & (b > 100) & (r < 100)).sum()),
+            'yellow': int(((r > 180) & (g > 180) & (b < 100)).sum())}
+
+
+def test_page_shows_a_cloud_in_process(chromium, tmp_path):
+    state = ViewState()
+    xyz = stair_cloud()
+    state.set_cloud(CloudView('v0', 1.0, xyz, np.ones(len(xyz), np.float32), len(xyz)))
+    image = np.full((540, 720), 20, np.uint8)
+    image[:, 355:365] = 230                       # a bright vertical stripe
+    uv = np.column_stack([np.full(540, 360.0), np.arange(540.0)]).astype(np.float32)
+    state.set_image(ImageView(5, 1.0, image, np.zeros((0, 2), np.float32)))
+    state.set_stripe(5, uv)
+    state.set_progress({'state': 'running', 'frames_done': 40, 'frames_total': 160,
+                        'frames_dropped': 1})
+    state.set_diagnostics('galvo_driver: scan', {'level': 'OK', 'message': 'scanning',
+                                                 'scan/done': '40', 'frames dropped': '1'})
+    # the reference: the same stair without its top step (that part 10 mm lower)
+    reference = xyz.copy()
+    reference[reference[:, 2] < 0.675, 2] = 0.68
+    server = serve_page(state, '127.0.0.1', 0)
+    try:
+        origin = f'http://127.0.0.1:{server.port}/'
+        chromium.navigate(origin)
+        chromium.wait_for(f'{POINTS_SHOWN} > 0', 60)
+        chromium.wait_for("document.getElementById('image').dataset.seq === '5'", 30)
+        time.sleep(0.5)   # let the frame with the points be drawn and composited
+        figures = page_figures(chromium)
+        shot = chromium.screenshot()
+        pixels = canvas_pixels(chromium)
+
+        # the page's "use current" button makes the cloud the reference, and colours by error
+        chromium.evaluate("document.getElementById('reference-take').click()")
+        chromium.wait_for("document.getElementById('colour-mode').value === 'error'", 30)
+        deadline = time.monotonic() + 30
+        while state.reference is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert state.reference is state.cloud
+        state.set_reference(CloudView('v0', 0.0, reference, np.ones(len(xyz), np.float32),
+                                      len(xyz)))
+        legend = ("document.getElementById('legend-title').textContent.startsWith('distance')"
+                  " && Number(document.getElementById('legend-hi').textContent) > 5")
+        chromium.wait_for(legend, 30)
+        time.sleep(0.5)
+        error_legend = [chromium.evaluate(f"document.getElementById('legend-{k}').textContent")
+                        for k in ('lo', 'hi')]
+        error_shot = chromium.screenshot()
+        error_pixels = canvas_pixels(chromium)
+        problems = chromium.problems(origin)
+    finally:
+        server.shutdown()
+    save_screenshot(error_shot, tmp_path / 'view_in_process_error.png')
+    save_screenshot(shot, tmp_path / 'view_in_process.png')
+
+    assert problems == []
+    assert figures['total'] == figures['drawn'] == len(xyz)
+    assert figures['text'].replace(',', '') == str(len(xyz))
+    assert figures['stripe'] == 540 and '40 / 160 frames' in figures['progress']
+    assert figures['diagnostics'] == 1 and figures['empty_hidden']
+    assert figures['legend'].startswith('height')
+    assert shot.shape == (HEIGHT, WIDTH, 3)
+
+    # coloured by height: plate violet, the two middle steps teal/green, the top step yellow
+    height = colour_classes(pixels)
+    assert height['drawn'] > 0.05 * pixels.shape[0] * pixels.shape[1], height
+    assert min(height['violet'], height['teal'], height['yellow']) > 500, height
+    # by error against the reference: 0 mm but on the top step (10 mm): no middle colours
+    assert [float(v) for v in error_legend] == [0.0, pytest.approx(10.0, abs=0.3)]   # and noise
+    error = colour_classes(error_pixels)
+    assert error['violet'] > 500 and error['yellow'] > 500, error
+    assert error['teal'] < 0.01 * error['drawn'], error
+
+
+# ---- (b) end to end, during a scan of the simulated rig ----------------------------------------
+
+
+GALVOSCAN = [sys.executable, '-m', 'galvoscan.cli']
+
+
+def graph_params(tmp_path: Path):
+    """Parameters of the simulated graph (stair block, seeded) and a short scan's CSV."""
+    from galvoscan.simulated_rig import truth_calibration
+    from galvoscan_sim import load_rig, patterns
+    from reconstructor import calibration_file
+
+    rig = load_rig('reference')
+    cal = tmp_path / 'simulator_truth_for_tests.yaml'
+    calibration_file.save(truth_calibration(rig), cal)
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({
+        'galvo_driver': {'ros__parameters': {'backend': 'sim', 'rig': 'reference',
+                                             'scene': 'stair_block', 'seed': 7}},
+        'reconstructor': {'ros__parameters': {'calibration_file': str(cal),
+                                              'scan_end_timeout': 0.5}},
+    }))
+    scan = tmp_path / 'scan.csv'
+    voltages = patterns.synchronised(rig, [-0.8, -0.4, 0.0, 0.4, 0.8], -0.6, steps=30,
+                                     tilt_step=0.05)
+    np.savetxt(scan, voltages, delimiter=',')
+    return params, scan
+
+
+def page_port(proc, timeout: float = 60.0) -> int:
+    """The port ``galvoscan view`` reports its browser page on."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, proc.log_path.read_text()
+        found = re.search(r'browser page on http://[^:]+:(\d+)', proc.log_path.read_text())
+        if found:
+            return int(found.group(1))
+        time.sleep(0.2)
+    raise AssertionError(f'galvoscan view did not start:\n{proc.log_path.read_text()}')
+
+
+def api_cloud(port: int) -> np.ndarray:
+    """(N, 3) float32 of the view's ``/api/cloud``, decoded here."""
+    with urllib.request.urlopen(f'http://127.0.0.1:{port}/api/cloud', timeout=30) as r:
+        data = r.read()
+    (n,) = struct.unpack_from('<I', data, 0)
+    meta = json.loads(data[4:4 + n])
+    start = 4 + n + (-(4 + n) % 4)
+    return np.frombuffer(data, '<f4', 3 * meta['points'], start).reshape(-1, 3)
+
+
+def screenshot_during_a_scan(chromium, spawn, scan_csv, logs, timeout=150.0):
+    """Start scans until the page shows points and a stripe while one runs, 60 % done; then
+    the page's figures, a screenshot and the 3D canvas's pixels (taken during that scan)."""
+    running = ("(() => { const $ = (id) => document.getElementById(id);"
+               " const p = $('progress-text').dataset;"
+               " return $('scan-state').textContent === 'running' && p.done >= 0.6 * p.total"
+               f" && {POINTS_SHOWN} > 0 && Number($('image').dataset.stripePoints || 0) > 0;"
+               " })()")
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:   # discovery takes its time: scan again if needed
+        scan = spawn([*GALVOSCAN, 'scan', '--pattern', 'custom', '--voltages', scan_csv,
+                      '--rate', '25', '--timeout', '60'], name='scan')
+        while scan.poll() is None:
+            if chromium.evaluate(running):
+                time.sleep(0.5)   # this cloud and image drawn and composited
+                shot, pixels = chromium.screenshot(), canvas_pixels(chromium)
+                figures = page_figures(chromium)
+                # a newer image may be shown before its centres came: take the next one then
+                if figures['stripe'] > 0 and figures['drawn'] > 0:
+                    assert scan.wait(timeout=90) == 0, scan.log_path.read_text()
+                    return figures, shot, pixels
+            time.sleep(0.2)
+        assert scan.returncode == 0, scan.log_path.read_text() + logs()
+    raise AssertionError(f'no points and stripe shown during a scan\n{logs()}')
+
+
+@pytest.mark.dds
+def test_page_shows_the_cloud_of_a_sim_scan(chromium, spawn, tmp_path):
+    params, scan_csv = graph_params(tmp_path)
+    graph = spawn([*GALVOSCAN, 'run', '--one-process', '--params', params], name='graph')
+    view = spawn([*GALVOSCAN, 'view', '--host', '127.0.0.1', '--ws-port', '0',
+                  '--http-port', '0'], name='view')
+    port = page_port(view)
+    origin = f'http://127.0.0.1:{port}/'
+    chromium.navigate(origin)
+    chromium.wait_for("document.getElementById('connection').textContent === 'live'", 30)
+
+    def logs():
+        assert graph.poll() is None and view.poll() is None, 'a process died'
+        return f'view:\n{view.log_path.read_text()}\ngraph:\n{graph.log_path.read_text()}'
+
+    figures, shot, pixels = screenshot_during_a_scan(chromium, spawn, scan_csv, logs)
+    save_screenshot(shot, tmp_path / 'view_sim_scan.png')
+    xyz = api_cloud(port)
+
+    assert chromium.problems(origin) == []
+    assert figures['drawn'] > 0 and figures['total'] >= figures['drawn']
+    assert figures['stripe'] > 0 and figures['diagnostics'] > 0
+    assert re.search(r'\d+ / \d+ frames', figures['progress']), figures['progress']
+    assert len(drawn_colours(pixels)) > 2000
+    # what the page is served is the stair block and its wall, 0.6 to 0.7 m from the scanner
+    assert len(xyz) > 0 and 0.6 < np.median(xyz[:, 2]) < 0.71, np.median(xyz[:, 2])
+
+    view.send_signal(signal.SIGTERM)
+    assert view.wait(timeout=20) == 0, view.log_path.read_text()
+    assert 'Traceback' not in view.log_path.read_text()
