@@ -85,6 +85,16 @@ def fastdds_profile(env) -> Path:
     ``local`` (the default) is :data:`FASTDDS_PROFILE`; ``multihost`` is
     :data:`FASTDDS_MULTIHOST_PROFILE`, which needs discovery beyond this host.
 
+    Parameters
+    ----------
+    env : mapping
+        Environment variables (``os.environ`` or a child's environment).
+
+    Returns
+    -------
+    Path
+        The profile file.
+
     Raises
     ------
     ValueError
