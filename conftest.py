@@ -125,3 +125,57 @@ def shm_segment_owner(ros_env):
         proc.kill()
         proc.wait(10)
         proc.stdout.close()
+
+
+@pytest.fixture
+def sim_graph_params(tmp_path):
+    """``make(...)`` writes the parameters YAML of the simulated graph; returns its path.
+
+    The driver runs the sim backend on the reference rig with ``scene`` and ``seed``; the
+    reconstructor loads ``calibration`` (default: the reference rig's true calibration,
+    written to ``simulator_truth_for_tests.yaml``). ``driver``, ``extractor`` and
+    ``reconstructor`` add or replace that node's parameters (an ``extractor`` of None
+    leaves the node out of the file).
+    """
+    import yaml
+
+    def make(*, scene='stair_block', seed=7, calibration=None, driver=None, extractor=None,
+             reconstructor=None):
+        if calibration is None:
+            from galvoscan.simulated_rig import truth_calibration
+            from galvoscan_sim import load_rig
+            from reconstructor import calibration_file
+
+            calibration = tmp_path / 'simulator_truth_for_tests.yaml'
+            calibration_file.save(truth_calibration(load_rig('reference')), calibration)
+        params = {'galvo_driver': {'ros__parameters': {
+            'backend': 'sim', 'rig': 'reference', 'scene': scene, 'seed': seed,
+            **(driver or {})}}}
+        if extractor is not None:
+            params['stripe_extractor'] = {'ros__parameters': dict(extractor)}
+        params['reconstructor'] = {'ros__parameters': {
+            'calibration_file': str(calibration), **(reconstructor or {})}}
+        path = tmp_path / 'params.yaml'
+        path.write_text(yaml.safe_dump(params))
+        return path
+
+    return make
+
+
+@pytest.fixture
+def logged_port():
+    """``wait(proc, what)``: the port a process logs as ``<what> on <scheme>://host:PORT``."""
+    import re
+
+    def wait(proc, what: str, timeout: float = 60.0) -> int:
+        deadline = time.monotonic() + timeout
+        pattern = re.compile(re.escape(what) + r' on \w+://[^\s]+:(\d+)')
+        while time.monotonic() < deadline:
+            assert proc.poll() is None, proc.log_path.read_text()
+            found = pattern.search(proc.log_path.read_text())
+            if found:
+                return int(found.group(1))
+            time.sleep(0.2)
+        raise AssertionError(f'no "{what}" port in the log:\n{proc.log_path.read_text()}')
+
+    return wait

@@ -11,14 +11,11 @@ import time
 import numpy as np
 import pytest
 import rclpy
-import yaml
 from galvoscan_msgs.srv import GetScanProgress, StartScan
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
-from galvoscan.simulated_rig import truth_calibration
 from galvoscan_sim import Simulator, load_rig, load_scene, patterns
-from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE
 
 pytestmark = pytest.mark.dds
@@ -35,18 +32,10 @@ def _truth(rig, volts):
 
 
 @pytest.mark.parametrize('one_process', [False, True], ids=['processes', 'one_process'])
-def test_scan_through_the_graph(spawn, ros_env, tmp_path, one_process):
+def test_scan_through_the_graph(spawn, ros_env, tmp_path, one_process, sim_graph_params):
     rig = load_rig('reference')
-    cal = tmp_path / 'simulator_truth_for_tests.yaml'
-    calibration_file.save(truth_calibration(rig), cal)
-    params = tmp_path / 'params.yaml'
-    params.write_text(yaml.safe_dump({
-        'galvo_driver': {'ros__parameters': {'backend': 'sim', 'rig': 'reference',
-                                             'scene': 'stair_block', 'seed': SEED}},
-        'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
-        'reconstructor': {'ros__parameters': {'calibration_file': str(cal),
-                                              'scan_end_timeout': 1.0}},
-    }))
+    params = sim_graph_params(seed=SEED, extractor={'line_width_px': 4.0},
+                              reconstructor={'scan_end_timeout': 1.0})
     args = [sys.executable, '-m', 'galvoscan.cli', 'run', '--params', params]
     proc = spawn(args + (['--one-process'] if one_process else []), name='galvoscan')
     volts = _scan_voltages(rig)

@@ -23,9 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from galvoscan.simulated_rig import truth_calibration
 from galvoscan_bag.reader import read_messages
 from galvoscan_common import cdr
 from galvoscan_common.runtime import (
@@ -35,8 +33,6 @@ from galvoscan_common.runtime import (
     child_env,
     fastdds_profile,
 )
-from galvoscan_sim import load_rig
-from reconstructor import calibration_file
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 11
@@ -161,18 +157,10 @@ def _children(pid: int) -> list[int]:
 
 
 @pytest.mark.dds
-def test_clouds_cross_between_two_hosts_over_udp(hosts, spawn, tmp_path):
+def test_clouds_cross_between_two_hosts_over_udp(hosts, spawn, tmp_path, sim_graph_params):
     _, image_bytes = _hosts_apart_class()
-    rig = load_rig('reference')
-    cal = tmp_path / 'simulator_truth_for_tests.yaml'
-    calibration_file.save(truth_calibration(rig), cal)
-    params = tmp_path / 'params.yaml'
-    params.write_text(yaml.safe_dump({
-        'galvo_driver': {'ros__parameters': {'backend': 'sim', 'scene': 'stair_block',
-                                             'seed': SEED}},
-        'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
-        'reconstructor': {'ros__parameters': {'calibration_file': str(cal),
-                                              'scan_end_timeout': 1.0}}}))
+    params = sim_graph_params(seed=SEED, extractor={'line_width_px': 4.0},
+                              reconstructor={'scan_end_timeout': 1.0})
     run = [sys.executable, '-m', 'galvoscan.cli', 'run', '--params', params]
     driver = spawn([*hosts.exec(0), *run, '--nodes', 'galvo_driver', '--log-dir',
                     tmp_path / 'a'], name='host_a_driver', env=_env(hosts, 0))

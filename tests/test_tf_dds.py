@@ -14,7 +14,6 @@ import time
 import numpy as np
 import pytest
 import rclpy
-import yaml
 from galvoscan_msgs.msg import GalvoState
 from galvoscan_msgs.srv import LoadCalibration
 from rclpy.node import Node
@@ -110,22 +109,17 @@ def apply(T, p):
     return p @ T[:3, :3].T + T[:3, 3]
 
 
-def test_tf_static_and_tf_place_the_clouds_in_the_cell(spawn, ros_env, tmp_path):
+def test_tf_static_and_tf_place_the_clouds_in_the_cell(spawn, ros_env, tmp_path,
+                                                        sim_graph_params):
     rig = load_rig('reference')
     cal = truth_calibration(rig)
     cal.cell_T_v0 = CELL_T_W @ rig.W_T_V0
     cal_path = tmp_path / 'truth_in_cell.yaml'
     calibration_file.save(cal, cal_path)
     model = calibration_file.load(cal_path).model
-    params = tmp_path / 'params.yaml'
-    params.write_text(yaml.safe_dump({
-        'galvo_driver': {'ros__parameters': {'backend': 'sim', 'rig': 'reference',
-                                             'scene': 'plane', 'seed': SEED}},
-        'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
-        'reconstructor': {'ros__parameters': {'calibration_file': str(cal_path),
-                                              'scan_end_timeout': 1.0,
-                                              'tf_rate_max': 100.0}},
-    }))
+    params = sim_graph_params(scene='plane', seed=SEED, calibration=cal_path,
+                              extractor={'line_width_px': 4.0},
+                              reconstructor={'scan_end_timeout': 1.0, 'tf_rate_max': 100.0})
     graph = spawn([sys.executable, '-m', 'galvoscan.cli', 'run', '--params', params,
                    '--one-process'], name='galvoscan')
     tilt = (-0.5, 0.5)

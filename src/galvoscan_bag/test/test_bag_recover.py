@@ -279,13 +279,7 @@ def test_one_flipped_byte_loses_its_chunk_only(killed, tmp_path, k):
 
 
 def test_complete_bag_recovers_everything(tmp_path):
-    bag = BagWriter(tmp_path / 'whole', chunk_size=800, flush_interval=None).open()
-    bag.add_topic('/galvo/state', 'galvoscan_msgs/msg/GalvoState')
-    written = []
-    for i in range(25):
-        written.append(('/galvo/state', 5000 + i, cdr(galvo_state(i))))
-        bag.write('/galvo/state', written[-1][2], 5000 + i)
-    bag.close()
+    _, written = _complete_bag(tmp_path)
     report = recover_bag(tmp_path / 'whole')
     assert report.output == tmp_path / 'whole_recovered' == default_output(tmp_path / 'whole')
     assert report.complete and report.bytes_dropped == 0 and report.stop_reason == ''

@@ -15,19 +15,14 @@ import yaml
 MAX_YAML_BYTES = 16 * 2**20
 
 
-def read_yaml_mapping(path, what: str = 'YAML file') -> dict:
-    """The top-level mapping of the UTF-8 YAML file at ``path``.
-
-    Parameters
-    ----------
-    path : str or Path
-    what : str
-        What the file should be, for the messages (e.g. ``'cell reference'``).
+def read_yaml_text(path, what: str = 'YAML file') -> str:
+    """The text of the file at ``path``, checked to be small UTF-8 text without NUL bytes.
 
     Raises
     ------
     ValueError
-        Unreadable, too large, not UTF-8 text, NUL bytes, invalid YAML, or not a mapping.
+        Unreadable, larger than :data:`MAX_YAML_BYTES`, not UTF-8 text, or NUL bytes; the
+        message names the file and ``what`` it should be.
     """
     path = Path(path)
     try:
@@ -40,12 +35,29 @@ def read_yaml_mapping(path, what: str = 'YAML file') -> dict:
     try:
         text = raw.decode('utf-8')
     except UnicodeDecodeError as exc:
-        raise ValueError(f'{path}: not a {what}: not UTF-8 text (byte {exc.start}); is it '
-                         'binary, or saved as UTF-16?') from None
+        raise ValueError(f'{path}: not a {what}: not UTF-8 text (byte {exc.start}: '
+                         f'{exc.reason}); is it binary, or saved as UTF-16?') from None
     if '\x00' in text:
         raise ValueError(f'{path}: not a {what}: it holds NUL bytes (binary data)')
+    return text
+
+
+def read_yaml_mapping(path, what: str = 'YAML file') -> dict:
+    """The top-level mapping of the UTF-8 YAML file at ``path``.
+
+    Parameters
+    ----------
+    path : str or Path
+    what : str
+        What the file should be, for the messages (e.g. ``'cell reference'``).
+
+    Raises
+    ------
+    ValueError
+        As :func:`read_yaml_text`, or invalid YAML, or not a mapping at the top.
+    """
     try:
-        data = yaml.safe_load(text)
+        data = yaml.safe_load(read_yaml_text(path, what))
     except yaml.YAMLError as exc:
         raise ValueError(f'{path}: {what} is not valid YAML: {exc}') from None
     if not isinstance(data, dict):

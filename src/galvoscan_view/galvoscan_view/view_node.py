@@ -57,6 +57,7 @@ from visualization_msgs.msg import MarkerArray
 from galvoscan_common import cdr
 from galvoscan_common.boundary import CallbackErrors, guard_subscription
 from galvoscan_common.executor import run_node
+from galvoscan_common.tf_tree import transform_from_tq
 from galvoscan_view.foxglove_server import DEFAULT_WS_PORT, ChannelSpec, FoxgloveServer
 from galvoscan_view.state import (
     MAX_VIEW_POINTS,
@@ -140,13 +141,6 @@ def decimated(xyz: np.ndarray, intensity: np.ndarray, limit: int = MAX_VIEW_POIN
     return xyz[::k], intensity[::k]
 
 
-def quaternion_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    """The (3, 3) rotation of a unit quaternion (normalised first)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_quat([x, y, z, w]).as_matrix()
-
-
 def stripe_overlay(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 rgb of a mono ``image`` with the centres ``uv`` (M, 2) [px] in red.
 
@@ -196,9 +190,7 @@ def transform_views(data, static: bool) -> list[TransformView]:
     out = []
     for tf in deserialize(data, 'tf2_msgs/msg/TFMessage').transforms:
         t, q = tf.transform.translation, tf.transform.rotation
-        parent_T_child = np.eye(4)
-        parent_T_child[:3, :3] = quaternion_matrix(q.x, q.y, q.z, q.w)
-        parent_T_child[:3, 3] = (t.x, t.y, t.z)
+        parent_T_child = transform_from_tq((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
         out.append(TransformView(tf.header.frame_id, tf.child_frame_id, _stamp(tf.header),
                                  parent_T_child, static))
     return out

@@ -32,7 +32,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from PIL import Image
 from websockets.sync.client import connect
 
@@ -311,39 +310,16 @@ def test_page_shows_a_cloud_in_process(chromium, tmp_path):
 GALVOSCAN = [sys.executable, '-m', 'galvoscan.cli']
 
 
-def graph_params(tmp_path: Path):
+def graph_params(tmp_path: Path, sim_graph_params):
     """Parameters of the simulated graph (stair block, seeded) and a short scan's CSV."""
-    from galvoscan.simulated_rig import truth_calibration
     from galvoscan_sim import load_rig, patterns
-    from reconstructor import calibration_file
 
-    rig = load_rig('reference')
-    cal = tmp_path / 'simulator_truth_for_tests.yaml'
-    calibration_file.save(truth_calibration(rig), cal)
-    params = tmp_path / 'params.yaml'
-    params.write_text(yaml.safe_dump({
-        'galvo_driver': {'ros__parameters': {'backend': 'sim', 'rig': 'reference',
-                                             'scene': 'stair_block', 'seed': 7}},
-        'reconstructor': {'ros__parameters': {'calibration_file': str(cal),
-                                              'scan_end_timeout': 0.5}},
-    }))
+    params = sim_graph_params(seed=7, reconstructor={'scan_end_timeout': 0.5})
     scan = tmp_path / 'scan.csv'
-    voltages = patterns.synchronised(rig, [-0.8, -0.4, 0.0, 0.4, 0.8], -0.6, steps=30,
-                                     tilt_step=0.05)
+    voltages = patterns.synchronised(load_rig('reference'), [-0.8, -0.4, 0.0, 0.4, 0.8], -0.6,
+                                     steps=30, tilt_step=0.05)
     np.savetxt(scan, voltages, delimiter=',')
     return params, scan
-
-
-def page_port(proc, timeout: float = 60.0) -> int:
-    """The port ``galvoscan view`` reports its browser page on."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.log_path.read_text()
-        found = re.search(r'browser page on http://[^:]+:(\d+)', proc.log_path.read_text())
-        if found:
-            return int(found.group(1))
-        time.sleep(0.2)
-    raise AssertionError(f'galvoscan view did not start:\n{proc.log_path.read_text()}')
 
 
 def api_cloud(port: int) -> np.ndarray:
@@ -383,12 +359,13 @@ def screenshot_during_a_scan(chromium, spawn, scan_csv, logs, timeout=150.0):
 
 
 @pytest.mark.dds
-def test_page_shows_the_cloud_of_a_sim_scan(chromium, spawn, tmp_path):
-    params, scan_csv = graph_params(tmp_path)
+def test_page_shows_the_cloud_of_a_sim_scan(chromium, spawn, tmp_path, sim_graph_params,
+                                            logged_port):
+    params, scan_csv = graph_params(tmp_path, sim_graph_params)
     graph = spawn([*GALVOSCAN, 'run', '--one-process', '--params', params], name='graph')
     view = spawn([*GALVOSCAN, 'view', '--host', '127.0.0.1', '--ws-port', '0',
                   '--http-port', '0'], name='view')
-    port = page_port(view)
+    port = logged_port(view, 'browser page')
     origin = f'http://127.0.0.1:{port}/'
     chromium.navigate(origin)
     chromium.wait_for("document.getElementById('connection').textContent === 'live'", 30)

@@ -7,7 +7,6 @@ subscribes to the cloud and the galvo state as Lichtblick would, and decodes wha
 """
 
 import json
-import re
 import signal
 import struct
 import subprocess
@@ -16,48 +15,24 @@ import time
 
 import numpy as np
 import pytest
-import yaml
 from websockets.sync.client import connect
 
-from galvoscan.simulated_rig import truth_calibration
 from galvoscan_common import cdr
 from galvoscan_common.cdr import parse_point_cloud
 from galvoscan_sim import load_rig, patterns
 from galvoscan_view.view_node import cloud_xyz
-from reconstructor import calibration_file
 
 pytestmark = pytest.mark.dds
 SEED = 7
 GALVOSCAN = [sys.executable, '-m', 'galvoscan.cli']
 
 
-def _graph_params(tmp_path):
-    rig = load_rig('reference')
-    cal = tmp_path / 'simulator_truth_for_tests.yaml'
-    calibration_file.save(truth_calibration(rig), cal)
-    params = tmp_path / 'params.yaml'
-    params.write_text(yaml.safe_dump({
-        'galvo_driver': {'ros__parameters': {'backend': 'sim', 'rig': 'reference',
-                                             'scene': 'stair_block', 'seed': SEED}},
-        'reconstructor': {'ros__parameters': {'calibration_file': str(cal),
-                                              'scan_end_timeout': 0.5}},
-    }))
+def _graph_params(tmp_path, sim_graph_params):
+    params = sim_graph_params(seed=SEED, reconstructor={'scan_end_timeout': 0.5})
     scan = tmp_path / 'scan.csv'
-    np.savetxt(scan, patterns.synchronised(rig, [0.0, 0.4], -0.3, steps=6, tilt_step=0.05),
-               delimiter=',')
+    np.savetxt(scan, patterns.synchronised(load_rig('reference'), [0.0, 0.4], -0.3, steps=6,
+                                           tilt_step=0.05), delimiter=',')
     return params, scan
-
-
-def _ws_port(proc, timeout=60.0):
-    """The port ``galvoscan view`` reports it serves on."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        assert proc.poll() is None, proc.log_path.read_text()
-        found = re.search(r'Foxglove WebSocket on ws://[^:]+:(\d+)', proc.log_path.read_text())
-        if found:
-            return int(found.group(1))
-        time.sleep(0.2)
-    raise AssertionError(f'galvoscan view did not start:\n{proc.log_path.read_text()}')
 
 
 def _messages(ws, subs, until):
@@ -74,12 +49,14 @@ def _messages(ws, subs, until):
     return got
 
 
-def test_view_serves_the_clouds_of_a_scan_to_a_websocket_client(spawn, ros_env, tmp_path):
-    params, scan_csv = _graph_params(tmp_path)
+def test_view_serves_the_clouds_of_a_scan_to_a_websocket_client(spawn, ros_env, tmp_path,
+                                                                 sim_graph_params,
+                                                                 logged_port):
+    params, scan_csv = _graph_params(tmp_path, sim_graph_params)
     graph = spawn([*GALVOSCAN, 'run', '--one-process', '--params', params], name='graph')
     view = spawn([*GALVOSCAN, 'view', '--host', '127.0.0.1', '--ws-port', '0',
                   '--no-browser-page'], name='view')
-    port = _ws_port(view)
+    port = logged_port(view, 'Foxglove WebSocket')
     with connect(f'ws://127.0.0.1:{port}', subprotocols=['foxglove.websocket.v1'],
                  max_size=None, open_timeout=30) as ws:
         assert ws.subprotocol == 'foxglove.websocket.v1'

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from galvoscan_common.yamlfile import read_yaml_text
 from reconstructor.correction import CorrectionTable
 from reconstructor.model import RigModel
 from reconstructor.tf_frames import check_cell_T_v0
@@ -190,17 +191,7 @@ def _cell_T_v0(value, origin) -> np.ndarray:
 def load(path) -> Calibration:
     """Read and validate a calibration file; errors name the file and the key."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ValueError(f'{path}: cannot read calibration file: {exc.strerror}') from None
-    try:
-        text = raw.decode('utf-8')
-    except UnicodeDecodeError as exc:
-        raise ValueError(f'{path}: not a calibration file: not UTF-8 text (byte {exc.start}: '
-                         f'{exc.reason}); is it binary, or saved as UTF-16?') from None
-    if '\x00' in text:
-        raise ValueError(f'{path}: not a calibration file: it holds NUL bytes (binary data)')
+    text = read_yaml_text(path, 'calibration file')
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
