@@ -42,7 +42,7 @@ from sensor_msgs.msg import Image
 
 from calibration_tools import stage_runner
 from calibration_tools.registry import plan
-from calibration_tools.stages import STAGES, apply_result
+from calibration_tools.stages import KNOWN_STAGES, apply_result
 from galvoscan_bag.writer import BagWriter
 from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subscription
 from galvoscan_common.diagnostics import publish_periodically
@@ -92,6 +92,9 @@ class CalibrationNode(Node):
             description='where captured bags go'))
         self.declare_parameter('quick', False, ParameterDescriptor(
             description='reduced capture plans (tests)'))
+        self.declare_parameter('cell_reference', '', ParameterDescriptor(
+            description='cell_extrinsic: YAML of the robot-reported sphere positions in the '
+                        'cell frame (calibration_tools.cell_extrinsic.read_reference)'))
         self._last_bags = {}
         self.calibration = self._initial()
         self.callback_errors = CallbackErrors()
@@ -171,14 +174,16 @@ class CalibrationNode(Node):
     def _on_capture(self, req, resp):
         t0 = time.monotonic()
         stage = req.stage
-        if stage not in STAGES:
-            resp.success, resp.message = False, f"unknown stage '{stage}'; one of {STAGES}"
+        if stage not in KNOWN_STAGES:
+            resp.success = False
+            resp.message = f"unknown stage '{stage}'; one of {', '.join(KNOWN_STAGES)}"
             return resp
         if self.calibration is None:
             resp.success, resp.message = False, 'no starting calibration (see the log)'
             return resp
         try:
-            steps = plan(stage, self.calibration, quick=self.get_parameter('quick').value)
+            steps = plan(stage, self.calibration, quick=self.get_parameter('quick').value,
+                         inputs=self._inputs(stage))
             if req.max_frames:
                 steps = _cap_frames(steps, req.max_frames)
             root = Path(req.output_dir or self.get_parameter('data_dir').value)
@@ -210,14 +215,20 @@ class CalibrationNode(Node):
         self.get_logger().info(resp.message)
         return resp
 
+    def _inputs(self, stage: str) -> dict:
+        """What the operator supplies for ``stage`` (node parameters named as its inputs)."""
+        from calibration_tools.registry import stage as stage_entry
+
+        return {k: self.get_parameter(k).value for k in stage_entry(stage).inputs}
+
     # -- compute ----------------------------------------------------------------------
     def _on_compute(self, req, resp):
         resp.reprojection_rms = resp.residual_rms = float('nan')
         stage = req.stage
         bags = list(req.bag_paths) or self._last_bags.get(stage, [])
-        if stage not in STAGES or not bags or self.calibration is None:
+        if stage not in KNOWN_STAGES or not bags or self.calibration is None:
             resp.success = False
-            resp.message = (f"unknown stage '{stage}'" if stage not in STAGES else
+            resp.message = (f"unknown stage '{stage}'" if stage not in KNOWN_STAGES else
                             'no bags given and none captured for this stage'
                             if not bags else 'no starting calibration')
             return resp
@@ -229,7 +240,8 @@ class CalibrationNode(Node):
 
         try:
             views = stage_runner.views_from_bags(bags)
-            result = stage_runner.compute(stage, views, self.calibration, progress=progress)
+            result = stage_runner.compute(stage, views, self.calibration, progress=progress,
+                                          inputs=self._inputs(stage))
             sources = [{'path': b, 'sha256': stage_runner.bag_digest(b)} for b in bags]
             new = apply_result(self.calibration, result, sources)
             path = self.get_parameter('calibration_file').value

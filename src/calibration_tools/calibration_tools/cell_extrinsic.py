@@ -9,6 +9,18 @@ its covariance from the residuals: each axis' standard error of translation [m] 
 rotation [rad]. The fit is refused when the positions cannot fix it: fewer than 3, or all
 on one line (the rotation about that line is free), or spread less than ``min_spread``.
 
+As a calibration stage (``cell_extrinsic`` in :mod:`calibration_tools.registry`; the node's
+services and ``galvoscan calibrate cell_extrinsic``) the operator supplies a reference file
+(:func:`read_reference`): the positions in the cell frame and, to aim G1 before anything is
+measured, a nominal ``cell_T_v0`` (e.g. from the cell's CAD; a few millimetres and a degree
+off is fine) unless the calibration already holds one. :func:`plan_steps` makes one sweep
+per position, :func:`run_cell_extrinsic` measures the centres and solves; the result goes
+to the calibration file's ``cell_T_v0`` (:func:`calibration_tools.stages.apply_result`).
+
+In the simulator the cell frame is the rig file's world frame W (the robot places the
+sphere at its reported position in W; the scanner's true mounting ``W_T_V0`` is the
+rig's, which the calibration never reads).
+
 No rclpy; the capture plan is :func:`capture_steps`, the solver :func:`solve_cell_T_v0`,
 the measurement :func:`sphere_centres`.
 """
@@ -19,6 +31,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
+#: Sweep frames per position (full plan, quick plan).
+FRAMES = (40, 16)
 
 #: Smallest spread (RMS distance of the positions from their mean) that the fit accepts [m].
 MIN_SPREAD_M = 0.05
@@ -127,8 +142,26 @@ def rotation_angle(R: np.ndarray) -> float:
     return float(math.acos(min(1.0, max(-1.0, c))))
 
 
-def read_reference(path) -> tuple[str, dict[int, np.ndarray]]:
-    """The robot-reported sphere positions: ``(cell_frame, {pose_index: (3,) m})``.
+@dataclass(frozen=True)
+class CellReference:
+    """The operator's reference for the cell stage (:func:`read_reference`).
+
+    Attributes
+    ----------
+    cell_frame : str
+    positions : dict of int to ndarray, shape (3,), metres
+        pose_index -> sphere centre in the cell frame.
+    nominal_cell_T_v0 : ndarray, shape (4, 4), or None
+        Where the scanner roughly is (to aim G1 before it is measured).
+    """
+
+    cell_frame: str
+    positions: dict
+    nominal_cell_T_v0: np.ndarray | None = None
+
+
+def read_reference(path) -> CellReference:
+    """The robot-reported sphere positions and the cell frame they are in.
 
     The file is YAML::
 
@@ -137,17 +170,22 @@ def read_reference(path) -> tuple[str, dict[int, np.ndarray]]:
         positions:                  # pose_index of the capture -> sphere centre
           0: [1.2031, -0.4112, 0.9020]
           1: [...]
+        nominal_cell_T_v0:          # optional: 4 rows of 4 numbers, the scanner's mounting
+          - [1, 0, 0, 0.8]          # as designed (to aim at the positions); without it the
+          - ...                     # calibration's cell_T_v0 is used
 
     Raises
     ------
     ValueError
         Unreadable file, missing or unknown keys, a unit other than ``m``, non-finite or
-        absurd coordinates (beyond 100 m), or fewer than 3 positions; the key is named.
+        absurd coordinates (beyond 100 m), fewer than 3 positions, or a nominal pose that
+        is not rigid; the key is named.
     """
     from galvoscan_common.yamlfile import read_yaml_mapping
+    from reconstructor.tf_frames import check_cell_T_v0
 
     data = read_yaml_mapping(path, 'cell reference')
-    unknown = set(data) - {'cell_frame', 'unit', 'positions'}
+    unknown = set(data) - {'cell_frame', 'unit', 'positions', 'nominal_cell_T_v0'}
     if unknown:
         raise ValueError(f'{path}: unknown keys {sorted(unknown)}')
     if data.get('unit') != 'm':
@@ -168,7 +206,14 @@ def read_reference(path) -> tuple[str, dict[int, np.ndarray]]:
             out[key] = _points([xyz], f'positions.{key}')[0]
         except (ValueError, TypeError) as err:
             raise ValueError(f'{path}: {err}') from None
-    return frame, out
+    nominal = data.get('nominal_cell_T_v0')
+    if nominal is not None:
+        try:
+            nominal = check_cell_T_v0(np.asarray(nominal, dtype=np.float64),
+                                      'nominal_cell_T_v0')
+        except (ValueError, TypeError) as err:
+            raise ValueError(f'{path}: {err}') from None
+    return CellReference(frame, out, nominal)
 
 
 def sphere_centres(views, model, *, sphere_radius: float, min_points: int = 200):
@@ -206,26 +251,121 @@ def sphere_centres(views, model, *, sphere_radius: float, min_points: int = 200)
     return centres, rejected
 
 
-def capture_steps(model, positions_v0, *, sphere_radius: float, frames: int = 40,
-                  fraction: float = 0.7, frame_rate: float = 100.0):
+def capture_steps(model, positions_v0, *, sphere_radius: float, frames: int = FRAMES[0],
+                  fraction: float = 0.7, frame_rate: float = 100.0, pose_indices=None,
+                  scene_positions=None):
     """One step per position: the sphere there, G1 aimed at it, G2 swept across it.
 
-    ``positions_v0`` (n, 3) [m] are where the operator's current model expects the sphere
-    (for a robot: its reported positions mapped by the nominal ``v0_T_cell``). The sweep
-    covers ``fraction`` of the view's height at the sphere's distance.
+    Parameters
+    ----------
+    model : reconstructor.model.RigModel
+        The operator's current model (aims G1).
+    positions_v0 : array_like, shape (n, 3), metres
+        Where the model expects the sphere (for a robot: its reported positions mapped by
+        the nominal ``v0_T_cell``). The sweep covers ``fraction`` of the view's height at
+        the sphere's distance.
+    pose_indices : sequence of int, optional
+        The steps' pose_index (default 0..n-1): the reference file's keys.
+    scene_positions : array_like, shape (n, 3), metres, optional
+        Where the simulator shows the sphere (its world frame W: the cell); default
+        ``positions_v0``. A real rig ignores the scene; the robot places the sphere.
     """
     from calibration_tools.placement import _aim, sphere_scene_yaml
     from calibration_tools.stages import CaptureStep
     from reconstructor.planning import view_sweep
 
+    p_v0 = _points(positions_v0, 'positions_v0')
+    scene = p_v0 if scene_positions is None else _points(scene_positions, 'scene_positions')
+    keys = list(range(len(p_v0))) if pose_indices is None else [int(k) for k in pose_indices]
+    if scene.shape != p_v0.shape or len(keys) != len(p_v0):
+        raise ValueError('positions_v0, scene_positions and pose_indices differ in length')
     steps = []
-    for k, centre in enumerate(_points(positions_v0, 'positions_v0')):
+    for k, centre, shown in zip(keys, p_v0, scene, strict=True):
         aim = _aim(model, centre, f'sphere position {k}')
         distance = float(np.linalg.norm(centre)) - sphere_radius
         volts = view_sweep(model, float(aim[0]), float(aim[1]), distance, frames, fraction)
-        steps.append(CaptureStep(k, sphere_scene_yaml(centre, sphere_radius), volts, True,
+        steps.append(CaptureStep(k, sphere_scene_yaml(shown, sphere_radius), volts, True,
                                  frame_rate, note=f'sphere at position {k} (robot)'))
     return steps
+
+
+def plan_steps(model, quick: bool, options: dict):
+    """The cell stage's capture plan (registry entry): one sweep per reference position.
+
+    ``options`` holds ``cell_reference`` (path), ``sphere_radius`` [m] and ``calibration``
+    (the current Calibration, whose ``cell_T_v0`` aims G1 when the reference file has no
+    ``nominal_cell_T_v0``).
+
+    Raises
+    ------
+    ValueError
+        An unreadable reference, no nominal pose anywhere, or a position out of G1 reach.
+    """
+    ref = read_reference(options['cell_reference'])
+    cell_T_v0 = ref.nominal_cell_T_v0
+    if cell_T_v0 is None:
+        cell_T_v0 = getattr(options.get('calibration'), 'cell_T_v0', None)
+    if cell_T_v0 is None:
+        raise ValueError(f"{options['cell_reference']}: nominal_cell_T_v0 is needed to aim at "
+                         'the positions (the calibration holds no cell_T_v0 yet); give the '
+                         "scanner's mounting as designed, a few mm and a degree off is fine")
+    keys = sorted(ref.positions)
+    p_cell = np.array([ref.positions[k] for k in keys])
+    v0_T_cell = np.linalg.inv(np.asarray(cell_T_v0, dtype=np.float64))
+    p_v0 = p_cell @ v0_T_cell[:3, :3].T + v0_T_cell[:3, 3]
+    return capture_steps(model, p_v0, sphere_radius=options['sphere_radius'],
+                         frames=FRAMES[1] if quick else FRAMES[0], pose_indices=keys,
+                         scene_positions=p_cell)
+
+
+def run_cell_extrinsic(views, calibration, options: dict, progress=None):
+    """The cell stage's solver (registry entry): sphere centres, then ``cell_T_v0``.
+
+    Returns
+    -------
+    calibration_tools.stages.StageResult
+        No model update; ``extra['cell_extrinsic']`` holds the solution
+        (:func:`result_extra`), which :func:`~calibration_tools.stages.apply_result` stores
+        as the file's ``cell_T_v0``.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 positions measured and reported, or positions that cannot fix the
+        pose (:func:`solve_cell_T_v0`).
+    """
+    from calibration_tools.stages import CELL_STAGE, StageResult
+
+    def report(done, total, message=''):
+        if progress is not None:
+            progress(done, total, message)
+
+    ref = read_reference(options['cell_reference'])
+    report(0, 2, f'{len(ref.positions)} reported positions; fitting the spheres')
+    centres, rejected = sphere_centres(views, calibration.model,
+                                       sphere_radius=options['sphere_radius'])
+    unreported = sorted(set(centres) - set(ref.positions))
+    rejected += [f'position {k}: measured but not in the reference file' for k in unreported]
+    seen = {int(v.pose_index) for v in views if v.laser_on}
+    rejected += [f'position {k}: reported but not captured' for k in
+                 sorted(set(ref.positions) - seen)]
+    keys = sorted(set(centres) & set(ref.positions))
+    if len(keys) < 3:
+        raise ValueError(f'cell_extrinsic: {len(keys)} positions both measured and reported; '
+                         f'at least 3 needed' + (f"; {'; '.join(rejected)}" if rejected else ''))
+    report(1, 2, f'{len(keys)} sphere centres; solving cell_T_v0')
+    sol = solve_cell_T_v0(np.array([centres[k][0] for k in keys]),
+                          np.array([ref.positions[k] for k in keys]))
+    extra = result_extra(sol, ref.cell_frame)
+    extra['positions'] = [int(k) for k in keys]
+    report(2, 2, 'done')
+    return StageResult(
+        stage=CELL_STAGE, residuals={
+            'sphere_centre_rms_m': sol.rms,
+            'translation_std_max_m': float(np.max(sol.translation_std)),
+            'rotation_std_max_rad': float(np.max(sol.rotation_std))},
+        samples_used=len(keys), samples_rejected=len(rejected), rejected=rejected,
+        extra={CELL_STAGE: extra})
 
 
 def result_extra(solution: CellExtrinsic, cell_frame: str) -> dict:

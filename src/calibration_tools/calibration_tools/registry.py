@@ -6,7 +6,9 @@ order, with
 - ``plan(model, quick)``: the capture steps (:mod:`calibration_tools.capture_plans`);
 - ``options``: the targets and options its solver is run with (those the plan is made for);
 - ``run(views, calibration, options, progress)``: the solver, in the Open3D ``run(config)``
-  style (:class:`~calibration_tools.stages.StageResult` out).
+  style (:class:`~calibration_tools.stages.StageResult` out);
+- ``inputs``: what the operator must supply besides the captured views (the cell stage's
+  robot-reported positions); they reach ``plan`` and ``run`` as options.
 
 The node, the offline command and the benchmarks all go through :func:`plan` and
 :func:`calibration_tools.stage_runner.compute`, which look stages up here; no other module
@@ -21,7 +23,13 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from calibration_tools import capture_plans as cp
-from calibration_tools.stages import STAGES, VOLTAGE_TOL, CaptureStep, CaptureView, StageResult
+from calibration_tools.stages import (
+    KNOWN_STAGES,
+    VOLTAGE_TOL,
+    CaptureStep,
+    CaptureView,
+    StageResult,
+)
 
 
 @dataclass(frozen=True)
@@ -31,17 +39,21 @@ class Stage:
     Attributes
     ----------
     name : str
-    plan : callable ``(model, quick: bool) -> list[CaptureStep]``
+    plan : callable ``(model, quick: bool[, options]) -> list[CaptureStep]``
+        Stages with ``inputs`` get the options (with the inputs) as a third argument.
     run : callable ``(views, calibration, options, report) -> StageResult``
         ``report(done, total, message)`` is always callable (a no-op without a listener).
     options : mapping
         Targets and options passed to the solver.
+    inputs : tuple of str
+        Options the operator supplies (each required), with a line saying what it is.
     """
 
     name: str
     plan: Callable
     run: Callable
     options: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    inputs: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -116,6 +128,18 @@ def _run_joint_correction(views, calibration, options, report):
     return result
 
 
+def _run_cell_extrinsic(views, calibration, options, report):
+    from calibration_tools.cell_extrinsic import run_cell_extrinsic
+
+    return run_cell_extrinsic(views, calibration, options, progress=report)
+
+
+def _plan_cell_extrinsic(model, quick, options):
+    from calibration_tools.cell_extrinsic import plan_steps
+
+    return plan_steps(model, quick, options)
+
+
 # ----------------------------------------------------------------------------- plans
 _JOINT_LATERALS = (0.0, 0.02, -0.02, 0.04, -0.04, 0.06, -0.06, 0.08, -0.08)
 
@@ -146,8 +170,13 @@ REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
           _laser_stage(_laser_axis_solver), _options(board=cp.LASER_BOARD)),
     Stage('joint_correction', _plan_joint_correction,
           _run_joint_correction, _options(sphere_radius=cp.SPHERE_RADIUS)),
+    Stage('cell_extrinsic', _plan_cell_extrinsic, _run_cell_extrinsic,
+          _options(sphere_radius=cp.SPHERE_RADIUS),
+          _options(cell_reference='YAML file of the robot-reported sphere positions in the '
+                                  'cell frame (see calibration_tools.cell_extrinsic.'
+                                  'read_reference)')),
 )})
-assert tuple(REGISTRY) == STAGES, 'REGISTRY and STAGES must name the same stages in order'
+assert tuple(REGISTRY) == KNOWN_STAGES, 'REGISTRY and KNOWN_STAGES must name the same stages'
 
 
 def stage(name: str) -> Stage:
@@ -161,26 +190,53 @@ def stage(name: str) -> Stage:
     try:
         return REGISTRY[name]
     except (KeyError, TypeError):
-        raise ValueError(f"stage: unknown '{name}', one of {', '.join(STAGES)}") from None
+        raise ValueError(f"stage: unknown '{name}', one of {', '.join(KNOWN_STAGES)}") \
+            from None
 
 
-def plan(name: str, calibration, quick: bool = False) -> list[CaptureStep]:
+def stage_inputs(name: str, inputs=None) -> dict:
+    """The stage's options with the operator's ``inputs`` merged in, every required one present.
+
+    Raises
+    ------
+    ValueError
+        An input the stage needs is missing or empty, or one it does not take is given.
+    """
+    entry = stage(name)
+    given = {k: v for k, v in dict(inputs or {}).items() if v not in (None, '')}
+    unknown = sorted(set(given) - set(entry.inputs))
+    if unknown:
+        raise ValueError(f"{name} takes no input {', '.join(unknown)}")
+    missing = [k for k in entry.inputs if k not in given]
+    if missing:
+        raise ValueError(f'{name} needs ' + '; '.join(f'{k}: {entry.inputs[k]}'
+                                                      for k in missing))
+    return {**entry.options, **given}
+
+
+def plan(name: str, calibration, quick: bool = False, inputs=None) -> list[CaptureStep]:
     """The capture plan of a calibration stage.
 
     Parameters
     ----------
     name : str
-        One of :data:`calibration_tools.stages.STAGES`.
+        One of :data:`calibration_tools.stages.KNOWN_STAGES`.
     calibration : reconstructor.calibration_file.Calibration or RigModel
         The operator's current model: targets are placed and G1 is aimed with it only.
     quick : bool
         A reduced plan (few frames; end-to-end tests).
+    inputs : dict, optional
+        What the operator supplies for stages with ``inputs`` (:func:`stage_inputs`).
 
     Returns
     -------
     list of CaptureStep
     """
     entry = stage(name)
+    options = stage_inputs(name, inputs)
+    if entry.inputs:
+        options['calibration'] = calibration
+        return entry.plan(cp.current_model(calibration), bool(quick), options)
     return entry.plan(cp.current_model(calibration), bool(quick))
 
 
@@ -190,12 +246,13 @@ def stage_options(name: str) -> dict:
 
 
 def run(name: str, views: Sequence[CaptureView], calibration,
-        progress: Callable | None = None) -> StageResult:
+        progress: Callable | None = None, inputs=None) -> StageResult:
     """Run the registered solver of stage ``name`` (``stage_runner.compute`` checks the input)."""
     entry = stage(name)
+    options = stage_inputs(name, inputs)
 
     def report(done, total, message=''):
         if progress is not None:
             progress(done, total, message)
 
-    return entry.run(views, calibration, entry.options, report)
+    return entry.run(views, calibration, options, report)

@@ -170,7 +170,7 @@ def flatten(updates: dict, prefix: str = '') -> dict:
 
 # ----------------------------------------------------------------------------- compute
 def compute(stage: str, views: Sequence[CaptureView], calibration,
-            progress: Callable | None = None) -> StageResult:
+            progress: Callable | None = None, inputs=None) -> StageResult:
     """Run one calibration stage on captured views.
 
     The stage's solver, targets and options are those of its entry in
@@ -179,13 +179,16 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
     Parameters
     ----------
     stage : str
-        One of :data:`calibration_tools.stages.STAGES`.
+        One of :data:`calibration_tools.stages.KNOWN_STAGES`.
     views : sequence of CaptureView
         Captured as :func:`calibration_tools.registry.plan` describes.
     calibration : reconstructor.calibration_file.Calibration
         The current calibration (the one the plan was made with).
     progress : callable, optional
         ``progress(done, total, message)``.
+    inputs : dict, optional
+        What the operator supplies for the stage (:func:`calibration_tools.registry.
+        stage_inputs`), e.g. ``{'cell_reference': path}`` for ``cell_extrinsic``.
 
     Returns
     -------
@@ -206,4 +209,4 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
             raise ValueError(f'views[{i}] must be a CaptureView, got {type(v).__name__}')
     if not hasattr(calibration, 'model'):
         raise ValueError('calibration must be a reconstructor.calibration_file.Calibration')
-    return registry.run(stage, views, calibration, progress)
+    return registry.run(stage, views, calibration, progress, inputs)

@@ -19,7 +19,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+#: The rig's calibration chain, in order: each stage refines the model of the scanner itself.
 STAGES = ('intrinsics', 'dynamic_camera', 'laser_plane', 'laser_axis', 'joint_correction')
+#: Where the calibrated scanner sits in the robot cell (``cell_T_v0``): done once the rig is
+#: calibrated and mounted, with a robot; not part of the rig's chain.
+CELL_STAGE = 'cell_extrinsic'
+#: Every stage the node and the offline command run.
+KNOWN_STAGES = (*STAGES, CELL_STAGE)
 #: Voltages closer than this are one and the same command (one board placement, one G1
 #: node of a grid, one laser plane) [V].
 VOLTAGE_TOL = 1e-3
@@ -169,10 +175,16 @@ def apply_result(calibration, result: StageResult, sources=()):
     from reconstructor import calibration_file
     from reconstructor.model import RigModel
 
-    if result.stage not in STAGES:
+    if result.stage not in KNOWN_STAGES:
         raise ValueError(f"stage: unknown '{result.stage}'")
     model = RigModel.from_dict(_merge(calibration.model.to_dict(), result.updates))
     stages = dict(calibration.stages)
+    cell_T_v0 = calibration.cell_T_v0
+    if CELL_STAGE in result.extra:
+        cell_T_v0 = np.asarray(result.extra[CELL_STAGE]['cell_T_v0'], dtype=np.float64)
+    elif cell_T_v0 is not None and result.updates and CELL_STAGE in stages:
+        # V0 is the model's frame: a changed model moves it by as much as the change
+        stages[CELL_STAGE] = {**stages[CELL_STAGE], 'model_changed_by': result.stage}
     stages[result.stage] = {
         'created': calibration_file.now_iso(),
         'bags': [dict(s) for s in sources],
@@ -181,6 +193,9 @@ def apply_result(calibration, result: StageResult, sources=()):
         'residuals': {k: float(v) for k, v in result.residuals.items()},
         'updated': sorted(_flat_keys(result.updates)),
     }
+    if CELL_STAGE in result.extra:
+        stages[result.stage].update({k: v for k, v in result.extra[CELL_STAGE].items()
+                                     if k != 'cell_T_v0'})
     if result.extra.get('nodes'):  # per-view figures of a stage, for reports
         keep = ('pose_index', 'u1_pan', 'u1_tilt', 'status', 'error1_rms_m', 'error2_rms_m',
                 'error3_rms_m')
@@ -194,7 +209,7 @@ def apply_result(calibration, result: StageResult, sources=()):
     else:
         jc = calibration.joint_correction
     return calibration_file.Calibration(model=model, source='calibrated', stages=stages,
-                                        joint_correction=jc)
+                                        joint_correction=jc, cell_T_v0=cell_T_v0)
 
 
 def _flat_keys(d, prefix=''):

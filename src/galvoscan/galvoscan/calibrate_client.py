@@ -51,6 +51,39 @@ def calibrate_all(client, cal_path, progress, quick=False) -> dict:
     return info
 
 
+def calibrate_cell(client, cal_path, rig, progress) -> dict:
+    """The cell stage through the node (its ``cell_reference`` parameter set by the caller),
+    and its error against the simulator's true mounting ``rig.W_T_V0`` (W is the cell)."""
+    from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration
+
+    from calibration_tools.cell_extrinsic import rotation_angle
+    from calibration_tools.stages import CELL_STAGE
+
+    progress.stage('cell extrinsic (capture + compute)', 1, 'stages')
+    cap = client.call(CaptureCalibration, 'calibration/capture',
+                      CaptureCalibration.Request(stage=CELL_STAGE), timeout=900.0)
+    if not cap.success:
+        raise RuntimeError(f'capture {CELL_STAGE}: {cap.message}')
+    comp = client.call(ComputeCalibration, 'calibration/compute',
+                       ComputeCalibration.Request(stage=CELL_STAGE), timeout=900.0)
+    if not comp.success:
+        raise RuntimeError(f'compute {CELL_STAGE}: {comp.message}')
+    cal = calibration_file.load(cal_path)
+    T, truth = cal.cell_T_v0, rig.W_T_V0
+    entry = cal.stages[CELL_STAGE]
+    info = {'positions': comp.samples_used, 'frames': cap.frames_recorded,
+            'error_mm': float(np.linalg.norm(T[:3, 3] - truth[:3, 3]) * 1e3),
+            'error_deg': float(np.degrees(rotation_angle(T[:3, :3] @ truth[:3, :3].T))),
+            'stated_translation_std_mm': [v * 1e3 for v in entry['translation_std_m']],
+            'stated_rotation_std_deg': [float(np.degrees(v)) for v in
+                                        entry['rotation_std_rad']],
+            'sphere_centre_rms_mm': entry['residuals']['sphere_centre_rms_m'] * 1e3}
+    progress.advance(note=f"{CELL_STAGE}: {comp.samples_used} positions, "
+                          f"{info['error_mm']:.4f} mm / {info['error_deg']:.5f} deg from "
+                          'the true mounting')
+    return info
+
+
 def true_transfer_error_mm(model, rig) -> float:
     """The paper's transfer-matrix error (Eq. 18-1, 36 G1 positions, -10..10 V in 4 V steps)
     of ``model`` against the simulator's exact virtual-camera poses."""

@@ -112,3 +112,25 @@ objects:
     albedo: 0.5
 """
     return text, {'distance': distance}
+
+
+#: Where the evaluation's "robot" puts the sphere for the cell extrinsic, in the rig's
+#: nominal V0 [m]: over the range at 650 mm, not on one line or plane.
+CELL_POSITIONS = ((0.0, 0.0, 0.65), (0.25, 0.15, 0.6), (-0.25, 0.15, 0.7),
+                  (0.22, -0.15, 0.72), (-0.22, -0.16, 0.58), (0.04, 0.18, 0.66))
+
+
+def cell_reference(nominal_W_T_V0, cell_frame: str = 'world') -> tuple[str, np.ndarray]:
+    """The cell stage's reference file text, with W as the cell frame.
+
+    The robot is programmed with the scanner's designed mounting ``nominal_W_T_V0``
+    (4, 4): it reports the positions it moved the sphere to, in W, and the file carries the
+    designed mounting as ``nominal_cell_T_v0`` (to aim G1). Returns the text and the
+    positions (n, 3) [m] in W.
+    """
+    T = np.asarray(nominal_W_T_V0, dtype=np.float64)
+    p = np.asarray(CELL_POSITIONS) @ T[:3, :3].T + T[:3, 3]
+    lines = [f'cell_frame: {cell_frame}', 'unit: m', 'positions:']
+    lines += [f'  {k}: {_fmt(q)}' for k, q in enumerate(p)]
+    lines += ['nominal_cell_T_v0:'] + [f'  - {_fmt(row)}' for row in T]
+    return '\n'.join(lines) + '\n', p

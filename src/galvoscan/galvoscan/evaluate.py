@@ -254,7 +254,8 @@ class Evaluation:
         centre, radius, rms = metrics.fit_sphere(xyz(cloud))
         self.progress.advance(note=f'radius error {(radius - info["radius"]) * 1e3:+.3f} mm')
         return {'radius_error_mm': (radius - info['radius']) * 1e3, 'fit_rms_mm': rms * 1e3,
-                'points': int(cloud.shape[0])}, cloud
+                'points': int(cloud.shape[0]), 'centre_v0_m': np.asarray(centre).tolist(),
+                'centre_true_w_m': np.asarray(info['centre_W']).tolist()}, cloud
 
     def _extreme_view(self, axis, sign, frames, distance):
         """The most extreme G1 voltage along ``axis`` whose view the laser can reach."""
@@ -290,11 +291,22 @@ class Evaluation:
         return rng, views
 
 
-def _write_params(path, args, cal_path, data_dir):
+def _cell_point_error_mm(cal, sphere_res):
+    """How far the evaluation sphere's measured centre, taken into the cell by the file's
+    ``cell_T_v0``, lies from where it truly is [mm] (None without a cell extrinsic): the
+    measurement a robot uses, independent of the calibration's own choice of V0."""
+    if cal.cell_T_v0 is None:
+        return None
+    T = np.asarray(cal.cell_T_v0)
+    p = T[:3, :3] @ np.asarray(sphere_res['centre_v0_m']) + T[:3, 3]
+    return float(np.linalg.norm(p - np.asarray(sphere_res['centre_true_w_m'])) * 1e3)
+
+
+def _write_params(path, args, cal_path, data_dir, cell_reference=''):
     params = {
         'calibration': {'ros__parameters': {
             'calibration_file': str(cal_path), 'quick': bool(args.quick),
-            'data_dir': str(data_dir)}},
+            'data_dir': str(data_dir), 'cell_reference': str(cell_reference)}},
         'galvo_driver': {'ros__parameters': {
             'backend': 'sim', 'rig': args.rig, 'scene': 'stair_block', 'seed': args.seed}},
         'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
@@ -345,8 +357,8 @@ def build_parser():
 def main(argv=None):
     args = build_parser().parse_args(argv)
     from galvoscan import bringup, report
-    from galvoscan.calibrate_client import calibrate_all, true_transfer_error_mm
-    from galvoscan.simulated_rig import truth_calibration
+    from galvoscan.calibrate_client import calibrate_all, calibrate_cell, true_transfer_error_mm
+    from galvoscan.simulated_rig import nominal_rig, truth_calibration
     from galvoscan_sim import load_rig
     from reconstructor import calibration_file
 
@@ -365,7 +377,9 @@ def main(argv=None):
     env = {**os.environ, 'ROS_DOMAIN_ID': domain,
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     params = out / 'params.yaml'
-    _write_params(params, args, cal_path, out / 'calibration_data')
+    cell_ref = out / 'cell_reference.yaml'
+    cell_ref.write_text(eval_scenes.cell_reference(nominal_rig(rig).W_T_V0)[0])
+    _write_params(params, args, cal_path, out / 'calibration_data', cell_ref)
     nodes = list(bringup.DEFAULT_NODES) + ([] if args.truth_calibration else ['calibration'])
     params = bringup.with_sim_starting_calibration(params, nodes, out / 'start')
     sup = bringup.Supervisor(nodes, params, env=env, log_dir=out / 'logs')
@@ -382,6 +396,7 @@ def main(argv=None):
             progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a result)')
         else:
             stage_info = calibrate_all(client, cal_path, progress, quick=args.quick)
+            stage_info['cell_extrinsic'] = calibrate_cell(client, cal_path, rig, progress)
             cal = calibration_file.load(cal_path)
         from galvoscan_msgs.srv import LoadCalibration
         resp = client.call(LoadCalibration, 'reconstructor/reload_calibration',
@@ -409,6 +424,9 @@ def main(argv=None):
             'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model, rig),
             'joint_error_before_mm': stage_info.get('joint_error_before_mm'),
             'joint_error_after_mm': stage_info.get('joint_error_after_mm'),
+            'cell_extrinsic_error_mm': stage_info.get('cell_extrinsic', {}).get('error_mm'),
+            'cell_extrinsic_error_deg': stage_info.get('cell_extrinsic', {}).get('error_deg'),
+            'cell_sphere_centre_error_mm': _cell_point_error_mm(cal, sphere_res),
             'range_x_mm': rng['x'], 'range_y_mm': rng['y'],
             'stair_positions_used': len(errors), 'stair_positions_total': len(stair_rows),
             'frames_lost': ev.lost_frames,

@@ -1,18 +1,25 @@
 """``galvoscan calibrate``: calibration stages from the command line (no rclpy).
 
     galvoscan calibrate STAGE --bags DIR [DIR ...] --calibration FILE
-                        [--initial FILE | --rig NAME]
+                        [--initial FILE | --rig NAME] [--reference FILE]
+    galvoscan calibrate STAGE --sim [--rig NAME] [--seed N] [--quick] --calibration FILE
+                        [--reference FILE]
     galvoscan calibrate all --sim [--rig NAME] [--seed N] [--quick] --calibration FILE
                         [--initial FILE]
 
-STAGE is one of intrinsics, dynamic_camera, laser_plane, laser_axis, joint_correction. The
+STAGE is one of intrinsics, dynamic_camera, laser_plane, laser_axis, joint_correction (the
+rig's chain, which ``all`` runs in order) or cell_extrinsic (where the calibrated scanner
+sits in the robot cell: ``--reference FILE`` gives the robot-reported sphere positions,
+see :func:`calibration_tools.cell_extrinsic.read_reference`; the result is the file's
+``cell_T_v0``, which the reconstructor publishes on ``/tf_static``). The
 bags are rosbag2 directories recorded by the calibration node (``poseNNN_stepMMM``), or the
 node's run folder holding them. The stage starts from FILE when it exists, else from
 ``--initial FILE``, else from the design values of the simulated rig ``--rig`` (see
 :func:`galvoscan.simulated_rig.nominal_calibration`); the result is merged and FILE
 is written atomically, with the bags' paths and sha256 digests.
 
-``all --sim`` runs every stage in order on the rig simulator, in this process: each stage's
+``STAGE --sim`` captures that one stage on the rig simulator in this process, starting
+from FILE. ``all --sim`` runs every stage of the chain in order on the rig simulator: each stage's
 capture plan (made with the calibration so far) is rendered as the driver's sim backend
 would, computed and merged, and FILE is written after every stage. It starts from
 ``--initial FILE`` or the design values of ``--rig`` (FILE is replaced).
@@ -28,7 +35,7 @@ import sys
 import time
 from pathlib import Path
 
-from calibration_tools.stages import STAGES
+from calibration_tools.stages import KNOWN_STAGES, STAGES
 from galvoscan.progress import Progress
 
 PROG = 'galvoscan calibrate'
@@ -46,7 +53,7 @@ class _Parser(argparse.ArgumentParser):
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog=PROG, description=__doc__.split('\n\n')[0].strip(),
                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                epilog='stages: ' + ', '.join(STAGES) + ', or all (with --sim)')
+                epilog='stages: ' + ', '.join(KNOWN_STAGES) + ', or all (with --sim)')
     p.add_argument('stage', metavar='STAGE', help='calibration stage, or all (with --sim)')
     p.add_argument('--bags', nargs='+', metavar='DIR',
                    help='rosbag2 directories (or folders of them) captured for the stage')
@@ -61,8 +68,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--sim', action='store_true',
                    help='all: capture every stage in-process on the rig simulator')
     p.add_argument('--quick', action='store_true', help='all --sim: reduced capture plans')
-    p.add_argument('--seed', type=int, default=0, help='all --sim: simulator seed')
+    p.add_argument('--seed', type=int, default=0, help='--sim: simulator seed')
+    p.add_argument('--reference', metavar='FILE',
+                   help='cell_extrinsic: robot-reported sphere positions (YAML, metres)')
     return p
+
+
+def _inputs(args) -> dict:
+    """The operator's inputs for the stage (``--reference`` is cell_extrinsic's)."""
+    return {'cell_reference': args.reference} if args.reference else {}
 
 
 def _starting_calibration(args, fresh: bool):
@@ -125,10 +139,10 @@ def run_stage(args, progress: Progress) -> int:
     from calibration_tools.stages import apply_result
     from reconstructor import calibration_file
 
-    if not args.bags:
-        raise UsageError(f'{args.stage} needs --bags DIR [DIR ...]')
     if args.sim:
-        raise UsageError('--sim only goes with the stage all')
+        return run_stage_sim(args, progress)
+    if not args.bags:
+        raise UsageError(f'{args.stage} needs --bags DIR [DIR ...] (or --sim)')
     cal, origin = _starting_calibration(args, fresh=False)
     progress.log(f'{args.stage}: starting from {origin}')
     bags = stage_runner.expand_bag_dirs(args.bags)
@@ -140,7 +154,8 @@ def run_stage(args, progress: Progress) -> int:
     progress.log(f'{len(views)} frames from {len(bags)} bag(s)')
     t0 = time.monotonic()
     result = stage_runner.compute(args.stage, views, cal,
-                                  progress=_progress_callback(progress, args.stage))
+                                  progress=_progress_callback(progress, args.stage),
+                                  inputs=_inputs(args))
     sources = [{'path': str(b.resolve()), 'sha256': stage_runner.bag_digest(b)} for b in bags]
     new = apply_result(cal, result, sources)
     calibration_file.save(new, args.calibration)
@@ -150,20 +165,10 @@ def run_stage(args, progress: Progress) -> int:
     return 0
 
 
-def run_all_sim(args, progress: Progress) -> int:
-    from calibration_tools import stage_runner
-    from calibration_tools.capture_plans import total_frames
-    from calibration_tools.registry import plan
-    from calibration_tools.stages import apply_result
-    from galvoscan.simulated_rig import execute_in_process
+def _simulator(args, progress: Progress):
+    """The in-process rig simulator of ``--rig`` (default reference), with an empty scene."""
     from galvoscan_sim import Simulator, load_rig, load_scene_text
-    from reconstructor import calibration_file
 
-    if not args.sim:
-        raise UsageError('all needs --sim (bags are captured and computed per stage)')
-    if args.bags:
-        raise UsageError('all --sim captures its own data: no --bags')
-    cal, origin = _starting_calibration(args, fresh=True)
     rig_name = args.rig or 'reference'
     try:
         rig = load_rig(rig_name)
@@ -171,25 +176,62 @@ def run_all_sim(args, progress: Progress) -> int:
         raise ValueError(f'rig {rig_name}: {exc}') from None
     empty = ('format_version: 1\nname: empty\nobjects:\n  - type: plane\n    name: floor\n'
              '    pose: {translation: [0.0, 0.0, 5.0]}\n    albedo: 0.1\n')
-    sim = Simulator(rig, load_scene_text(empty), seed=args.seed)
+    return Simulator(rig, load_scene_text(empty), seed=args.seed), rig
+
+
+def _sim_stage(stage, cal, sim, rig, args, progress: Progress):
+    """Capture ``stage`` on the simulator with ``cal``, compute it, merge and save."""
+    from calibration_tools import stage_runner
+    from calibration_tools.capture_plans import total_frames
+    from calibration_tools.registry import plan
+    from calibration_tools.stages import apply_result
+    from galvoscan.simulated_rig import execute_in_process
+    from reconstructor import calibration_file
+
+    t0 = time.monotonic()
+    steps = plan(stage, cal, quick=args.quick, inputs=_inputs(args))
+    views, _ = execute_in_process(
+        sim, steps, progress=_progress_callback(progress, f'{stage}: capture', 'frames'))
+    t1 = time.monotonic()
+    result = stage_runner.compute(stage, views, cal, inputs=_inputs(args),
+                                  progress=_progress_callback(progress, stage))
+    source = {'path': f'in-process simulator: rig {rig.name}, seed {args.seed}, '
+                      f'{len(steps)} capture steps',
+              'sha256': stage_runner.views_digest(views)}
+    cal = apply_result(cal, result, [source])
+    calibration_file.save(cal, args.calibration)
+    _report(result, progress)
+    progress.log(f'{stage}: {total_frames(steps)} frames in {len(steps)} steps, capture '
+                 f'{t1 - t0:.1f} s, compute {time.monotonic() - t1:.1f} s')
+    return cal
+
+
+def run_stage_sim(args, progress: Progress) -> int:
+    """One stage captured on the simulator, starting from FILE (or --initial / --rig)."""
+    if args.bags:
+        raise UsageError('--sim captures its own data: no --bags')
+    cal, origin = _starting_calibration(args, fresh=False)
+    sim, rig = _simulator(args, progress)
+    progress.log(f'{args.stage} on the simulated rig {rig.name} (seed {args.seed}), '
+                 f'starting from {origin}')
+    cal = _sim_stage(args.stage, cal, sim, rig, args, progress)
+    progress.log(f'wrote {cal.path}')
+    return 0
+
+
+def run_all_sim(args, progress: Progress) -> int:
+    if not args.sim:
+        raise UsageError('all needs --sim (bags are captured and computed per stage)')
+    if args.bags:
+        raise UsageError('all --sim captures its own data: no --bags')
+    if args.reference:
+        raise UsageError('all runs the rig chain; cell_extrinsic (--reference) runs after it')
+    cal, origin = _starting_calibration(args, fresh=True)
+    sim, rig = _simulator(args, progress)
     progress.log(f'calibrating the simulated rig {rig.name} (seed {args.seed}'
                  f'{", quick plans" if args.quick else ""}), starting from {origin}')
     for stage in STAGES:
-        t0 = time.monotonic()
-        steps = plan(stage, cal, quick=args.quick)
-        views, _ = execute_in_process(
-            sim, steps, progress=_progress_callback(progress, f'{stage}: capture', 'frames'))
-        t1 = time.monotonic()
-        result = stage_runner.compute(stage, views, cal,
-                                      progress=_progress_callback(progress, stage))
-        source = {'path': f'in-process simulator: rig {rig.name}, seed {args.seed}, '
-                          f'{len(steps)} capture steps',
-                  'sha256': stage_runner.views_digest(views)}
-        cal = apply_result(cal, result, [source])
-        calibration_file.save(cal, args.calibration)
-        _report(result, progress)
-        progress.log(f'{stage}: {total_frames(steps)} frames in {len(steps)} steps, capture '
-                     f'{t1 - t0:.1f} s, compute {time.monotonic() - t1:.1f} s')
+        cal = _sim_stage(stage, cal, sim, rig, args, progress)
     progress.log(f'wrote {cal.path}')
     return 0
 
@@ -206,9 +248,9 @@ def main(argv=None) -> int:
         args = parser.parse_args(argv)
         if args.stage == 'all':
             return run_all_sim(args, progress)
-        if args.stage not in STAGES:
-            raise UsageError(f"unknown stage '{args.stage}'; one of {', '.join(STAGES)}, "
-                             f'or all (with --sim)')
+        if args.stage not in KNOWN_STAGES:
+            raise UsageError(f"unknown stage '{args.stage}'; one of "
+                             f"{', '.join(KNOWN_STAGES)}, or all (with --sim)")
         return run_stage(args, progress)
     except UsageError as exc:
         print(f'{PROG}: error: {exc}\n{parser.format_usage().strip()}', file=sys.stderr)
