@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = 'galvoscan'
@@ -9,6 +11,8 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
+        # the repository's launch/ folder, for `ros2 launch galvoscan galvoscan.launch.py`
+        ('share/' + package_name + '/launch', sorted(glob('../../launch/*'))),
     ],
     include_package_data=True,
     install_requires=['setuptools'],
