@@ -25,7 +25,12 @@ def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     for key in KEYS:
         assert isinstance(metrics[key], float) and math.isfinite(metrics[key]), key
     assert metrics['calibration_source'] == 'calibrated'
+    # the cell stage ran through the calibration node's services and its cell_T_v0 takes a
+    # later measurement into the cell within a quick calibration's accuracy
+    assert 0.0 <= metrics['cell_sphere_centre_error_mm'] < 0.5
+    assert math.isfinite(metrics['cell_extrinsic_error_mm'])
     details = json.loads((out / 'details.json').read_text())
+    assert details['stages']['cell_extrinsic']['positions'] == 6
     by_distance = metrics['stair_step_error_rmse_mm_by_distance']
     assert set(by_distance) == set(DISTANCES)
     for mm, value in by_distance.items():
