@@ -8,6 +8,7 @@
     galvoscan calibrate STAGE ...
     galvoscan evaluate [--rig FILE] [--seed N] [--quick] [--out DIR]
     galvoscan demo [--out DIR]  (evaluate on the reference rig; what `make demo` runs)
+    galvoscan rig random --seed N [--distance Z] --out FILE  (draw a plausible rig)
     galvoscan view [--ws-port 8765] [--http-port 8080] [--host 0.0.0.0] [--no-browser-page]
                                 (Foxglove WebSocket and a browser page on the running graph)
 """
@@ -29,6 +30,7 @@ DELEGATED = {
     'scan': 'galvoscan.scan_client:main',
     'evaluate': 'galvoscan.evaluate:main',
     'view': 'galvoscan_view.view_node:main',
+    'rig': 'galvoscan.rig_cli:main',
 }
 
 
