@@ -28,6 +28,11 @@ step_deps() {
   local libusb
   libusb=$("$PY" -c 'import libusb_package, os; print(os.path.join(os.path.dirname(libusb_package.__file__), "libusb-1.0.so"))')
   ln -sf "$libusb" "$VENV/lib/libusb-1.0.so.0"
+  # Aravis (galvo_driver.genicam_camera) is reached through PyGObject: link only Debian's
+  # python3-gi package `gi` (tools/apt-packages.txt, built for this Python 3.11) into the
+  # venv; the link dangles harmlessly until the apt step has installed it.
+  ln -sfn /usr/lib/python3/dist-packages/gi \
+    "$("$PY" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/gi"
   "$PY" -c 'import rclpy, numpy, scipy, cv2, open3d, rosbags, mcap, serial' 
 }
 

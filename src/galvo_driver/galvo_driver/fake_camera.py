@@ -1,0 +1,613 @@
+"""A simulated GenICam camera for tests and benchmarks: Aravis' GigE Vision fake camera.
+
+`FakeCamera` runs ``python -m galvo_driver.fake_camera`` as a child process. The child
+creates Aravis' ``ArvGvFakeCamera`` on the loopback interface: a GigE Vision device that
+answers real GVCP (discovery, register reads/writes, the GenICam XML download) and streams
+real GVSP packets, so a client reaches it exactly as it reaches a camera on a network.
+"Unplugging" it is killing the child; "replugging" is starting it again with the same
+serial number.
+
+The GenICam description it serves is `GENICAM_XML` below, written for this project with
+the standard feature names (SFNC) a real camera uses: ``ExposureTime`` [us], ``Gain``,
+``PixelFormat`` (``Mono8``, ``Mono16``), ``Width``/``Height``/``OffsetX``/``OffsetY``,
+``AcquisitionFrameRate`` [Hz], ``TriggerSelector``/``TriggerMode``/``TriggerSource``/
+``TriggerActivation``/``TriggerSoftware``, ``DeviceUserID``. Its registers are the ones
+Aravis' fake camera acts on; the image is Aravis' diagonal ramp, shifted by one grey level
+per frame. What the fake camera cannot do, and the description therefore does not offer:
+``Mono10``/``Mono12`` (it renders only 8- and 16-bit mono) and a physical trigger line
+(``Line0`` is accepted as a source, but only ``Software`` produces frames).
+
+Triggered frames are produced on a time grid: the fake camera looks for a pending
+software trigger every ``1 / trigger_frequency_hz`` seconds, so two triggers within one
+slot give one frame (as a real camera ignores an overlapping trigger). The default slot
+is 0.25 ms (4 kHz), which leaves a 500 fps trigger stream one frame per trigger; the
+price is that the child busy-polls one CPU core while acquiring in trigger mode.
+
+Only one fake camera can serve on the loopback interface at a time (GVCP port 3956).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+# Registers of Aravis' fake camera (arvfakecamera.h) and the GigE Vision bootstrap.
+_REG_SENSOR_WIDTH = 0x11C
+_REG_SENSOR_HEIGHT = 0x118
+_REG_WIDTH = 0x100
+_REG_HEIGHT = 0x104
+_REG_EXPOSURE_US = 0x120
+_REG_FRAME_PERIOD_US = 0x138
+_GVBS_USER_DEFINED_NAME = 0xE8
+_GVBS_USER_DEFINED_NAME_SIZE = 16
+_READY = "FAKE_CAMERA_READY"
+
+GENICAM_XML = """<?xml version="1.0" encoding="utf-8"?>
+<RegisterDescription ModelName="GalvoscanFake" VendorName="Aravis"
+  StandardNameSpace="None" SchemaMajorVersion="1" SchemaMinorVersion="0"
+  SchemaSubMinorVersion="1" MajorVersion="1" MinorVersion="0" SubMinorVersion="0"
+  ToolTip="galvoscan simulated camera (Aravis GigE Vision fake camera)"
+  ProductGuid="0" VersionGuid="0"
+  xmlns="http://www.genicam.org/GenApi/Version_1_0"
+  xmlns:xsi="http://www.w3.org/2001/XMLSchema-instance"
+  xsi:schemaLocation="http://www.genicam.org/GenApi/Version_1_0 GenApiSchema.xsd">
+  <Category Name="Root" NameSpace="Standard">
+    <pFeature>DeviceControl</pFeature>
+    <pFeature>ImageFormatControl</pFeature>
+    <pFeature>AcquisitionControl</pFeature>
+    <pFeature>AnalogControl</pFeature>
+    <pFeature>TransportLayerControl</pFeature>
+  </Category>
+  <Category Name="DeviceControl" NameSpace="Standard">
+    <pFeature>DeviceVendorName</pFeature>
+    <pFeature>DeviceModelName</pFeature>
+    <pFeature>DeviceSerialNumber</pFeature>
+    <pFeature>DeviceUserID</pFeature>
+  </Category>
+  <StringReg Name="DeviceVendorName" NameSpace="Standard">
+    <Address>0x48</Address><Length>32</Length><AccessMode>RO</AccessMode><pPort>Device</pPort>
+  </StringReg>
+  <StringReg Name="DeviceModelName" NameSpace="Standard">
+    <Address>0x68</Address><Length>32</Length><AccessMode>RO</AccessMode><pPort>Device</pPort>
+  </StringReg>
+  <StringReg Name="DeviceSerialNumber" NameSpace="Standard">
+    <Address>0xd8</Address><Length>16</Length><AccessMode>RO</AccessMode><pPort>Device</pPort>
+  </StringReg>
+  <StringReg Name="DeviceUserID" NameSpace="Standard">
+    <Address>0xe8</Address><Length>16</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+  </StringReg>
+  <Category Name="ImageFormatControl" NameSpace="Standard">
+    <pFeature>SensorWidth</pFeature>
+    <pFeature>SensorHeight</pFeature>
+    <pFeature>Width</pFeature>
+    <pFeature>Height</pFeature>
+    <pFeature>OffsetX</pFeature>
+    <pFeature>OffsetY</pFeature>
+    <pFeature>PixelFormat</pFeature>
+  </Category>
+  <Integer Name="SensorWidth" NameSpace="Standard">
+    <pValue>SensorWidthRegister</pValue>
+  </Integer>
+  <IntReg Name="SensorWidthRegister" NameSpace="Custom">
+    <Address>0x11c</Address><Length>4</Length><AccessMode>RO</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Integer Name="SensorHeight" NameSpace="Standard">
+    <pValue>SensorHeightRegister</pValue>
+  </Integer>
+  <IntReg Name="SensorHeightRegister" NameSpace="Custom">
+    <Address>0x118</Address><Length>4</Length><AccessMode>RO</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Integer Name="Width" NameSpace="Standard">
+    <pValue>WidthRegister</pValue><Min>16</Min><pMax>WidthMax</pMax><Inc>1</Inc>
+  </Integer>
+  <IntSwissKnife Name="WidthMax" NameSpace="Custom">
+    <pVariable Name="SENSOR">SensorWidth</pVariable>
+    <pVariable Name="OFFSET">OffsetX</pVariable>
+    <Formula>SENSOR - OFFSET</Formula>
+  </IntSwissKnife>
+  <IntReg Name="WidthRegister" NameSpace="Custom">
+    <Address>0x100</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Integer Name="Height" NameSpace="Standard">
+    <pValue>HeightRegister</pValue><Min>16</Min><pMax>HeightMax</pMax><Inc>1</Inc>
+  </Integer>
+  <IntSwissKnife Name="HeightMax" NameSpace="Custom">
+    <pVariable Name="SENSOR">SensorHeight</pVariable>
+    <pVariable Name="OFFSET">OffsetY</pVariable>
+    <Formula>SENSOR - OFFSET</Formula>
+  </IntSwissKnife>
+  <IntReg Name="HeightRegister" NameSpace="Custom">
+    <Address>0x104</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Integer Name="OffsetX" NameSpace="Standard">
+    <pValue>OffsetXRegister</pValue><Min>0</Min><pMax>OffsetXMax</pMax><Inc>1</Inc>
+  </Integer>
+  <IntSwissKnife Name="OffsetXMax" NameSpace="Custom">
+    <pVariable Name="SENSOR">SensorWidth</pVariable>
+    <pVariable Name="SIZE">WidthRegister</pVariable>
+    <Formula>SENSOR - SIZE</Formula>
+  </IntSwissKnife>
+  <IntReg Name="OffsetXRegister" NameSpace="Custom">
+    <Address>0x130</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Integer Name="OffsetY" NameSpace="Standard">
+    <pValue>OffsetYRegister</pValue><Min>0</Min><pMax>OffsetYMax</pMax><Inc>1</Inc>
+  </Integer>
+  <IntSwissKnife Name="OffsetYMax" NameSpace="Custom">
+    <pVariable Name="SENSOR">SensorHeight</pVariable>
+    <pVariable Name="SIZE">HeightRegister</pVariable>
+    <Formula>SENSOR - SIZE</Formula>
+  </IntSwissKnife>
+  <IntReg Name="OffsetYRegister" NameSpace="Custom">
+    <Address>0x134</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Enumeration Name="PixelFormat" NameSpace="Standard">
+    <EnumEntry Name="Mono8" NameSpace="Standard"><Value>17301505</Value></EnumEntry>
+    <EnumEntry Name="Mono12" NameSpace="Standard"><Value>17825797</Value></EnumEntry>
+    <EnumEntry Name="Mono16" NameSpace="Standard"><Value>17825799</Value></EnumEntry>
+    <pValue>PixelFormatRegister</pValue>
+  </Enumeration>
+  <IntReg Name="PixelFormatRegister" NameSpace="Custom">
+    <Address>0x128</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Category Name="AcquisitionControl" NameSpace="Standard">
+    <pFeature>AcquisitionMode</pFeature>
+    <pFeature>AcquisitionStart</pFeature>
+    <pFeature>AcquisitionStop</pFeature>
+    <pFeature>AcquisitionFrameRate</pFeature>
+    <pFeature>TriggerSelector</pFeature>
+    <pFeature>TriggerMode</pFeature>
+    <pFeature>TriggerSource</pFeature>
+    <pFeature>TriggerActivation</pFeature>
+    <pFeature>TriggerSoftware</pFeature>
+    <pFeature>ExposureTime</pFeature>
+  </Category>
+  <Enumeration Name="AcquisitionMode" NameSpace="Standard">
+    <EnumEntry Name="Continuous" NameSpace="Standard"><Value>1</Value></EnumEntry>
+    <pValue>AcquisitionModeRegister</pValue>
+  </Enumeration>
+  <IntReg Name="AcquisitionModeRegister" NameSpace="Custom">
+    <Address>0x12c</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Command Name="AcquisitionStart" NameSpace="Standard">
+    <pValue>AcquisitionCommandRegister</pValue><CommandValue>1</CommandValue>
+  </Command>
+  <Command Name="AcquisitionStop" NameSpace="Standard">
+    <pValue>AcquisitionCommandRegister</pValue><CommandValue>0</CommandValue>
+  </Command>
+  <IntReg Name="AcquisitionCommandRegister" NameSpace="Custom">
+    <Address>0x124</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Float Name="AcquisitionFrameRate" NameSpace="Standard">
+    <pValue>AcquisitionFrameRateConverter</pValue><Min>1.0</Min><Max>1000.0</Max>
+    <Unit>Hz</Unit>
+  </Float>
+  <Converter Name="AcquisitionFrameRateConverter" NameSpace="Custom">
+    <FormulaTo>(1000000 / FROM)</FormulaTo>
+    <FormulaFrom>(1000000 / TO)</FormulaFrom>
+    <pValue>AcquisitionFramePeriodRegister</pValue>
+  </Converter>
+  <IntReg Name="AcquisitionFramePeriodRegister" NameSpace="Custom">
+    <Address>0x138</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Enumeration Name="TriggerSelector" NameSpace="Standard">
+    <EnumEntry Name="FrameStart" NameSpace="Standard"><Value>0</Value></EnumEntry>
+    <pValue>TriggerSelectorInteger</pValue>
+  </Enumeration>
+  <Integer Name="TriggerSelectorInteger" NameSpace="Custom">
+    <Value>0</Value>
+  </Integer>
+  <Enumeration Name="TriggerMode" NameSpace="Standard">
+    <EnumEntry Name="Off" NameSpace="Standard"><Value>0</Value></EnumEntry>
+    <EnumEntry Name="On" NameSpace="Standard"><Value>1</Value></EnumEntry>
+    <pValue>TriggerModeRegister</pValue>
+  </Enumeration>
+  <IntReg Name="TriggerModeRegister" NameSpace="Custom">
+    <Address>0x300</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Enumeration Name="TriggerSource" NameSpace="Standard">
+    <EnumEntry Name="Line0" NameSpace="Standard"><Value>0</Value></EnumEntry>
+    <EnumEntry Name="Software" NameSpace="Standard"><Value>1</Value></EnumEntry>
+    <pValue>TriggerSourceRegister</pValue>
+  </Enumeration>
+  <IntReg Name="TriggerSourceRegister" NameSpace="Custom">
+    <Address>0x304</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Enumeration Name="TriggerActivation" NameSpace="Standard">
+    <EnumEntry Name="RisingEdge" NameSpace="Standard"><Value>0</Value></EnumEntry>
+    <EnumEntry Name="FallingEdge" NameSpace="Standard"><Value>1</Value></EnumEntry>
+    <pValue>TriggerActivationRegister</pValue>
+  </Enumeration>
+  <IntReg Name="TriggerActivationRegister" NameSpace="Custom">
+    <Address>0x308</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Command Name="TriggerSoftware" NameSpace="Standard">
+    <pValue>TriggerSoftwareCommandRegister</pValue><CommandValue>1</CommandValue>
+  </Command>
+  <IntReg Name="TriggerSoftwareCommandRegister" NameSpace="Custom">
+    <Address>0x30c</Address><Length>4</Length><AccessMode>WO</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Float Name="ExposureTime" NameSpace="Standard">
+    <pValue>ExposureTimeConverter</pValue><Min>10.0</Min><Max>1000000.0</Max><Unit>us</Unit>
+  </Float>
+  <Converter Name="ExposureTimeConverter" NameSpace="Custom">
+    <FormulaTo>FROM</FormulaTo>
+    <FormulaFrom>TO</FormulaFrom>
+    <pValue>ExposureTimeRegister</pValue>
+  </Converter>
+  <IntReg Name="ExposureTimeRegister" NameSpace="Custom">
+    <Address>0x120</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Category Name="AnalogControl" NameSpace="Standard">
+    <pFeature>Gain</pFeature>
+  </Category>
+  <Float Name="Gain" NameSpace="Standard">
+    <pValue>GainConverter</pValue><Min>0.0</Min><Max>10.0</Max>
+  </Float>
+  <Converter Name="GainConverter" NameSpace="Custom">
+    <FormulaTo>FROM</FormulaTo>
+    <FormulaFrom>TO</FormulaFrom>
+    <pValue>GainRegister</pValue>
+  </Converter>
+  <IntReg Name="GainRegister" NameSpace="Custom">
+    <Address>0x110</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
+  </IntReg>
+  <Category Name="TransportLayerControl" NameSpace="Standard">
+    <pFeature>PayloadSize</pFeature>
+  </Category>
+  <IntSwissKnife Name="PayloadSize" NameSpace="Standard">
+    <pVariable Name="WIDTH">Width</pVariable>
+    <pVariable Name="HEIGHT">Height</pVariable>
+    <pVariable Name="PIXELFORMAT">PixelFormat</pVariable>
+    <Formula>WIDTH * HEIGHT * ((PIXELFORMAT&gt;&gt;16)&amp;0xFF) / 8</Formula>
+  </IntSwissKnife>
+  <Integer Name="TLParamsLocked">
+    <Visibility>Invisible</Visibility><Value>0</Value><Min>0</Min><Max>1</Max>
+  </Integer>
+  <Port Name="Device" NameSpace="Standard"/>
+</RegisterDescription>
+"""
+
+
+class FakeCamera:
+    """A simulated GigE Vision camera on loopback, run as a child process.
+
+    Parameters
+    ----------
+    serial : str
+        Serial number the camera reports (at most 15 characters).
+    width, height : int
+        Sensor size [px]; the region of interest starts as the full sensor.
+    user_id : str, optional
+        DeviceUserID the camera reports (at most 15 characters); ``None`` leaves it empty.
+    trigger_frequency_hz : float
+        How often the fake camera looks for a pending software trigger [Hz] (see the
+        module's docstring).
+    start_timeout_s : float
+        How long `replug` waits for the camera to answer discovery [s].
+
+    Use it as a context manager: it starts on entry and is stopped on exit.
+    """
+
+    def __init__(
+        self,
+        serial: str = "GSFAKE0",
+        width: int = 720,
+        height: int = 540,
+        user_id: str | None = None,
+        trigger_frequency_hz: float = 4000.0,
+        start_timeout_s: float = 10.0,
+    ):
+        for name, text in (("serial", serial), ("user_id", user_id or "")):
+            if len(text.encode()) >= _GVBS_USER_DEFINED_NAME_SIZE or not text.isprintable():
+                raise ValueError(
+                    f"FakeCamera: {name} {text!r} must be printable and at most 15 bytes"
+                )
+        if not serial:
+            raise ValueError("FakeCamera: serial must not be empty")
+        if not (16 <= int(width) <= 8192 and 16 <= int(height) <= 8192):
+            raise ValueError(f"FakeCamera: sensor {width}x{height} px outside 16..8192")
+        if not (1.0 <= float(trigger_frequency_hz) <= 100_000.0):
+            raise ValueError(
+                f"FakeCamera: trigger_frequency_hz {trigger_frequency_hz} outside 1..1e5"
+            )
+        self.serial = serial
+        self.user_id = user_id
+        self.width = int(width)
+        self.height = int(height)
+        self.trigger_frequency_hz = float(trigger_frequency_hz)
+        self.start_timeout_s = float(start_timeout_s)
+        self._proc: subprocess.Popen | None = None
+        self._xml_dir: tempfile.TemporaryDirectory | None = None
+
+    # -- life cycle ---------------------------------------------------------------------
+
+    def __enter__(self) -> FakeCamera:
+        self.replug()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def running(self) -> bool:
+        """Whether the camera process is alive."""
+        return self._proc is not None and self._proc.poll() is None
+
+    def replug(self) -> None:
+        """Start the camera (again, with the same serial) and wait until it is discoverable.
+
+        Raises
+        ------
+        RuntimeError
+            If the child process exits or is not discoverable within ``start_timeout_s``.
+        """
+        if self.running:
+            return
+        if self._xml_dir is None:
+            self._xml_dir = tempfile.TemporaryDirectory(prefix="galvoscan-fakecam-")
+        xml_path = os.path.join(self._xml_dir.name, "galvoscan-fake-camera.xml")
+        with open(xml_path, "w", encoding="utf-8") as f:
+            f.write(GENICAM_XML)
+        cmd = [
+            sys.executable,
+            "-m",
+            "galvo_driver.fake_camera",
+            "--serial",
+            self.serial,
+            "--width",
+            str(self.width),
+            "--height",
+            str(self.height),
+            "--trigger-frequency",
+            repr(self.trigger_frequency_hz),
+            "--genicam",
+            xml_path,
+        ]
+        if self.user_id:
+            cmd += ["--user-id", self.user_id]
+        self._proc = subprocess.Popen(
+            cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        deadline = time.monotonic() + self.start_timeout_s
+        if not self._wait_ready(deadline):
+            err = self._stop(signal.SIGKILL)
+            raise RuntimeError(f"FakeCamera {self.serial}: the fake camera did not start: {err}")
+        if not self._wait_discoverable(deadline):
+            self._stop(signal.SIGKILL)
+            raise RuntimeError(
+                f"FakeCamera {self.serial}: not discoverable on loopback within "
+                f"{self.start_timeout_s} s (another fake camera on GVCP port 3956?)"
+            )
+
+    def unplug(self) -> None:
+        """Cut the camera off as a pulled cable or power loss would: SIGKILL the process."""
+        self._stop(signal.SIGKILL)
+
+    def close(self) -> None:
+        """Stop the camera and remove its temporary files."""
+        self._stop(signal.SIGTERM)
+        if self._xml_dir is not None:
+            self._xml_dir.cleanup()
+            self._xml_dir = None
+
+    # -- helpers ------------------------------------------------------------------------
+
+    def _wait_ready(self, deadline: float) -> bool:
+        assert self._proc is not None and self._proc.stdout is not None
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([self._proc.stdout], [], [], 0.1)
+            if ready:
+                line = self._proc.stdout.readline()
+                if line.strip() == _READY:
+                    return True
+                if not line:
+                    return False
+            if self._proc.poll() is not None:
+                return False
+        return False
+
+    def _wait_discoverable(self, deadline: float) -> bool:
+        from galvo_driver.genicam_camera import list_cameras
+
+        while time.monotonic() < deadline:
+            if any(c["serial"] == self.serial for c in list_cameras()):
+                return True
+            if not self.running:
+                return False
+        return False
+
+    def _stop(self, sig: int) -> str:
+        """Stop the child with `sig`; return what it wrote on stderr."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return ""
+        if proc.poll() is None:
+            proc.send_signal(sig)
+        try:
+            _, err = proc.communicate(timeout=5.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+        return (err or "").strip()[-2000:]
+
+
+class _RampFill:
+    """The image the fake camera sends: a diagonal ramp moving one grey level per frame.
+
+    Pixel (y, x) of frame f is ``((x + y + f) % 255) * scale`` in 8 bits (x16 for Mono12,
+    x256 for Mono16), clamped, with ``scale = (1 + Gain) * ExposureTime / 10 ms``. It
+    replaces Aravis' own pattern, which spends ~5 ms per 720x540 frame and so caps the
+    camera near 200 fps. Registered through ctypes (the GObject binding of this callback
+    is scope "call" and cannot outlive the call that registers it); it runs on the fake
+    camera's streaming thread.
+    """
+
+    def __init__(self):
+        import ctypes
+
+        self._ct = ctypes
+        lib = ctypes.CDLL("libaravis-0.8.so.0")
+        lib.arv_buffer_get_data.restype = ctypes.c_void_p
+        lib.arv_buffer_get_data.argtypes = [ctypes.c_void_p, ctypes.POINTER(ctypes.c_size_t)]
+        for fn in ("arv_buffer_get_image_width", "arv_buffer_get_image_height"):
+            getattr(lib, fn).restype = ctypes.c_int
+            getattr(lib, fn).argtypes = [ctypes.c_void_p]
+        lib.arv_buffer_get_frame_id.restype = ctypes.c_uint64
+        lib.arv_buffer_get_frame_id.argtypes = [ctypes.c_void_p]
+        self._proto = ctypes.CFUNCTYPE(
+            None,
+            ctypes.c_void_p,
+            ctypes.c_void_p,
+            ctypes.c_uint32,
+            ctypes.c_uint32,
+            ctypes.c_uint32,
+        )
+        lib.arv_fake_camera_set_fill_pattern.restype = None
+        lib.arv_fake_camera_set_fill_pattern.argtypes = [
+            ctypes.c_void_p,
+            self._proto,
+            ctypes.c_void_p,
+        ]
+        self._lib = lib
+        self._callback = self._proto(self._fill)  # kept alive as long as this object
+        self._ramps: dict[tuple, object] = {}
+
+    def install(self, fake_camera) -> None:
+        """Make `fake_camera` (an Aravis.FakeCamera) call this fill for every frame."""
+        # PyGObject's hash of a GObject wrapper is the address of the C object.
+        self._lib.arv_fake_camera_set_fill_pattern(hash(fake_camera), self._callback, None)
+
+    def _ramp(self, exposure_us: int, gain: int, pixel_format: int, length: int):
+        import numpy as np
+
+        key = (exposure_us, gain, pixel_format, length)
+        ramp = self._ramps.get(key)
+        if ramp is None:
+            depth = {0x01080001: 8, 0x01100005: 12, 0x01100007: 16}.get(pixel_format)
+            if depth is None:
+                return None
+            scale = (1.0 + gain) * exposure_us / 10_000.0
+            top = (1 << depth) - 1
+            level = (np.arange(length) % 255) * (1 << (depth - 8)) * scale
+            ramp = np.clip(np.rint(level), 0, top).astype(np.uint8 if depth == 8 else "<u2")
+            if len(self._ramps) > 64:
+                self._ramps.clear()
+            self._ramps[key] = ramp
+        return ramp
+
+    def _fill(self, buffer, _data, exposure_us, gain, pixel_format) -> None:
+        import numpy as np
+
+        lib = self._lib
+        w = lib.arv_buffer_get_image_width(buffer)
+        h = lib.arv_buffer_get_image_height(buffer)
+        f = int(lib.arv_buffer_get_frame_id(buffer)) % 255
+        ramp = self._ramp(int(exposure_us), int(gain), int(pixel_format), w + h + 255)
+        if ramp is None:  # a format this camera does not render: leave the buffer as it is
+            return
+        size = self._ct.c_size_t(0)
+        addr = lib.arv_buffer_get_data(buffer, self._ct.byref(size))
+        item = ramp.itemsize
+        dest = np.ctypeslib.as_array((self._ct.c_uint8 * (w * h * item)).from_address(addr))
+        dest = dest.view(ramp.dtype).reshape(h, w)
+        src = np.lib.stride_tricks.as_strided(ramp[f:], shape=(h, w), strides=(item, item))
+        np.copyto(dest, src)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    """Body of the child process: create the fake camera and serve until told to stop."""
+    import gi
+
+    gi.require_version("Aravis", "0.8")
+    from gi.repository import Aravis
+
+    gv = Aravis.GvFakeCamera.new_full("lo", args.serial, args.genicam)
+    if gv is None or not gv.is_running():
+        print(
+            f"fake camera {args.serial}: could not serve on 'lo' (GVCP port 3956 taken?)",
+            file=sys.stderr,
+            flush=True,
+        )
+        return 1
+    cam = gv.get_fake_camera()
+    cam.set_trigger_frequency(args.trigger_frequency)
+    for reg, value in (
+        (_REG_SENSOR_WIDTH, args.width),
+        (_REG_SENSOR_HEIGHT, args.height),
+        (_REG_WIDTH, args.width),
+        (_REG_HEIGHT, args.height),
+        (_REG_EXPOSURE_US, 10000),
+        (_REG_FRAME_PERIOD_US, 2000),
+    ):
+        cam.write_register(reg, value)
+    name = (args.user_id or "").encode().ljust(_GVBS_USER_DEFINED_NAME_SIZE, b"\0")
+    for i in range(0, _GVBS_USER_DEFINED_NAME_SIZE, 4):
+        cam.write_register(_GVBS_USER_DEFINED_NAME + i, int.from_bytes(name[i : i + 4], "big"))
+
+    fill = _RampFill()
+    fill.install(cam)
+
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+
+    def watch_parent() -> None:  # the parent holds our stdin: EOF means it has gone
+        sys.stdin.read()
+        stop.set()
+
+    threading.Thread(target=watch_parent, daemon=True).start()
+    print(_READY, flush=True)
+    while not stop.wait(0.2):
+        pass
+    del gv  # stops the GVCP/GVSP thread and closes the sockets
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one fake camera until SIGTERM/SIGINT or until stdin closes."""
+    p = argparse.ArgumentParser(
+        prog="python -m galvo_driver.fake_camera",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--serial", default="GSFAKE0")
+    p.add_argument("--user-id", default="")
+    p.add_argument("--width", type=int, default=720)
+    p.add_argument("--height", type=int, default=540)
+    p.add_argument("--trigger-frequency", type=float, default=4000.0, help="[Hz]")
+    p.add_argument("--genicam", default=None, help="GenICam XML file (default: the built-in one)")
+    args = p.parse_args(argv)
+    if args.genicam is None:
+        tmp = tempfile.TemporaryDirectory(prefix="galvoscan-fakecam-")
+        args.genicam = os.path.join(tmp.name, "galvoscan-fake-camera.xml")
+        with open(args.genicam, "w", encoding="utf-8") as f:
+            f.write(GENICAM_XML)
+    return _serve(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
