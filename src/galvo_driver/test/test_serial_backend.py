@@ -53,7 +53,7 @@ def assert_frames_truthful(frames, volts, seq_base=0):
 @pytest.fixture(params=['pty', 'tcp'])
 def emu(request):
     # a 0.5 s watchdog (firmware default 0.15 s): a test machine loaded by other jobs can
-    # stall the host's heartbeat thread longer than 0.15 s, which is not what these test
+    # stall the host's heartbeat thread longer than 0.15 s, which is not what these tests are about
     with FirmwareEmulator(request.param, seed=7, watchdog=0.5) as emulator:
         yield emulator
 
