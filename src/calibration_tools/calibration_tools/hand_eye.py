@@ -86,10 +86,6 @@ def _check_diversity(base_T_flange: np.ndarray) -> None:
                          'undetermined; add poses tilted about another axis')
 
 
-def _log(R: np.ndarray) -> np.ndarray:
-    return _rotvec(R)
-
-
 def park_martin(base_T_flange: np.ndarray, v0_T_target: np.ndarray) -> np.ndarray:
     """Closed-form ``flange_T_v0`` from every pair of poses (Park & Martin 1994).
 
@@ -102,7 +98,7 @@ def park_martin(base_T_flange: np.ndarray, v0_T_target: np.ndarray) -> np.ndarra
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n)]
     A = [np.linalg.inv(base_T_flange[j]) @ base_T_flange[i] for i, j in pairs]
     B = [v0_T_target[j] @ np.linalg.inv(v0_T_target[i]) for i, j in pairs]
-    M = sum(np.outer(_log(b[:3, :3]), _log(a[:3, :3])) for a, b in zip(A, B, strict=True))
+    M = sum(np.outer(_rotvec(b[:3, :3]), _rotvec(a[:3, :3])) for a, b in zip(A, B, strict=True))
     w, V = np.linalg.eigh(M.T @ M)
     R = V @ np.diag(1.0 / np.sqrt(np.clip(w, 1e-30, None))) @ V.T @ M.T
     lhs = np.vstack([a[:3, :3] - np.eye(3) for a in A])

@@ -141,6 +141,11 @@ def list_cameras() -> list[dict]:
     ]
 
 
+#: Feature kind -> the ArvCamera accessor suffix (``get_<suffix>`` / ``set_<suffix>``).
+_ACCESSORS = {"enum": "string", "float": "float", "int": "integer", "bool": "boolean",
+              "str": "string"}
+
+
 class GenICamCamera:
     """One GenICam camera, opened by serial number or DeviceUserID.
 
@@ -409,13 +414,8 @@ class GenICamCamera:
         """
         cam = self._require_open()
         kind = self._kind(name)
-        getter = {
-            "enum": cam.get_string,
-            "float": cam.get_float,
-            "int": cam.get_integer,
-            "bool": cam.get_boolean,
-            "str": cam.get_string,
-        }.get(kind)
+        accessor = _ACCESSORS.get(kind)
+        getter = getattr(cam, f"get_{accessor}") if accessor else None
         if getter is None:
             raise CameraError(f"{self._label}: feature {name!r} is a command and has no value")
         return self._device_call(f"read {name}", getter, name)
@@ -514,13 +514,7 @@ class GenICamCamera:
     def _write(self, name: str, value) -> None:
         cam = self._require_open()
         kind = self._kind(name)
-        setter = {
-            "enum": cam.set_string,
-            "float": cam.set_float,
-            "int": cam.set_integer,
-            "bool": cam.set_boolean,
-            "str": cam.set_string,
-        }[kind]
+        setter = getattr(cam, f"set_{_ACCESSORS[kind]}")
         self._device_call(f"write {name} = {value!r}", setter, name, value)
 
     # -- acquisition --------------------------------------------------------------------

@@ -12,21 +12,33 @@ from calibration_tools.stages import STAGES
 from reconstructor import calibration_file
 
 
-def calibrate_all(client, cal_path, progress, quick=False) -> dict:
-    """Capture and compute each stage in order; return the stage figures for the report."""
+def capture_and_compute(client, stage: str):
+    """One stage through the node's services: ``(capture response, compute response)``.
+
+    Raises
+    ------
+    RuntimeError
+        Either service reports failure (its message).
+    """
     from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration
 
+    cap = client.call(CaptureCalibration, 'calibration/capture',
+                      CaptureCalibration.Request(stage=stage), timeout=900.0)
+    if not cap.success:
+        raise RuntimeError(f'capture {stage}: {cap.message}')
+    comp = client.call(ComputeCalibration, 'calibration/compute',
+                       ComputeCalibration.Request(stage=stage), timeout=900.0)
+    if not comp.success:
+        raise RuntimeError(f'compute {stage}: {comp.message}')
+    return cap, comp
+
+
+def calibrate_all(client, cal_path, progress, quick=False) -> dict:
+    """Capture and compute each stage in order; return the stage figures for the report."""
     progress.stage('calibration (capture + compute)', len(STAGES), 'stages')
     info = {}
     for stage in STAGES:
-        cap = client.call(CaptureCalibration, 'calibration/capture',
-                          CaptureCalibration.Request(stage=stage), timeout=900.0)
-        if not cap.success:
-            raise RuntimeError(f'capture {stage}: {cap.message}')
-        comp = client.call(ComputeCalibration, 'calibration/compute',
-                           ComputeCalibration.Request(stage=stage), timeout=900.0)
-        if not comp.success:
-            raise RuntimeError(f'compute {stage}: {comp.message}')
+        cap, comp = capture_and_compute(client, stage)
         info[stage] = {'frames': cap.frames_recorded, 'capture_s': cap.duration,
                        'samples_used': comp.samples_used,
                        'samples_rejected': comp.samples_rejected}
@@ -54,20 +66,11 @@ def calibrate_all(client, cal_path, progress, quick=False) -> dict:
 def calibrate_cell(client, cal_path, rig, progress) -> dict:
     """The cell stage through the node (its ``cell_reference`` parameter set by the caller),
     and its error against the simulator's true mounting ``rig.W_T_V0`` (W is the cell)."""
-    from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration
-
     from calibration_tools.cell_extrinsic import rotation_angle
     from calibration_tools.stages import CELL_STAGE
 
     progress.stage('cell extrinsic (capture + compute)', 1, 'stages')
-    cap = client.call(CaptureCalibration, 'calibration/capture',
-                      CaptureCalibration.Request(stage=CELL_STAGE), timeout=900.0)
-    if not cap.success:
-        raise RuntimeError(f'capture {CELL_STAGE}: {cap.message}')
-    comp = client.call(ComputeCalibration, 'calibration/compute',
-                       ComputeCalibration.Request(stage=CELL_STAGE), timeout=900.0)
-    if not comp.success:
-        raise RuntimeError(f'compute {CELL_STAGE}: {comp.message}')
+    cap, comp = capture_and_compute(client, CELL_STAGE)
     cal = calibration_file.load(cal_path)
     T, truth = cal.cell_T_v0, rig.W_T_V0
     entry = cal.stages[CELL_STAGE]

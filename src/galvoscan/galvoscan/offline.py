@@ -165,7 +165,7 @@ def run_stage(args, progress: Progress) -> int:
     return 0
 
 
-def _simulator(args, progress: Progress):
+def _simulator(args):
     """The in-process rig simulator of ``--rig`` (default reference), with an empty scene."""
     from galvoscan_sim import Simulator, load_rig, load_scene_text
 
@@ -211,7 +211,7 @@ def run_stage_sim(args, progress: Progress) -> int:
     if args.bags:
         raise UsageError('--sim captures its own data: no --bags')
     cal, origin = _starting_calibration(args, fresh=False)
-    sim, rig = _simulator(args, progress)
+    sim, rig = _simulator(args)
     progress.log(f'{args.stage} on the simulated rig {rig.name} (seed {args.seed}), '
                  f'starting from {origin}')
     cal = _sim_stage(args.stage, cal, sim, rig, args, progress)
@@ -227,7 +227,7 @@ def run_all_sim(args, progress: Progress) -> int:
     if args.reference:
         raise UsageError('all runs the rig chain; cell_extrinsic (--reference) runs after it')
     cal, origin = _starting_calibration(args, fresh=True)
-    sim, rig = _simulator(args, progress)
+    sim, rig = _simulator(args)
     progress.log(f'calibrating the simulated rig {rig.name} (seed {args.seed}'
                  f'{", quick plans" if args.quick else ""}), starting from {origin}')
     for stage in STAGES:
