@@ -396,7 +396,11 @@ def main(argv=None):
             progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a result)')
         else:
             stage_info = calibrate_all(client, cal_path, progress, quick=args.quick)
-            stage_info['cell_extrinsic'] = calibrate_cell(client, cal_path, rig, progress)
+            try:  # a rig the cell positions do not suit still gets every other figure
+                stage_info['cell_extrinsic'] = calibrate_cell(client, cal_path, rig, progress)
+            except RuntimeError as exc:
+                stage_info['cell_extrinsic'] = {'failed': str(exc)}
+                progress.log(f'cell extrinsic not measured: {exc}')
             cal = calibration_file.load(cal_path)
         from galvoscan_msgs.srv import LoadCalibration
         resp = client.call(LoadCalibration, 'reconstructor/reload_calibration',

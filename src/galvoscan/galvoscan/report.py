@@ -170,7 +170,10 @@ def write_report(out, result, details, paper, clouds):
         reason = details['stair_by_distance'].get(k, {}).get('reason', '')
         lines.append(f'| {k} | {_fmt(v)} {reason} |')
     cell = (details.get('stages') or {}).get('cell_extrinsic')
-    if cell:
+    if cell and 'failed' in cell:
+        lines += ['', '## Where the scanner sits in the cell (cell_extrinsic)', '',
+                  f"Not measured: {cell['failed']}"]
+    elif cell:
         lines += ['', '## Where the scanner sits in the cell (cell_extrinsic)', '',
                   f"The sphere at {cell['positions']} robot-reported positions, swept through "
                   'the calibration node; `cell_T_v0` against the simulator\'s true mounting: '
