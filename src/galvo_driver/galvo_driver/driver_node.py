@@ -1,8 +1,10 @@
-"""``galvo_driver``: the lifecycle node in front of a galvo backend (sim, serial or replay).
+"""``galvo_driver``: the lifecycle node in front of a galvo backend (sim, serial, replay, rig).
 
 Topics (published reliable; consumers subscribe with sensor-data QoS):
-    camera/image_raw   sensor_msgs/Image (mono8), stamp = middle of the exposure
-    camera/camera_info sensor_msgs/CameraInfo, same stamp
+    camera/image_raw   sensor_msgs/Image (mono8; mono16 for Mono10/12/16), stamp = middle of
+                       the exposure
+    camera/camera_info sensor_msgs/CameraInfo, same stamp (from ``calibration_file`` when
+                       given, else from the simulator's rig)
     galvo/state        galvoscan_msgs/GalvoState, same stamp and the frame's sequence number
 Services:
     scan/start     galvoscan_msgs/StartScan
@@ -10,8 +12,17 @@ Services:
     scan/progress  galvoscan_msgs/GetScanProgress
     sim/set_scene  galvoscan_msgs/SetScene (sim backend only)
 
-Lifecycle: configure opens the backend, activate arms it, deactivate/error/shutdown drive the
-galvos to 0 V with the laser off. ``autostart`` (default true) configures and activates at
+Camera parameters (backend ``rig``), GenICam features by their SFNC names and units, as
+camera_aravis2 has them: ``ExposureTime`` [us], ``Gain``, ``PixelFormat``, ``Width``,
+``Height``, ``OffsetX``, ``OffsetY`` [px], ``AcquisitionFrameRate`` [Hz]; 0 (or '') keeps
+the camera's own value. While configured, a change is written to the camera after it is
+checked against the camera's own range; a refused value is reported with the camera's
+reason and nothing changes. Size and pixel format change only while inactive.
+
+Lifecycle: configure opens the backend (rig: the board, with its protocol version checked,
+and the camera), activate arms it (rig: the camera starts acquiring, waiting for trigger
+edges), deactivate/error/shutdown drive the galvos to 0 V with the laser off (rig: and stop
+the camera). ``autostart`` (default true) configures and activates at
 start-up. ``main`` puts the hardware in the safe state in its ``finally``, since rclpy does
 not run ``on_shutdown`` on SIGINT/SIGTERM.
 """
@@ -43,7 +54,25 @@ from galvoscan_common.boundary import CallbackErrors, guard_service
 from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
-BACKENDS = ('sim', 'serial', 'replay')
+BACKENDS = ('sim', 'serial', 'replay', 'rig')
+#: Camera parameters of the rig backend: GenICam feature name -> (default meaning "keep the
+#: camera's value", descriptor range, description).
+CAMERA_PARAMS = {
+    'ExposureTime': (0.0, (0.0, 10_000_000.0), 'rig: camera exposure [us] (0: keep)'),
+    'Gain': (0.0, (0.0, 1000.0), "rig: camera gain, in the camera's unit (usually dB)"),
+    'PixelFormat': ('', None, "rig: Mono8, Mono10, Mono12 or Mono16 ('': keep)"),
+    'Width': (0, (0, 65535), 'rig: region of interest width [px] (0: keep)'),
+    'Height': (0, (0, 65535), 'rig: region of interest height [px] (0: keep)'),
+    'OffsetX': (0, (0, 65535), 'rig: region of interest left column [px]'),
+    'OffsetY': (0, (0, 65535), 'rig: region of interest top row [px]'),
+    'AcquisitionFrameRate': (0.0, (0.0, 100_000.0),
+                             'rig: free-running frame rate limit [Hz] (0: keep)'),
+}
+PIXEL_FORMATS = ('Mono8', 'Mono10', 'Mono12', 'Mono16')
+#: Parameters that only change while unconfigured.
+_CONFIGURE_ONLY = ('rig', 'scene', 'seed', 'backend', 'serial_port', 'replay_bag',
+                   'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
+                   'calibration_file')
 #: Poll period of the backend while a scan runs [s] (frames at up to 1 kHz).
 SCAN_POLL_PERIOD = 0.001
 #: Poll period while no scan runs [s]: backend faults are still seen within 0.1 s, and an
@@ -62,6 +91,16 @@ def make_backend(name: str, params: dict):
     if name == 'replay':
         from galvo_driver.replay_backend import ReplayBackend
         return ReplayBackend(params['replay_bag'], rate=params['replay_rate'])
+    if name == 'rig':
+        from galvo_driver.rig_backend import RigBackend
+        features = {k: params[k] for k in CAMERA_PARAMS
+                    if k in params and params[k] not in (0, 0.0, '')}
+        if params.get('OffsetX') or params.get('OffsetY'):  # 0 is a real offset once asked
+            features.update(OffsetX=params.get('OffsetX', 0), OffsetY=params.get('OffsetY', 0))
+        return RigBackend(params['serial_port'], camera_serial=params.get('camera_serial'),
+                          camera_user_id=params.get('camera_user_id'), features=features,
+                          trigger_source=params.get('trigger_source', 'Line0'),
+                          camera_clock=params.get('camera_clock', 'camera'))
     raise ValueError(f"backend: unknown '{name}'; known: {', '.join(BACKENDS)}")
 
 
@@ -81,7 +120,17 @@ class GalvoDriverNode(LifecycleNode):
         d('rig', 'reference', 'sim: rig description (name of a shipped rig or a YAML path)')
         d('scene', 'stair_block', 'sim: scene (name of a shipped scene or a YAML path)')
         d('seed', 0, 'sim: random seed for noise and jitter', ints=(0, 2 ** 31 - 1))
-        d('serial_port', '', 'serial: pyserial port or URL of the DAC board')
+        d('serial_port', '', 'serial, rig: pyserial port or URL of the DAC board')
+        d('camera_serial', '', 'rig: DeviceSerialNumber of the camera (arv-tool-0.8 lists it)')
+        d('camera_user_id', '', 'rig: DeviceUserID of the camera')
+        d('trigger_source', 'Line0', 'rig: camera input wired to the board trigger output')
+        d('camera_clock', 'camera', "rig: 'host' if the camera stamps in host time (PTP), "
+          "else 'camera'")
+        d('calibration_file', '', 'camera_info from this calibration file (the '
+          "reconstructor's calibration_file); '': from the simulator's rig (sim)")
+        for name, (default, rng, text) in CAMERA_PARAMS.items():
+            d(name, default, text, **({} if rng is None else
+                                      {'floats' if isinstance(default, float) else 'ints': rng}))
         d('replay_bag', '', 'replay: rosbag2 directory to publish')
         d('replay_rate', 1.0, 'replay: speed factor (0 = as fast as possible)',
           floats=(0.0, 100.0))
@@ -140,15 +189,41 @@ class GalvoDriverNode(LifecycleNode):
             if p.name == 'backend' and p.value not in BACKENDS:
                 return SetParametersResult(
                     successful=False, reason=f"backend must be one of {', '.join(BACKENDS)}")
-            if p.name in ('rig', 'scene', 'seed', 'backend', 'serial_port', 'replay_bag') \
-                    and self.backend is not None:
+            if p.name == 'camera_clock' and p.value not in ('camera', 'host'):
+                return SetParametersResult(successful=False,
+                                           reason="camera_clock must be 'camera' or 'host'")
+            if p.name == 'PixelFormat' and p.value not in ('',) + PIXEL_FORMATS:
+                return SetParametersResult(
+                    successful=False,
+                    reason=f"PixelFormat must be one of {', '.join(PIXEL_FORMATS)}")
+            if p.name in _CONFIGURE_ONLY and self.backend is not None:
                 return SetParametersResult(
                     successful=False, reason=f'{p.name} can only change while unconfigured')
+        for p in params:
+            if p.name in CAMERA_PARAMS and getattr(self.backend, 'name', '') == 'rig':
+                reason = self._set_camera_feature(p.name, p.value)
+                if reason:
+                    return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
+
+    def _set_camera_feature(self, name: str, value) -> str:
+        """Write a camera parameter to the configured rig camera; '' or why it was refused."""
+        from galvo_driver.genicam_camera import CameraError
+
+        if value in (0, 0.0, '') and name not in ('OffsetX', 'OffsetY'):
+            return f"{name}: 0 / '' (keep the camera's value) only applies at configure"
+        try:
+            got = self.backend.set_feature(name, value)
+        except (CameraError, ValueError) as exc:
+            return f'{name} = {value!r} refused: {exc}'
+        self.get_logger().info(f'camera {name} = {got!r}')
+        return ''
 
     def _params(self):
         return {n: self.get_parameter(n).value for n in (
-            'backend', 'rig', 'scene', 'seed', 'serial_port', 'replay_bag', 'replay_rate')}
+            'backend', 'rig', 'scene', 'seed', 'serial_port', 'replay_bag', 'replay_rate',
+            'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
+            *CAMERA_PARAMS)}
 
     # -- lifecycle --------------------------------------------------------------------
     def on_configure(self, state):
@@ -160,6 +235,12 @@ class GalvoDriverNode(LifecycleNode):
             self.get_logger().error(f'configure failed: {exc}')
             self.backend = None
             return TransitionCallbackReturn.FAILURE
+        try:
+            self._camera_info = self._make_camera_info()
+        except (ValueError, OSError) as exc:
+            self.get_logger().error(f'configure failed: calibration_file: {exc}')
+            self._close()
+            return TransitionCallbackReturn.FAILURE
         qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
         # images and states go out as CDR bytes, handed directly to in-process subscribers
         # (galvoscan run --one-process) and over DDS to everyone else
@@ -170,12 +251,16 @@ class GalvoDriverNode(LifecycleNode):
             self.create_lifecycle_publisher(CameraInfo, 'camera/camera_info', qos),
             intra.HandOffPublisher(self.create_lifecycle_publisher(
                 GalvoState, 'galvo/state', qos), bus, self._on_handoff_error))
-        self._camera_info = self._make_camera_info()
         self.get_logger().info(f'configured backend {self.backend.name}')
         return TransitionCallbackReturn.SUCCESS
 
     def on_activate(self, state):
-        self.backend.arm()
+        try:
+            self.backend.arm()
+        except BackendError as exc:
+            self.get_logger().error(f'activate failed, staying inactive in the safe state: {exc}')
+            self.make_safe()
+            return TransitionCallbackReturn.FAILURE
         self._set_poll_period(IDLE_POLL_PERIOD)
         self.get_logger().info('active')
         return super().on_activate(state)
@@ -241,7 +326,9 @@ class GalvoDriverNode(LifecycleNode):
     # -- frames -----------------------------------------------------------------------
     def _make_camera_info(self):
         info = CameraInfo()
-        cam = getattr(self.backend, 'camera_info', None)
+        path = self.get_parameter('calibration_file').value
+        cam = self._calibration_camera(path) if path else \
+            getattr(self.backend, 'camera_info', None)
         if cam:
             info.width, info.height = int(cam['width']), int(cam['height'])
             info.distortion_model = 'plumb_bob'
@@ -253,10 +340,27 @@ class GalvoDriverNode(LifecycleNode):
         info.header.frame_id = self.get_parameter('camera_frame_id').value
         return info
 
+    def _calibration_camera(self, path: str) -> dict:
+        """Camera intrinsics of a calibration file (the reconstructor's format); warns when
+        the calibrated image size is not the camera's."""
+        from reconstructor import calibration_file
+
+        intr = calibration_file.load(path).model.intrinsics
+        size = getattr(self.backend, 'image_size', None)
+        if size is not None and tuple(size) != (intr.width, intr.height):
+            self.get_logger().warning(
+                f'{path}: calibrated for {intr.width}x{intr.height} px, the camera gives '
+                f'{size[0]}x{size[1]} px: camera_info does not fit the images')
+        return {'width': intr.width, 'height': intr.height, 'K': intr.matrix(),
+                'dist': list(intr.dist)}
+
     def _counters(self) -> dict:
-        return {**self._totals, 'scans': self._scan_count,
-                'backend': self.backend.name if self.backend is not None else '',
-                'scan': {k: self._scan[k] for k in ('state', 'done', 'total', 'dropped')}}
+        out = {**self._totals, 'scans': self._scan_count,
+               'backend': self.backend.name if self.backend is not None else '',
+               'scan': {k: self._scan[k] for k in ('state', 'done', 'total', 'dropped')}}
+        if getattr(self.backend, 'name', '') == 'rig':
+            out['rig'] = self.backend.stats  # pairing/<drop kind>, drift_ppm, camera, board
+        return out
 
     def _tick_boundary(self):
         """The poll timer as a boundary: anything unexpected puts the galvos in safe state."""

@@ -14,8 +14,23 @@ the standard feature names (SFNC) a real camera uses: ``ExposureTime`` [us], ``G
 ``TriggerActivation``/``TriggerSoftware``, ``DeviceUserID``. Its registers are the ones
 Aravis' fake camera acts on; the image is Aravis' diagonal ramp, shifted by one grey level
 per frame. What the fake camera cannot do, and the description therefore does not offer:
-``Mono10``/``Mono12`` (it renders only 8- and 16-bit mono) and a physical trigger line
-(``Line0`` is accepted as a source, but only ``Software`` produces frames).
+``Mono10``/``Mono12`` (it renders only 8- and 16-bit mono).
+
+Trigger line: ``TriggerSource`` ``Line0`` is the camera's trigger input. Its wire is a UDP
+port on loopback (`FakeCamera.line_port`): every datagram is a rising edge
+(`FakeCamera.pulse_line`), taken only while ``TriggerMode`` is ``On`` and ``TriggerSource``
+is ``Line0``, as a real camera ignores its line in any other mode. So a trigger source in
+another process (the galvo board's emulator) fires the camera as the board's trigger output
+fires a real one, while the driver alone controls the camera over GVCP. The datagram
+carries the edge's instant (CLOCK_REALTIME, ns), and a frame exposed by a line edge is
+stamped with it, as a camera latches its timestamp at the exposure start in hardware: the
+frame itself still comes when the fake camera's thread gets to it (a loaded machine delays
+it), and an edge that comes while the previous one is still pending is ignored (the camera
+misses that trigger, as a busy camera does). ``TriggerSoftware`` fires the camera whatever
+the source (a real camera would ignore it under ``Line0``); such frames keep Aravis' stamp
+(the time the frame is made). The first 8 bytes of a line-triggered image carry the edge's
+instant too (little-endian ns, `edge_of`): the truth a test traces every frame back to the
+trigger that exposed it with, whatever the driver made of it.
 
 Triggered frames are produced on a time grid: the fake camera looks for a pending
 software trigger every ``1 / trigger_frequency_hz`` seconds, so two triggers within one
@@ -29,9 +44,11 @@ Only one fake camera can serve on the loopback interface at a time (GVCP port 39
 from __future__ import annotations
 
 import argparse
+import collections
 import os
 import select
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -45,6 +62,13 @@ _REG_WIDTH = 0x100
 _REG_HEIGHT = 0x104
 _REG_EXPOSURE_US = 0x120
 _REG_FRAME_PERIOD_US = 0x138
+_REG_TRIGGER_MODE = 0x300
+# Aravis' own trigger-source register: kept at 1 (software) so that the fake camera takes
+# a trigger whenever TriggerSoftware is set; the source a client selects lives in
+# _REG_TRIGGER_SOURCE_SELECTED (0 = Line0, 1 = Software), which the line honours.
+_REG_ARAVIS_TRIGGER_SOURCE = 0x304
+_REG_TRIGGER_SOFTWARE = 0x30C
+_REG_TRIGGER_SOURCE_SELECTED = 0x310
 _GVBS_USER_DEFINED_NAME = 0xE8
 _GVBS_USER_DEFINED_NAME_SIZE = 16
 _READY = "FAKE_CAMERA_READY"
@@ -229,7 +253,7 @@ GENICAM_XML = """<?xml version="1.0" encoding="utf-8"?>
     <pValue>TriggerSourceRegister</pValue>
   </Enumeration>
   <IntReg Name="TriggerSourceRegister" NameSpace="Custom">
-    <Address>0x304</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
+    <Address>0x310</Address><Length>4</Length><AccessMode>RW</AccessMode><pPort>Device</pPort>
     <Sign>Unsigned</Sign><Endianess>BigEndian</Endianess>
   </IntReg>
   <Enumeration Name="TriggerActivation" NameSpace="Standard">
@@ -342,6 +366,8 @@ class FakeCamera:
         self.start_timeout_s = float(start_timeout_s)
         self._proc: subprocess.Popen | None = None
         self._xml_dir: tempfile.TemporaryDirectory | None = None
+        self._line_port: int | None = None
+        self._line_sock: socket.socket | None = None
 
     # -- life cycle ---------------------------------------------------------------------
 
@@ -407,9 +433,40 @@ class FakeCamera:
         """Cut the camera off as a pulled cable or power loss would: SIGKILL the process."""
         self._stop(signal.SIGKILL)
 
+    @property
+    def line_port(self) -> int | None:
+        """UDP port on 127.0.0.1 of the camera's trigger input ``Line0`` (None while the
+        camera is not running); it changes with every `replug`."""
+        return self._line_port if self.running else None
+
+    def pulse_line(self, t_ns: int | None = None) -> None:
+        """One rising edge on the trigger input ``Line0`` (a datagram to `line_port`).
+
+        Cheap enough to call from the board emulator's trigger hook. A pulse while the
+        camera is unplugged goes nowhere, as on a wire to a dead camera.
+
+        Parameters
+        ----------
+        t_ns : int, optional
+            The edge's instant, CLOCK_REALTIME [ns]; default: now.
+        """
+        port = self._line_port
+        if port is None:
+            return
+        if self._line_sock is None:
+            self._line_sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        edge = time.time_ns() if t_ns is None else int(t_ns)
+        try:
+            self._line_sock.sendto(edge.to_bytes(8, "little"), ("127.0.0.1", port))
+        except OSError:
+            pass  # nobody listens (the camera was killed): the edge is lost
+
     def close(self) -> None:
         """Stop the camera and remove its temporary files."""
         self._stop(signal.SIGTERM)
+        if self._line_sock is not None:
+            self._line_sock.close()
+            self._line_sock = None
         if self._xml_dir is not None:
             self._xml_dir.cleanup()
             self._xml_dir = None
@@ -422,7 +479,9 @@ class FakeCamera:
             ready, _, _ = select.select([self._proc.stdout], [], [], 0.1)
             if ready:
                 line = self._proc.stdout.readline()
-                if line.strip() == _READY:
+                words = line.split()
+                if words[:1] == [_READY] and len(words) == 2:
+                    self._line_port = int(words[1])
                     return True
                 if not line:
                     return False
@@ -443,6 +502,7 @@ class FakeCamera:
     def _stop(self, sig: int) -> str:
         """Stop the child with `sig`; return what it wrote on stderr."""
         proc, self._proc = self._proc, None
+        self._line_port = None
         if proc is None:
             return ""
         if proc.poll() is None:
@@ -453,6 +513,25 @@ class FakeCamera:
             proc.kill()
             _, err = proc.communicate()
         return (err or "").strip()[-2000:]
+
+
+def edge_of(image) -> int | None:
+    """The line edge instant [ns, CLOCK_REALTIME] a fake-camera image was exposed by.
+
+    Parameters
+    ----------
+    image : ndarray, shape (H, W), uint8 or uint16
+        An image of a frame the fake camera made for a ``Line0`` edge.
+
+    Returns
+    -------
+    int or None
+        The instant `FakeCamera.pulse_line` sent; None for an image too small to carry it.
+    """
+    import numpy as np
+
+    raw = np.ascontiguousarray(image).reshape(-1).view(np.uint8)
+    return int.from_bytes(raw[:8].tobytes(), "little") if raw.size >= 8 else None
 
 
 class _RampFill:
@@ -478,6 +557,10 @@ class _RampFill:
             getattr(lib, fn).argtypes = [ctypes.c_void_p]
         lib.arv_buffer_get_frame_id.restype = ctypes.c_uint64
         lib.arv_buffer_get_frame_id.argtypes = [ctypes.c_void_p]
+        lib.arv_buffer_set_timestamp.restype = None
+        lib.arv_buffer_set_timestamp.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
+        #: Instants [ns] of the line edges taken and not yet turned into a frame, oldest first.
+        self.edges: collections.deque = collections.deque()
         self._proto = ctypes.CFUNCTYPE(
             None,
             ctypes.c_void_p,
@@ -523,6 +606,9 @@ class _RampFill:
         import numpy as np
 
         lib = self._lib
+        edge = self.edges.popleft() if self.edges else None
+        if edge is not None:  # a frame of a line edge: stamped with the edge (exposure start)
+            lib.arv_buffer_set_timestamp(buffer, edge)
         w = lib.arv_buffer_get_image_width(buffer)
         h = lib.arv_buffer_get_image_height(buffer)
         f = int(lib.arv_buffer_get_frame_id(buffer)) % 255
@@ -536,6 +622,9 @@ class _RampFill:
         dest = dest.view(ramp.dtype).reshape(h, w)
         src = np.lib.stride_tricks.as_strided(ramp[f:], shape=(h, w), strides=(item, item))
         np.copyto(dest, src)
+        if edge is not None and w * h * item >= 8:
+            dest.reshape(-1).view(np.uint8)[:8] = np.frombuffer(edge.to_bytes(8, "little"),
+                                                                np.uint8)
 
 
 def _serve(args: argparse.Namespace) -> int:
@@ -568,8 +657,32 @@ def _serve(args: argparse.Namespace) -> int:
     for i in range(0, _GVBS_USER_DEFINED_NAME_SIZE, 4):
         cam.write_register(_GVBS_USER_DEFINED_NAME + i, int.from_bytes(name[i : i + 4], "big"))
 
+    cam.write_register(_REG_ARAVIS_TRIGGER_SOURCE, 1)
+    cam.write_register(_REG_TRIGGER_SOURCE_SELECTED, 0)  # Line0, a camera's usual default
+
     fill = _RampFill()
     fill.install(cam)
+    line = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    line.bind(("127.0.0.1", 0))
+
+    def register(address: int) -> int:
+        value = cam.read_register(address)  # PyGObject: (ok, value) for the out argument
+        return value[-1] if isinstance(value, tuple) else value
+
+    def trigger_line() -> None:  # the camera's trigger input Line0: one datagram per edge
+        while True:
+            try:
+                data = line.recv(16)
+            except OSError:
+                return
+            edge = int.from_bytes(data[:8], "little") if len(data) >= 8 else time.time_ns()
+            if register(_REG_TRIGGER_MODE) != 1 or register(_REG_TRIGGER_SOURCE_SELECTED) != 0:
+                continue  # the line is not the trigger source: the edge does nothing
+            if register(_REG_TRIGGER_SOFTWARE) == 0:  # else still busy: this edge is missed
+                fill.edges.append(edge)
+                cam.write_register(_REG_TRIGGER_SOFTWARE, 1)
+
+    threading.Thread(target=trigger_line, daemon=True).start()
 
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -580,7 +693,7 @@ def _serve(args: argparse.Namespace) -> int:
         stop.set()
 
     threading.Thread(target=watch_parent, daemon=True).start()
-    print(_READY, flush=True)
+    print(_READY, line.getsockname()[1], flush=True)
     while not stop.wait(0.2):
         pass
     del gv  # stops the GVCP/GVSP thread and closes the sockets

@@ -151,6 +151,42 @@ class SerialBackend(GalvoBackend):
         self._frames: list[Frame] = []
         self._counters = {'lost_events': 0, 'rejected_events': 0, 'mismatched_events': 0,
                           'retries': 0, 'board_seq_gaps': 0, 'board_resets': 0}
+        self._listeners: list = []
+
+    # ------------------------------------------------------------------ raw board messages
+    def add_listener(self, callback) -> None:
+        """Also hand every EVENT, BOOT and STATUS the board sends to ``callback``.
+
+        Parameters
+        ----------
+        callback : callable
+            ``callback(msg)`` with a :class:`~galvo_driver.serial_link.protocol.Event`,
+            :class:`~galvo_driver.serial_link.protocol.Boot` or
+            :class:`~galvo_driver.serial_link.protocol.Status`, exactly as decoded (CRC
+            checked; duplicates, other scans and other boots included), before this backend
+            handles it. Called in the reader thread: keep it short (queue the message) and
+            do not call back into the backend. An exception it raises is logged and
+            counted in ``stats['listener_errors']``; the backend goes on.
+        """
+        if not callable(callback):
+            raise ValueError('callback: expected a callable(msg)')
+        self._listeners.append(callback)
+
+    def board_to_host(self, board_us: float) -> float:
+        """A board clock time [us] in the host's ``time.time()`` base [s], with the offset
+        of the lowest-round-trip GET_STATUS exchange before the last scan (or handshake)."""
+        return self._clock_offset + board_us * 1e-6
+
+    @property
+    def boot_id(self) -> int | None:
+        """Boot id of the board session (from HELLO), None before :meth:`open`."""
+        return self._boot_id
+
+    @property
+    def scan_id(self) -> int | None:
+        """Id of the last scan started (the one its EVENTs carry), None before any."""
+        scan = self._scan
+        return None if scan is None else scan.scan_id
 
     # ------------------------------------------------------------------ properties
     @property
@@ -612,7 +648,19 @@ class SerialBackend(GalvoBackend):
                 return
             if data:
                 for pkt in self._decoder.feed(data):
+                    if self._listeners and isinstance(pkt.msg, (p.Event, p.Boot, p.Status)):
+                        self._notify(pkt.msg)
                     self._dispatch(pkt)
+
+    def _notify(self, msg) -> None:
+        for callback in self._listeners:
+            try:
+                callback(msg)
+            except Exception as err:  # noqa: BLE001 - a listener never stops the reader
+                with self._cond:
+                    self._counters['listener_errors'] = \
+                        self._counters.get('listener_errors', 0) + 1
+                log.error('board message listener failed: %r', err)
 
     def _dispatch(self, pkt: p.Packet) -> None:
         msg = pkt.msg

@@ -12,8 +12,14 @@ It keeps a log of every DAC output and laser state it applied (:meth:`applied`),
 emulator's ``time.monotonic()`` time and the reason, so tests can check what the "hardware"
 did, and it injects faults on demand: lost bytes and corrupted bits in outgoing frames
 (by message kind), corrupted or shortened incoming frames, lost ACKs, a DAC glitch (a row
-output one LSB off), a reset (at once or right after a given trigger) and an unplug (the
-transport is closed; the board keeps running and its watchdog makes it safe).
+output one LSB off), a reset (at once or right after a given trigger), an unplug (the
+transport is closed; the board keeps running and its watchdog makes it safe), duplicated
+trigger events, a drifting microsecond clock (ppm) and a clock step.
+
+Every trigger is also recorded with its boot id, scan id, index and board timestamp
+(:meth:`FirmwareEmulator.triggers`), and an ``on_trigger`` hook is called at each trigger
+instant, so a test can fire a camera's software trigger from the board's trigger, as the
+trigger output wired to the camera's line in does on a rig.
 
 Run it as a separate process for driver tests::
 
@@ -41,6 +47,7 @@ import threading
 import time
 import tty
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -88,6 +95,33 @@ class AppliedOutput:
         return {'t': self.t, 'codes': list(self.codes),
                 'volts': [float(v) for v in self.voltages], 'laser': self.laser_on,
                 'reason': self.reason}
+
+
+@dataclass(frozen=True)
+class TriggerRecord:
+    """One trigger the board fired: the truth a pairing is checked against.
+
+    Attributes
+    ----------
+    boot_id, scan_id, index : int
+        As in the trigger's EVENT.
+    t : float
+        Emulator ``time.monotonic()`` of the trigger instant [s].
+    timestamp_us : int
+        The board clock at that instant, as the EVENT reports it [us] (with the injected
+        drift and steps).
+    codes : tuple of 4 int
+        DAC codes output from this trigger until the next output change.
+    laser_on : bool
+    """
+
+    boot_id: int
+    scan_id: int
+    index: int
+    t: float
+    timestamp_us: int
+    codes: tuple
+    laser_on: bool
 
 
 class _PtyTransport:
@@ -200,13 +234,26 @@ class FirmwareEmulator:
         TCP port for ``transport='tcp'`` (0: any free port).
     seed : int, optional
         Seed of the boot-id and fault-position generator.
+    log_maxlen : int
+        Applied outputs and trigger records kept in memory.
+    on_trigger : callable, optional
+        ``on_trigger(index, t)``, called in the emulator thread at each trigger instant,
+        after the output is applied and before its EVENT is sent, with the trigger index and
+        the instant's ``time.monotonic()`` [s]. Keep it short: it delays the EVENT. An
+        exception it raises is counted in ``stats['hook_errors']`` (the message kept in
+        :attr:`hook_error`) and does not stop the board.
+    clock_drift_ppm : float
+        Rate error of the board's crystal [ppm] (within +-1000): its microsecond clock and
+        its trigger timer; see :meth:`set_clock_drift`.
     """
 
     def __init__(self, transport: str = 'pty', *, watchdog: float = 0.15,
                  protocol_version: int = p.PROTOCOL_VERSION,
                  firmware_id: str = 'galvoscan-emu', max_scan_rows: int = 1 << 20,
                  min_period_us: int = 100, log_path: str | None = None, tcp_port: int = 0,
-                 seed: int | None = None, log_maxlen: int = 200_000):
+                 seed: int | None = None, log_maxlen: int = 200_000,
+                 on_trigger: Callable[[int, float], None] | None = None,
+                 clock_drift_ppm: float = 0.0):
         if transport not in ('pty', 'tcp'):
             raise ValueError(f"transport: expected 'pty' or 'tcp', got {transport!r}")
         if not (np.isfinite(watchdog) and watchdog > 0):
@@ -221,6 +268,15 @@ class FirmwareEmulator:
         self._rng = random.Random(seed)
         self._lock = threading.RLock()
         self._log: deque[AppliedOutput] = deque(maxlen=log_maxlen)
+        self._trigger_log: deque[TriggerRecord] = deque(maxlen=log_maxlen)
+        if on_trigger is not None and not callable(on_trigger):
+            raise ValueError('on_trigger: expected a callable(index, t) or None')
+        self.on_trigger = on_trigger
+        #: Message of the last exception raised by ``on_trigger``, or None.
+        self.hook_error: str | None = None
+        self._drift_ppm = self._check_drift(clock_drift_ppm)
+        self._clock_step_at: tuple[int, int] | None = None  # (trigger index, step [us])
+        self._dup_events: list[int] = [0, 0]  # [remaining, skip]
         self._log_file = open(log_path, 'a', encoding='utf-8') if log_path else None
         self._transport = _PtyTransport() if transport == 'pty' else _TcpTransport(tcp_port)
         self.port: str = self._transport.port
@@ -239,7 +295,8 @@ class FirmwareEmulator:
         self._unplug_request = False
         # statistics
         self.stats = {'rx_frames': 0, 'rx_errors': 0, 'tx_frames': 0, 'tx_dropped_bytes': 0,
-                      'duplicates': 0, 'late_triggers': 0, 'resets': 0}
+                      'duplicates': 0, 'late_triggers': 0, 'resets': 0, 'hook_errors': 0,
+                      'duplicated_events': 0, 'clock_steps': 0}
         #: (time of the last host packet, time the watchdog made the board safe) [s, monotonic]
         self.watchdog_trips: list[tuple[float, float]] = []
         self._decoder = p.FrameDecoder(on_error=self._on_rx_error)
@@ -283,6 +340,11 @@ class FirmwareEmulator:
         """Every output state applied so far, oldest first."""
         with self._lock:
             return list(self._log)
+
+    def triggers(self) -> list[TriggerRecord]:
+        """Every trigger fired so far (of every boot and scan), oldest first."""
+        with self._lock:
+            return list(self._trigger_log)
 
     def last_applied(self) -> AppliedOutput:
         with self._lock:
@@ -352,6 +414,46 @@ class FirmwareEmulator:
             self._unplug_request = True
         self._wake()
 
+    def duplicate_events(self, n: int = 1, skip: int = 0) -> None:
+        """Send each of the next ``n`` trigger EVENTs twice (the copy with the next frame
+        sequence number, as a firmware that re-emits an event), after letting ``skip``
+        events pass."""
+        if int(n) < 0 or int(skip) < 0:
+            raise ValueError(f'n and skip must be >= 0, got {n}, {skip}')
+        with self._lock:
+            self._dup_events = [int(n), int(skip)]
+
+    def set_clock_drift(self, ppm: float) -> None:
+        """Make the board's crystal run ``ppm`` parts per million fast (negative: slow) from
+        now on: its microsecond clock (continuously, no jump) and its trigger timer, whose
+        period stays exact in board microseconds. It keeps the rate across resets."""
+        ppm = self._check_drift(ppm)
+        with self._lock:
+            t = time.monotonic()
+            self._clock_base = (t, self._board_us_exact(t))
+            self._drift_ppm = ppm
+
+    def step_clock(self, step_us: int, at_trigger: int | None = None) -> None:
+        """Step the board's microsecond clock by ``step_us`` [us] (negative: back) now, or
+        right before trigger index ``at_trigger`` of the running scan is timestamped."""
+        step_us = int(step_us)
+        with self._lock:
+            if at_trigger is None:
+                self._apply_clock_step(step_us)
+            else:
+                self._clock_step_at = (int(at_trigger), step_us)
+
+    @property
+    def clock_drift_ppm(self) -> float:
+        """Rate error of the board clock [ppm]."""
+        return self._drift_ppm
+
+    def board_clock_us(self, t: float) -> float:
+        """The board clock [us] at emulator ``time.monotonic()`` ``t`` [s] (exact; the
+        firmware truncates it to whole microseconds), for ``t`` after the last clock change."""
+        with self._lock:
+            return self._board_us_exact(t)
+
     # -------------------------------------------------------------------- internals
     def _add_tx_fault(self, action: str, n: int, kind: str, skip: int) -> None:
         if kind not in TX_KINDS:
@@ -368,12 +470,29 @@ class FirmwareEmulator:
     def _now(self) -> float:
         return time.monotonic()
 
+    @staticmethod
+    def _check_drift(ppm) -> float:
+        ppm = float(ppm)
+        if not (np.isfinite(ppm) and abs(ppm) <= 1000):
+            raise ValueError(f'clock drift: expected -1000..1000 ppm, got {ppm}')
+        return ppm
+
+    def _board_us_exact(self, t: float) -> float:
+        t_base, us_base = self._clock_base
+        return us_base + (t - t_base) * 1e6 * (1.0 + self._drift_ppm * 1e-6)
+
+    def _apply_clock_step(self, step_us: int) -> None:
+        t = time.monotonic()
+        self._clock_base = (t, self._board_us_exact(t) + step_us)
+        self.stats['clock_steps'] += 1
+
     def _uptime_us(self) -> int:
-        return int((time.monotonic() - self._boot_t0) * 1e6)
+        return int(self._board_us_exact(time.monotonic()))
 
     def _power_up(self) -> None:
         self._boot_id = self._rng.getrandbits(32) or 1
         self._boot_t0 = time.monotonic()
+        self._clock_base = (self._boot_t0, 0.0)  # (monotonic [s], board clock [us]) there
         self._tx_seq = 0
         self._session = False
         self._host_version: int | None = None
@@ -576,15 +695,30 @@ class FirmwareEmulator:
             self._glitches -= 1
             row = row.copy()
             row[0] = row[0] + 1 if row[0] < p.CODE_MAX else row[0] - 1
+        if self._clock_step_at is not None and self._index >= self._clock_step_at[0]:
+            self._apply_clock_step(self._clock_step_at[1])
+            self._clock_step_at = None
         t = time.monotonic()  # the trigger instant: output applied and timestamped together
         self._apply(row, self._scan_laser, 'trigger', t)
-        self._send(p.Event(self._boot_id, self._scan_id, self._index,
-                           int((t - self._boot_t0) * 1e6), self._codes, self._laser,
-                           p.EVENT_SETTLED))
+        stamp_us = int(self._board_us_exact(t))
+        self._trigger_log.append(TriggerRecord(self._boot_id, self._scan_id, self._index, t,
+                                               stamp_us, self._codes, self._laser))
+        self._call_hook(self._index, t)
+        event = p.Event(self._boot_id, self._scan_id, self._index, stamp_us, self._codes,
+                        self._laser, p.EVENT_SETTLED)
+        self._send(event)
+        if self._dup_events[0] > 0:
+            if self._dup_events[1] > 0:
+                self._dup_events[1] -= 1
+            else:
+                self._dup_events[0] -= 1
+                self.stats['duplicated_events'] += 1
+                self._send(event)
         index = self._index
         self._index += 1
         self._triggers += 1
-        self._next_trigger += self._period
+        # the trigger timer counts the same (drifting) crystal as the microsecond clock
+        self._next_trigger += self._period / (1.0 + self._drift_ppm * 1e-6)
         if self._reset_at_trigger is not None and index >= self._reset_at_trigger:
             self._reset_at_trigger = None
             self._reset()
@@ -593,6 +727,15 @@ class FirmwareEmulator:
             self._state = p.STATE_DONE
             self._apply(self._codes, False, 'scan_done')
             self._send(p.Status(self._status()))
+
+    def _call_hook(self, index: int, t: float) -> None:
+        if self.on_trigger is None:
+            return
+        try:
+            self.on_trigger(index, t)
+        except Exception as err:  # noqa: BLE001 - a test hook must not stop the firmware
+            self.stats['hook_errors'] += 1
+            self.hook_error = f'{type(err).__name__}: {err}'
 
     def _reset(self) -> None:
         self.stats['resets'] += 1

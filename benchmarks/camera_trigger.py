@@ -1,0 +1,597 @@
+"""Frames paired with the galvo board's trigger events, with drops injected on both sides.
+
+The firmware emulator scans ``--frames`` rows at ``--fps``; its trigger hook fires the
+camera at each trigger instant (the emulator's trigger output wired to the camera's line in),
+the real serial host (:class:`~galvo_driver.serial_link.backend.SerialBackend`) uploads the
+scan and reads the trigger EVENTs over a pty, and
+:class:`~galvo_driver.trigger_pairing.TriggerPairer` pairs frames with events as they arrive.
+
+Cameras (``--camera``):
+
+* ``synthetic`` (default): frames with ids and timestamps on a simulated camera clock with
+  its own offset and rate (``--camera-drift-ppm``), a latency and a jitter; no pixels.
+* ``fake``: :class:`galvo_driver.fake_camera.FakeCamera` (Aravis' GigE Vision fake camera on
+  loopback) opened with :class:`galvo_driver.genicam_camera.GenICamCamera` in software
+  trigger mode; the hook executes ``TriggerSoftware``.
+
+Injected faults, at seeded random trigger indices: lost EVENTs (the emulator loses a byte
+of the EVENT frame), duplicated EVENTs, camera frames lost in transfer (the camera exposed,
+its frame id advanced, the frame never reaches the host), missed camera triggers (the hook
+does not fire the camera: no exposure, no frame id), and the board clock drifting by
+``--drift-ppm``.
+
+The truth: every frame is traced to the trigger instant that exposed it (the synthetic
+camera records it; for the fake camera, the trigger whose TriggerSoftware call window
+contains the frame's timestamp, both on CLOCK_REALTIME) and that trigger's codes come from
+the emulator's own record (:meth:`FirmwareEmulator.triggers`), never from an EVENT.
+
+    .venv/bin/python benchmarks/camera_trigger.py [--frames 10000] [--fps 500]
+        [--camera synthetic|fake] [--seed 1]
+
+Last line: one JSON object with frames, fps, mistagged, unaccounted, injected_drops,
+injected_drops_detected, clock_offset_error_us_p99 and the pairer's counters.
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import heapq
+import json
+import math
+import queue
+import random
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from galvo_driver.serial_link import protocol as p
+from galvo_driver.serial_link.backend import SerialBackend
+from galvo_driver.serial_link.emulator import FirmwareEmulator
+from galvo_driver.trigger_pairing import PairedFrame, TriggerPairer
+
+#: Drop kinds that account for a trigger index without a pair.
+EVENT_SIDE = ('event_lost', 'event_without_frame')
+
+
+class TappedBackend(SerialBackend):
+    """The real serial host, with every EVENT and BOOT it decodes copied to a queue through
+    its public listener hook (:meth:`SerialBackend.add_listener`)."""
+
+    def __init__(self, port: str, **kw):
+        super().__init__(port, **kw)
+        self.tap: queue.Queue = queue.Queue()
+        self.add_listener(lambda msg: self.tap.put(msg)
+                          if isinstance(msg, (p.Event, p.Boot)) else None)
+
+
+@dataclass(frozen=True)
+class SimFrame:
+    """A synthetic camera frame (the fields of GenICamCamera's CameraFrame it needs), with
+    its truth, which the pairer never reads: the instant of the trigger that exposed it
+    (emulator ``time.monotonic()`` [s]) and the board clock at the exposure start [us]."""
+
+    frame_id: int
+    timestamp_ns: int
+    trigger_t: float = field(default=math.nan, compare=False)
+    exposure_board_us: float = field(default=math.nan, compare=False)
+    image: None = None
+    bit_depth: int = 8
+
+
+@dataclass
+class SyntheticCamera:
+    """A triggered camera on its own clock: ``ns = offset_ns + t * 1e9 * (1 + drift)``.
+
+    ``trigger(index, t)`` is the emulator's hook. A trigger index in ``miss`` is not seen
+    (no exposure, the frame id does not advance); one in ``lose`` is exposed but the frame is
+    lost in transfer (the id advances, nothing is delivered). Delivered frames become
+    available after a random 0..``max_delay_s`` transfer delay.
+    """
+
+    emulator: FirmwareEmulator | None = None
+    seed: int = 0
+    offset_ns: int = 1_700_000_000_000_000_000
+    drift_ppm: float = 0.0
+    latency_us: float = 30.0
+    jitter_us: float = 20.0
+    max_delay_s: float = 0.003
+    first_frame_id: int = 1
+    miss: set = field(default_factory=set)
+    lose: set = field(default_factory=set)
+
+    def __post_init__(self):
+        self._rng = random.Random(self.seed)
+        self.next_id = self.first_frame_id
+        self.missed: list[float] = []
+        self.delivered: list[int] = []
+        self.lost: list[float] = []
+        self._heap: list = []
+        self._release = 0.0
+        self._sent = 0
+        self._real_minus_mono = time.time() - time.monotonic()
+        self._lock = threading.Lock()
+
+    def camera_ns(self, t: float) -> int:
+        return self.offset_ns + round(t * 1e9 * (1 + self.drift_ppm * 1e-6))
+
+    def trigger(self, index: int, t: float) -> None:
+        if index in self.miss:
+            self.missed.append(t)
+            return
+        fid, self.next_id = self.next_id, self.next_id + 1
+        t_exp = t + (self.latency_us + self._rng.uniform(0, self.jitter_us)) * 1e-6
+        board_us = self.emulator.board_clock_us(t_exp) if self.emulator else float('nan')
+        if index in self.lose:
+            self.lost.append(t)
+            return
+        frame = SimFrame(fid, self.camera_ns(t_exp), t, board_us)
+        self.delivered.append(fid)
+        with self._lock:  # a camera delivers in order: never before the previous frame
+            self._release = max(self._release,
+                                time.monotonic() + self._rng.uniform(0, self.max_delay_s))
+            self._sent += 1  # ties in release time keep the sending order
+            heapq.heappush(self._heap, (self._release, self._sent, frame))
+
+    def to_host(self, ns: int) -> float:
+        """The coarse camera-to-host mapping a timestamp latch would give (time.time())."""
+        mono = (ns - self.offset_ns) / (1e9 * (1 + self.drift_ppm * 1e-6))
+        return mono + self._real_minus_mono
+
+    def restart(self, clock_jump_ns: int = 10**12) -> None:
+        """Unplugged and plugged in again: frame ids start over, the clock jumps."""
+        with self._lock:
+            self.next_id = self.first_frame_id
+            self.offset_ns += int(clock_jump_ns)
+
+    def poll(self) -> list[SimFrame]:
+        """Frames whose transfer delay has passed, in the order the camera sent them (not
+        sorted by frame id: after :meth:`restart` the ids start over)."""
+        now, out = time.monotonic(), []
+        with self._lock:
+            while self._heap and self._heap[0][0] <= now:
+                out.append(heapq.heappop(self._heap)[2])
+        return out
+
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._heap)
+
+
+@dataclass
+class Faults:
+    """Trigger indices of the injected faults (disjoint sets)."""
+
+    lost_events: set = field(default_factory=set)
+    dup_events: set = field(default_factory=set)
+    lost_frames: set = field(default_factory=set)
+    missed_triggers: set = field(default_factory=set)
+
+    @classmethod
+    def random(cls, n: int, rate: float, seed: int) -> Faults:
+        """Each kind at about ``rate`` of the triggers, spaced >= 8 triggers apart."""
+        rng = random.Random(seed)
+        kinds = ('lost_events', 'dup_events', 'lost_frames', 'missed_triggers')
+        out, used = cls(), set()
+        for kind in kinds:
+            for _ in range(max(1, round(rate * n))):
+                for _attempt in range(100):
+                    i = rng.randrange(8, n - 8)
+                    if all(abs(i - j) >= 8 for j in used):
+                        used.add(i)
+                        getattr(out, kind).add(i)
+                        break
+        return out
+
+    def arm(self, emulator: FirmwareEmulator) -> None:
+        """Schedule the lost EVENTs on the emulator (call before the scan starts; the
+        duplicates are armed from the trigger hook, :meth:`on_trigger`).
+
+        drop_bytes(skip=s) counts EVENT frames: each duplicate is one more frame, and a
+        fault queued behind another one does not count the frame that one consumed.
+        """
+        msg_no = {}
+        extra = 0
+        for i in range(max(self.lost_events | self.dup_events, default=0) + 1):
+            msg_no[i] = i + extra
+            extra += i in self.dup_events
+        for k, i in enumerate(sorted(self.lost_events)):
+            emulator.drop_bytes(1, 'event', skip=msg_no[i] - k)
+
+    def on_trigger(self, emulator: FirmwareEmulator, index: int) -> None:
+        """Arm the duplicate of the EVENT about to be sent (called from the hook)."""
+        if index in self.dup_events:
+            emulator.duplicate_events(1, skip=0)
+
+
+@dataclass
+class Outcome:
+    """Everything the pairer said, and the checks against the truth."""
+
+    pairs: list = field(default_factory=list)
+    drops: list = field(default_factory=list)
+
+    def add(self, results) -> None:
+        for r in results:
+            (self.pairs if isinstance(r, PairedFrame) else self.drops).append(r)
+
+
+def feed(pairer: TriggerPairer, backend: TappedBackend, camera, out: Outcome) -> int:
+    """Give the pairer what has arrived on both sides; return how many items."""
+    n = 0
+    while True:
+        try:
+            msg = backend.tap.get_nowait()
+        except queue.Empty:
+            break
+        n += 1
+        if isinstance(msg, p.Event):
+            out.add(pairer.add_event(msg))
+        else:
+            out.add(pairer.board_reset(msg.info.boot_id))
+    for frame in camera.poll():
+        n += 1
+        out.add(pairer.add_frame(frame))
+    return n
+
+
+def run_scan(emulator: FirmwareEmulator, backend: TappedBackend, camera, pairer: TriggerPairer,
+             codes: np.ndarray, fps: float, *, during=None, timeout: float = 60.0,
+             first_frame_id: int | None = None) -> Outcome:
+    """Run one scan of ``codes`` rows at ``fps`` and pair everything until it is over.
+
+    ``during(emulator, camera)`` is called once the scan is running (mid-scan faults).
+    """
+    out = Outcome()
+    volts = p.codes_to_volts(codes)
+    n = backend.start(volts, fps, laser_on=True)
+    st = emulator.snapshot()
+    pairer.begin_scan(st['boot_id'], st['scan_id'], round(1e6 / fps), n_rows=n,
+                      first_frame_id=first_frame_id)
+    if during is not None:
+        during(emulator, camera)
+    deadline = time.monotonic() + timeout
+    quiet_since = None
+    while time.monotonic() < deadline:
+        if feed(pairer, backend, camera, out):
+            quiet_since = None
+        elif not backend.running and camera.pending() == 0:
+            quiet_since = quiet_since or time.monotonic()
+            if time.monotonic() - quiet_since > 0.05:
+                break
+        time.sleep(0.0005)
+    out.add(pairer.end_scan())
+    return out
+
+
+def check(outcome: Outcome, emulator: FirmwareEmulator, truth_of, n_rows: int,
+          frames_in: int) -> dict:
+    """Compare every pair with the emulator's record of the trigger that exposed it.
+
+    ``truth_of(frame) -> trigger t or None`` (the trigger instant that exposed the frame).
+    """
+    records = {r.t: r for r in emulator.triggers()}
+    mistagged = unknown = 0
+    for pair in outcome.pairs:
+        t = truth_of(pair.frame)
+        rec = records.get(t) if t is not None else None
+        if rec is None:
+            unknown += 1
+            continue
+        ev = pair.event
+        if ((rec.boot_id, rec.scan_id, rec.index) != (ev.boot_id, ev.scan_id, ev.index)
+                or rec.codes != tuple(ev.codes) or rec.laser_on != ev.laser_on):
+            mistagged += 1
+    frame_drops = sum(d.frame is not None for d in outcome.drops)
+    indices = {pair.index for pair in outcome.pairs}
+    indices |= {d.index for d in outcome.drops if d.kind in EVENT_SIDE}
+    return {'mistagged': mistagged, 'truth_unknown': unknown,
+            'unaccounted_frames': frames_in - len(outcome.pairs) - frame_drops,
+            'unaccounted_triggers': len(set(range(n_rows)) - indices)}
+
+
+def detected(outcome: Outcome, indices) -> int:
+    """Injected drops at these trigger indices that the pairer reported (not paired, and
+    named in an event-side drop)."""
+    paired = {pair.index for pair in outcome.pairs}
+    named = {d.index for d in outcome.drops if d.kind in EVENT_SIDE}
+    return sum(1 for i in indices if i in named and i not in paired)
+
+
+def offset_errors_us(outcome: Outcome, exposure_s: float, truth_board_us) -> np.ndarray:
+    """Estimated minus true board time of each paired frame's exposure start [us]."""
+    errs = []
+    for pair in outcome.pairs:
+        truth = truth_board_us(pair.frame)
+        if truth is not None and np.isfinite(truth):
+            errs.append(pair.board_mid_us - exposure_s * 0.5e6 - truth)
+    return np.asarray(errs)
+
+
+@dataclass
+class RigRun:
+    """One scan of the emulator + camera + pairer, and what came out of it."""
+
+    outcome: Outcome
+    pairer: TriggerPairer
+    emulator: FirmwareEmulator
+    camera: SyntheticCamera
+    faults: Faults
+    backend_stats: dict
+    wall_s: float
+    n_rows: int
+
+    def check(self) -> dict:
+        """:func:`check` against the emulator's trigger records."""
+        return check(self.outcome, self.emulator, lambda f: f.trigger_t, self.n_rows,
+                     self.pairer.counters['frames_in'])
+
+
+def run_rig(n: int, fps: float, *, faults: Faults | None = None, seed: int = 0,
+            drift_ppm: float = 0.0, camera_kw: dict | None = None, exposure: float = 0.001,
+            during=None, host_check: bool = True) -> RigRun:
+    """Scan ``n`` random rows at ``fps`` on the emulator with a synthetic camera, pairing
+    frames and events with a :class:`TriggerPairer`; ``during(emulator, camera)`` runs once
+    the scan has started (mid-scan faults)."""
+    faults = faults or Faults()
+    rng = np.random.default_rng(seed)
+    codes = rng.integers(1, 65536, (n, 4)).astype(np.uint16)
+    camera = SyntheticCamera(seed=seed, miss=faults.missed_triggers, lose=faults.lost_frames,
+                             **(camera_kw or {}))
+
+    def hook(index, t):
+        faults.on_trigger(emu, index)
+        camera.trigger(index, t)
+
+    emu = FirmwareEmulator('pty', seed=seed, on_trigger=hook, clock_drift_ppm=drift_ppm)
+    camera.emulator = emu
+    with emu:
+        backend = TappedBackend(emu.port, exposure=exposure)
+        backend.open()
+        try:
+            pairer = TriggerPairer(exposure_s=exposure, trigger_delay_us=camera.latency_us,
+                                   board_to_host=backend.board_to_host,
+                                   camera_to_host=camera.to_host if host_check else None)
+            faults.arm(emu)
+            t0 = time.monotonic()
+            outcome = run_scan(emu, backend, camera, pairer, codes, fps, during=during,
+                               timeout=n / fps * 3 + 10, first_frame_id=camera.first_frame_id)
+            wall = time.monotonic() - t0
+            stats = backend.stats
+        finally:
+            backend.close()
+    return RigRun(outcome, pairer, emu, camera, faults, stats, wall, n)
+
+
+def run_synthetic(args) -> dict:
+    n = args.frames
+    faults = Faults.random(n, args.drop_rate, args.seed)
+    run = run_rig(n, args.fps, faults=faults, seed=args.seed, drift_ppm=args.drift_ppm,
+                  camera_kw={'drift_ppm': args.camera_drift_ppm}, exposure=args.exposure)
+    errs = offset_errors_us(run.outcome, args.exposure, lambda f: f.exposure_board_us)
+    injected = faults.lost_events | faults.lost_frames | faults.missed_triggers
+    return summary(args, n, run.wall_s, len(run.emulator.triggers()), run.outcome,
+                   run.check(), errs, injected, run.pairer, run.emulator, run.backend_stats)
+
+
+def summary(args, n, wall, n_triggers, outcome, res, errs, injected, pairer, emu,
+            backend_stats) -> dict:
+    abs_err = np.abs(errs)
+    times = [r.t for r in emu.triggers()]
+    rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
+    return {
+        'camera': args.camera, 'frames': n, 'triggers': n_triggers,
+        'fps': round(rate, 1), 'fps_set': args.fps, 'wall_s': round(wall, 2),
+        'paired': len(outcome.pairs), 'mistagged': res['mistagged'],
+        'truth_unknown': res['truth_unknown'],
+        'unaccounted': res['unaccounted_frames'] + res['unaccounted_triggers'],
+        'injected_drops': len(injected),
+        'injected_drops_detected': detected(outcome, injected),
+        'clock_offset_error_us_p99': round(float(np.percentile(abs_err, 99)), 2)
+        if len(abs_err) else None,
+        'clock_offset_error_us_max': round(float(abs_err.max()), 2) if len(abs_err) else None,
+        'drift_ppm_set': args.drift_ppm, 'drift_ppm_estimated': round(pairer.fit.drift_ppm, 2),
+        'late_triggers': emu.stats['late_triggers'],
+        'backend_lost_events': backend_stats['lost_events'],
+        'pairer': {k: v for k, v in pairer.counters.items() if v},
+    }
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    parser.add_argument('--frames', type=int, default=10_000)
+    parser.add_argument('--fps', type=float, default=500.0)
+    parser.add_argument('--camera', choices=('synthetic', 'fake'), default='synthetic')
+    parser.add_argument('--drop-rate', type=float, default=0.002,
+                        help='fraction of triggers per injected fault kind')
+    parser.add_argument('--drift-ppm', type=float, default=200.0,
+                        help='board clock rate error [ppm]')
+    parser.add_argument('--camera-drift-ppm', type=float, default=-50.0,
+                        help='synthetic camera clock rate error [ppm]')
+    parser.add_argument('--exposure', type=float, default=0.0005, help='exposure [s]')
+    parser.add_argument('--seed', type=int, default=1)
+    parser.add_argument('--width', type=int, default=128, help='fake camera ROI width [px]')
+    parser.add_argument('--height', type=int, default=64, help='fake camera ROI height [px]')
+    args = parser.parse_args(argv)
+    if args.camera == 'fake':
+        result = run_fake(args)
+    else:
+        result = run_synthetic(args)
+    print(json.dumps(result))
+    return 0
+
+
+@dataclass(frozen=True)
+class FakeFrame:
+    """A fake-camera frame without its pixels (10,000 of them would not fit in memory),
+    and its truth: the last trigger before its exposure start (see :class:`FakeCameraSide`)."""
+
+    frame_id: int
+    timestamp_ns: int
+    trigger_t: float | None
+    exposure_board_us: float
+
+
+class FakeCameraSide:
+    """Helper A's fake camera in software-trigger mode, fired from the emulator's hook.
+
+    The fake camera stamps a frame with CLOCK_REALTIME when it makes it; the truth of a
+    frame is then the last board trigger (its instant mapped to CLOCK_REALTIME) before the
+    exposure start, provided no trigger follows within the exposure (the voltages would
+    have changed during it: truth unknown).
+    """
+
+    def __init__(self, cam, emulator: FirmwareEmulator, faults: Faults, exposure: float):
+        self.cam, self.emulator, self.faults, self.exposure = cam, emulator, faults, exposure
+        self.real_minus_mono = time.time() - time.monotonic()
+        self.trigger_times: list[float] = []  # board trigger instants, CLOCK_REALTIME [s]
+        self.trigger_mono: list[float] = []
+        self.trigger_index: list[int] = []
+        self.delivered: list[int] = []
+        self.dropped_lost: list[int] = []
+        self.max_trigger_call_s = 0.0
+        self._queue: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self._line_cond = threading.Condition()
+        self._line_pending = self._line_closed = False
+        self.overlapped = 0
+        self._thread = threading.Thread(target=self._grab, daemon=True)
+        self._thread.start()
+        self._line_thread = threading.Thread(target=self._trigger_line, daemon=True)
+        self._line_thread.start()
+
+    def trigger(self, index: int, t: float) -> None:
+        self.trigger_times.append(t + self.real_minus_mono)
+        self.trigger_mono.append(t)
+        self.trigger_index.append(index)
+        if index not in self.faults.missed_triggers:
+            with self._line_cond:
+                if self._line_pending:
+                    self.overlapped += 1  # the camera is still busy: it misses one
+                self._line_pending = True
+                self._line_cond.notify()
+
+    def _trigger_line(self) -> None:
+        """The wire from the board's trigger output to the camera: TriggerSoftware in a
+        thread of its own, so a slow GVCP answer never stalls the board. A wire holds no
+        queue: a trigger that comes while the previous one is still being sent is lost
+        (the camera misses it, as a camera ignores an overlapping trigger)."""
+        while True:
+            with self._line_cond:
+                self._line_cond.wait_for(lambda: self._line_pending or self._line_closed)
+                if self._line_closed:
+                    return
+                self._line_pending = False
+            t0 = time.monotonic()
+            self.cam.software_trigger()
+            self.max_trigger_call_s = max(self.max_trigger_call_s, time.monotonic() - t0)
+
+    def _truth(self, ts_ns: int) -> tuple[float | None, int | None]:
+        start = ts_ns * 1e-9
+        k = bisect.bisect_right(self.trigger_times, start) - 1
+        if k < 0:
+            return None, None
+        if k + 1 < len(self.trigger_times) and \
+                self.trigger_times[k + 1] < start + self.exposure:
+            return None, None  # the output changed during the exposure
+        return self.trigger_mono[k], self.trigger_index[k]
+
+    def _grab(self) -> None:
+        while not self._stop.is_set():
+            f = self.cam.grab(0.05)
+            if f is None:
+                continue
+            t, index = self._truth(f.timestamp_ns)
+            if index is not None and index in self.faults.lost_frames:
+                self.dropped_lost.append(f.frame_id)  # lost in transfer: an id gap
+                continue
+            mono = f.timestamp_ns * 1e-9 - self.real_minus_mono
+            self.delivered.append(f.frame_id)
+            self._queue.put(FakeFrame(f.frame_id, f.timestamp_ns, t,
+                                      self.emulator.board_clock_us(mono)))
+
+    def poll(self) -> list[FakeFrame]:
+        out = []
+        while True:
+            try:
+                out.append(self._queue.get_nowait())
+            except queue.Empty:
+                return out
+
+    def pending(self) -> int:
+        return self._queue.qsize()
+
+    def close(self) -> None:
+        with self._line_cond:
+            self._line_closed = True
+            self._line_cond.notify()
+        self._line_thread.join(2.0)
+        self._stop.set()
+        self._thread.join(2.0)
+
+
+def run_fake(args) -> dict:
+    from galvo_driver.fake_camera import FakeCamera
+    from galvo_driver.genicam_camera import GenICamCamera
+
+    n = args.frames
+    faults = Faults.random(n, args.drop_rate, args.seed)
+    codes = np.random.default_rng(args.seed).integers(1, 65536, (n, 4)).astype(np.uint16)
+    side: list[FakeCameraSide] = []
+
+    def hook(index, t):
+        faults.on_trigger(emu, index)
+        side[0].trigger(index, t)
+
+    with FakeCamera(width=args.width, height=args.height) as fake:
+        cam = GenICamCamera(serial=fake.serial)
+        cam.open()
+        try:
+            cam.set('TriggerMode', 'On')
+            cam.set('TriggerSource', 'Software')
+            cam.set('ExposureTime', args.exposure * 1e6)
+            cam.start(64)
+            emu = FirmwareEmulator('pty', seed=args.seed, on_trigger=hook,
+                                   clock_drift_ppm=args.drift_ppm)
+            side.append(FakeCameraSide(cam, emu, faults, args.exposure))
+            with emu:
+                backend = TappedBackend(emu.port, exposure=args.exposure)
+                backend.open()
+                try:
+                    pairer = TriggerPairer(
+                        exposure_s=args.exposure, frame_id_wrap=65536,
+                        board_to_host=backend.board_to_host,
+                        camera_to_host=lambda ns: ns * 1e-9)  # it stamps CLOCK_REALTIME
+                    faults.arm(emu)
+                    t0 = time.monotonic()
+                    outcome = run_scan(emu, backend, side[0], pairer, codes, args.fps,
+                                       timeout=n / args.fps * 3 + 10)
+                    wall = time.monotonic() - t0
+                    stats = backend.stats
+                finally:
+                    backend.close()
+            side[0].close()
+            cam_stats = cam.statistics()
+        finally:
+            cam.stop()
+            cam.close()
+    res = check(outcome, emu, lambda f: f.trigger_t, n, pairer.counters['frames_in'])
+    errs = offset_errors_us(outcome, args.exposure, lambda f: f.exposure_board_us)
+    injected = faults.lost_events | faults.lost_frames | faults.missed_triggers
+    out = summary(args, n, wall, len(emu.triggers()), outcome, res, errs, injected, pairer,
+                  emu, stats)
+    out['camera_statistics'] = cam_stats
+    out['max_trigger_call_ms'] = round(side[0].max_trigger_call_s * 1e3, 2)
+    out['triggers_overlapped'] = side[0].overlapped
+    out['hook_errors'] = emu.stats['hook_errors']
+    out['hook_error'] = emu.hook_error
+    out['watchdog_trips'] = len(emu.watchdog_trips)
+    out['camera_frames'] = len(side[0].delivered) + len(side[0].dropped_lost)
+    return out
+
+
+if __name__ == '__main__':
+    sys.exit(main())
