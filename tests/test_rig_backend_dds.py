@@ -9,6 +9,7 @@ which trigger sent that edge. So a frame the driver tagged with the wrong trigge
 voltages fails here, however the driver paired it.
 """
 
+import gc
 import sys
 import time
 
@@ -20,7 +21,7 @@ from galvoscan_msgs.srv import GetScanProgress, StartScan
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
-from galvo_driver.fake_camera import FakeCamera, edge_of
+from galvo_driver.fake_camera import FakeCamera, edge_at, edge_of
 from galvo_driver.serial_link.emulator import FirmwareEmulator
 from galvo_driver.serial_link.protocol import codes_to_volts
 
@@ -45,10 +46,18 @@ def _stamp(msg) -> int:
 
 def test_rig_driver_publishes_frames_tagged_with_their_triggers(spawn, ros_env):
     edges = {}  # edge instant [ns] -> emulator trigger time t
+    gc.collect()  # the emulator runs in this process: see test_rig_backend.fake
+    gc.freeze()
+    try:
+        _run(spawn, ros_env, edges)
+    finally:
+        gc.unfreeze()
 
+
+def _run(spawn, ros_env, edges):
     with FakeCamera(SERIAL, width=64, height=32) as fake:
         def wire(index, t):  # the board's trigger output -> the camera's Line0
-            edge = time.time_ns()
+            edge = edge_at(t)
             edges[edge] = t
             fake.pulse_line(edge)
 

@@ -515,6 +515,22 @@ class FakeCamera:
         return (err or "").strip()[-2000:]
 
 
+def edge_at(t_monotonic: float) -> int:
+    """The CLOCK_REALTIME instant [ns] of a line edge that happened at ``t_monotonic``.
+
+    The board emulator's trigger hook runs in a thread of the caller's process, which may
+    be scheduled late (a garbage collection, another thread holding the GIL); an edge
+    stamped "now" in the hook would carry that delay, which a wire does not. Give
+    `FakeCamera.pulse_line` the trigger's own instant instead.
+
+    Parameters
+    ----------
+    t_monotonic : float
+        ``time.monotonic()`` of the edge [s] (the emulator's trigger instant).
+    """
+    return round(t_monotonic * 1e9) + (time.time_ns() - time.monotonic_ns())
+
+
 def edge_of(image) -> int | None:
     """The line edge instant [ns, CLOCK_REALTIME] a fake-camera image was exposed by.
 

@@ -15,6 +15,7 @@ the assertions are about tags and accounting, not about how many frames came.
 
 from __future__ import annotations
 
+import gc
 import logging
 import time
 
@@ -22,7 +23,7 @@ import numpy as np
 import pytest
 
 from galvo_driver.backend import BackendError
-from galvo_driver.fake_camera import FakeCamera, edge_of
+from galvo_driver.fake_camera import FakeCamera, edge_at, edge_of
 from galvo_driver.rig_backend import RigBackend
 from galvo_driver.serial_link import protocol as p
 from galvo_driver.serial_link.emulator import FirmwareEmulator
@@ -35,8 +36,16 @@ EXPOSURE_US = 300.0
 
 @pytest.fixture(scope='module')
 def fake():
-    with FakeCamera(SERIAL, width=64, height=32) as cam:
-        yield cam
+    # The emulator runs in this process, a board does not: a full garbage collection of a
+    # long test session's heap holds the GIL for up to a second and would stall it (its
+    # ACKs, its triggers). Freezing what exists keeps collections to the tests' new objects.
+    gc.collect()
+    gc.freeze()
+    try:
+        with FakeCamera(SERIAL, width=64, height=32) as cam:
+            yield cam
+    finally:
+        gc.unfreeze()
 
 
 class Rig:
@@ -63,7 +72,7 @@ class Rig:
             self.emu.duplicate_events(1, skip=0)
         if index in self.miss:
             return  # the camera does not see this edge: it does not expose
-        edge = time.time_ns()
+        edge = edge_at(t)
         self.edges[edge] = t
         self.fake.pulse_line(edge)
 
