@@ -34,6 +34,7 @@ from reconstructor.model import (
 
 from .board_geometry import ellipse_centres_normalised, project_circle_centres
 from .board_layout import CircleBoard
+from .stages import covariance_from_jacobian
 
 
 # ------------------------------------------------------------------------------ small maths
@@ -419,19 +420,58 @@ def _solve(prob: _RefineProblem, loss, f_scale_px, max_nfev):
     return sol.x, bool(sol.success), str(sol.message), sol.jac
 
 
-def _model_std(prob: _RefineProblem, res, jac) -> dict:
-    """1-sigma standard errors of the model parameters from the Jacobian (SI units)."""
+def _perturbed(model: RigModel, name: str, delta: float) -> RigModel:
+    """The model with one intrinsic parameter (``fx``.. ``cy`` or ``dist[j]``) moved by delta."""
+    intr = model.intrinsics
+    if name.startswith("dist["):
+        dist = list(intr.dist)
+        dist[int(name[5:-1])] += delta
+        return dataclasses.replace(model, intrinsics=dataclasses.replace(intr, dist=tuple(dist)))
+    return dataclasses.replace(
+        model, intrinsics=dataclasses.replace(intr, **{name: getattr(intr, name) + delta}))
+
+
+def _input_jacobian(prob: _RefineProblem, z, input_std: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Residual derivatives (central differences over +-1 sigma) wrt the held intrinsics.
+
+    Returns the Jacobian, shape (m, k), in residual units per unit parameter, and the k
+    standard errors.
+    """
+    cols, sig = [], []
+    for name, sd in input_std.items():
+        if not sd > 0 or f"intrinsics.{name}" in prob.names:
+            continue
+        plus = dataclasses.replace(prob, model=_perturbed(prob.model, name, sd)).fun(z)
+        minus = dataclasses.replace(prob, model=_perturbed(prob.model, name, -sd)).fun(z)
+        cols.append((plus - minus) / (2.0 * sd))
+        sig.append(sd)
+    return np.array(cols).reshape(len(cols), -1).T, np.array(sig)
+
+
+def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None) -> dict:
+    """1-sigma standard errors of the model parameters from the Jacobian (SI units).
+
+    ``s2 inv(J.T J)`` of the reprojection residuals (board poses included), plus, when
+    ``input_std`` gives the standard errors of intrinsics the fit holds fixed, their effect
+    propagated through the solution: ``G diag(sd**2) G.T`` with ``G = -inv(J.T J) J.T J_in``
+    (the intrinsics taken as independent).
+    """
     n_model = prob.n_model
     if not n_model:
         return {}
-    dof = max(prob.n_residuals - prob.n_params, 1)
-    s2 = float(np.sum(res**2)) / dof
     try:
-        cov = np.linalg.pinv(jac.T @ jac) * s2
-        sd = np.sqrt(np.clip(np.diag(cov)[:n_model], 0.0, None)) * prob.scale[:n_model]
-        return {n: float(v) for n, v in zip(prob.names, sd, strict=True)}
-    except np.linalg.LinAlgError:
+        cov, _ = covariance_from_jacobian(jac, res.ravel(), n_params=prob.n_params)
+    except ValueError:
         return {}
+    if input_std:
+        J_in, sd = _input_jacobian(prob, z, input_std)
+        if len(sd):
+            G = -np.linalg.pinv(jac.T @ jac) @ (jac.T @ J_in)
+            cov = cov + (G * sd**2) @ G.T
+    var = np.diag(cov)[:n_model]
+    sd_model = np.sqrt(np.where(np.isfinite(var), np.clip(var, 0.0, None), np.inf))
+    return {n: float(v) for n, v in zip(prob.names, sd_model * prob.scale[:n_model],
+                                         strict=True)}
 
 
 def refine(
@@ -450,6 +490,7 @@ def refine(
     f_scale_px: float = 1.0,
     ellipse_correction: bool = True,
     max_nfev: int = 200,
+    input_std: dict | None = None,
 ) -> RefineResult:
     """Nonlinear least squares on the reprojection error of all identified circles.
 
@@ -483,6 +524,9 @@ def refine(
     ellipse_correction : bool
         Predict ellipse centres (True) or projected circle centres.
     max_nfev : int
+    input_std : dict of str to float, optional
+        1-sigma standard errors of the intrinsics the fit holds fixed (``fx``, ``fy``,
+        ``cx``, ``cy`` in px, ``dist[j]``), propagated into ``RefineResult.std``.
 
     Returns
     -------
@@ -510,7 +554,7 @@ def refine(
         board_poses={k: T for k, T in zip(prob.pose_keys, Ts, strict=True)},
         residuals_px=per_view,
         rms_px=rms,
-        std=_model_std(prob, res, jac),
+        std=_model_std(prob, res, jac, sol_x, input_std),
         names=tuple(names),
         success=success,
         message=message,

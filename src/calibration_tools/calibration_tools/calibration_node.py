@@ -264,6 +264,8 @@ class CalibrationNode(Node):
         resp.calibration_path = new.path
         resp.message = (f'{stage}: {result.samples_used} used, {result.samples_rejected} '
                         f'rejected; ' + ', '.join(f'{k}={v:.4g}' for k, v in r.items()))
+        if 'coverage' in result.extra:  # views used, voltage ranges spanned, residuals
+            resp.message += '\n' + stage_runner.coverage_line(stage, result.extra['coverage'])
         self.get_logger().info(resp.message)
         return resp
 

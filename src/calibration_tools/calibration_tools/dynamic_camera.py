@@ -16,7 +16,19 @@ DESIGN.md section 3 step 2 and the paper's section III (Eqs. 9-16, 18-1):
    matrices ``Vn_T_V0`` with true or measured ones at 36 G1 positions (-10..10 V, 4 V steps).
 
 ``g1_tilt.theta0`` is never refined: it is unobservable from views (see
-:mod:`calibration_tools.board_fit`). The building blocks live in :mod:`.circle_board`
+:mod:`calibration_tools.board_fit`).
+
+Gauge (issue 17 section 3). A shift of the principal point along x is a rotation of the
+camera about the pan axis, which ``g1_pan.theta0`` takes up exactly (half the angle: a
+mirror doubles it): the views cannot tell them apart, so the two must not both be free.
+The stage holds the intrinsics as the intrinsics stage pinned them (its lens prior, see
+:mod:`calibration_tools.intrinsics`) and refines θ0; on the reference rig, seeds 0 and 7 had
+moved cx by 3.6 px and θ0 by 0.24 mrad with it. The standard errors of the stage
+(``StageResult.standard_errors``) are those of the reprojection fit (board poses included)
+plus the stored standard errors of the held intrinsics propagated through the solution
+(:func:`intrinsics_standard_errors`), so θ0's carries the principal point's uncertainty.
+
+The building blocks live in :mod:`.circle_board`
 (detection, one-view identification), :mod:`.board_identify` (all views),
 :mod:`.board_fit` (PnP, refinement) and are re-exported here.
 """
@@ -357,10 +369,9 @@ def run_dynamic_camera(
         (distortion always stays as the intrinsics stage found it). Off by default. On a
         rig that matches the model (the simulator's ideal rig) the ~60 degrees of view
         directions of the large board pin them far better than Zhang's 5-degree views and
-        remove the ~0.2 mm bias of l that Zhang-sized errors (0.03 % focal length, 4 px
-        principal point) cause. On a real rig (the reference rig) the extra freedom absorbs
-        mechanical imperfections instead (cx moved 39 px, fx 0.14 %) and the transfer
-        matrices got worse, hence off.
+        remove the ~0.2 mm bias of l that Zhang-sized errors cause. On the reference rig the
+        freedom absorbs mechanical imperfections instead (cx moved 39 px; cx and θ0 trade,
+        module docstring), and the transfer matrices got worse, hence off.
     min_circles : int
         Views with fewer complete circles are rejected.
     dark_circles : bool
@@ -379,16 +390,16 @@ def run_dynamic_camera(
         ``residuals``: ``reprojection_rms_px``, ``reprojection_max_px``,
         ``linear_translation_rms_m`` (Eq. 16), ``transfer_translation_rms_m`` and
         ``transfer_rotation_rms_rad`` (model vs PnP-measured transfer matrices).
-        ``extra['dynamic_camera']``: Eq. 16 (l, d), standard errors, board poses, the
-        paper's Eq. 18-1 RMSE in mm against the measured matrices, and per
-        accepted view (input index) its circle labels and detected centres.
+        ``extra['dynamic_camera']``: Eq. 16 (l, d), board poses, the paper's Eq. 18-1 RMSE
+        in mm against the measured matrices, per accepted view its circle labels and
+        centres. ``standard_errors``: keyed as ``updates`` (module docstring, Gauge).
     """
     if not isinstance(board, CircleBoard):
         raise ValueError("board must be a CircleBoard")
     if min_circles < 1:
         raise ValueError(f"min_circles must be >= 1, got {min_circles}")
     model0: RigModel = calibration.model
-    intr = model0.intrinsics
+    intr, input_std = model0.intrinsics, intrinsics_standard_errors(calibration)
     det = _detect_views(views, intr, min_circles, dark_circles, progress)
     dets, U, pidx = det.dets, det.U, det.pidx
     poses = _prior_board_poses(board_pose, model0, board, dets, U, pidx)
@@ -407,17 +418,57 @@ def run_dynamic_camera(
     lin, lin_notes = _linear_l_d(obs, pnp, ident.model, U)
     if progress is not None:
         progress(1, 1, "final refinement")
-    fin = _final_fit(ident, lin, obs, board, refine_intrinsics=refine_intrinsics, **refine_kw)
+    fin = _final_fit(ident, lin, obs, board, refine_intrinsics=refine_intrinsics,
+                     input_std=input_std, **refine_kw)
     residuals, extra = _fit_figures(fin, ident, lin, lin_notes, det.keep, obs)
     if refine_intrinsics:  # PnP again with the final intrinsics
         pnp = _pnp_transfers(fin.model.intrinsics, board, obs, only=pnp)
     _verify_transfers(fin.model, fin, obs, pnp, U, residuals, extra)
+    updates = _stage_updates(fin.model, refine_intrinsics=refine_intrinsics, **refine_kw)
     return StageResult(
-        stage="dynamic_camera", residuals=residuals, rejected=det.rejected,
-        updates=_stage_updates(fin.model, refine_intrinsics=refine_intrinsics, **refine_kw),
+        stage="dynamic_camera", residuals=residuals, rejected=det.rejected, updates=updates,
         samples_used=len(accepted), samples_rejected=len(views) - len(accepted),
-        extra={"dynamic_camera": extra},
+        extra={"dynamic_camera": {**extra, "intrinsics_standard_errors_held": input_std}},
+        standard_errors=_stage_errors(updates, fin.std),
     )
+
+
+def intrinsics_standard_errors(calibration) -> dict:
+    """Standard errors of the calibrated intrinsics, as the intrinsics stage stored them.
+
+    Parameters
+    ----------
+    calibration : reconstructor.calibration_file.Calibration
+
+    Returns
+    -------
+    dict of str to float
+        ``fx``, ``fy``, ``cx``, ``cy`` [px] and ``dist[j]`` [1] (those > 0); empty when the
+        calibration holds none (e.g. design values).
+    """
+    stored = (calibration.stages.get("intrinsics") or {}).get("standard_errors") or {}
+    out = {}
+    for key, value in stored.items():
+        name = key.removeprefix("intrinsics.")
+        if name in ("fx", "fy", "cx", "cy") and float(value) > 0:
+            out[name] = float(value)
+        elif name == "dist":
+            out.update({f"dist[{j}]": float(v) for j, v in enumerate(value) if float(v) > 0})
+    return out
+
+
+def _stage_errors(updates: dict, std: dict) -> dict:
+    """The refinement's standard errors keyed as the stage's ``updates`` (lists as lists)."""
+    out: dict = {}
+    for key, value in updates.items():
+        if isinstance(value, dict):
+            sub = {k: (std.get(f"{key}.{k}") if not isinstance(v, list) else
+                       [std.get(f"{key}.{k}[{j}]", 0.0) for j in range(len(v))])
+                   for k, v in value.items()}
+            out[key] = {k: v for k, v in sub.items() if v is not None}
+        elif key in std:
+            out[key] = std[key]
+    return out
 
 
 def _accepted_views(ident, det) -> list[int]:

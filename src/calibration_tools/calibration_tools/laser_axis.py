@@ -40,7 +40,7 @@ from calibration_tools.laser_plane import (
     plane_from_stripes,
 )
 from calibration_tools.sphere_fit import finite_rows
-from calibration_tools.stages import StageResult
+from calibration_tools.stages import StageResult, covariance_from_jacobian
 
 log = logging.getLogger('galvoscan.calibration.laser_axis')
 
@@ -297,6 +297,82 @@ def _angle_per_volt(u, rot, sw, poly_degree: int):
     return k, poly, fit_rms
 
 
+def _wls_cov(J, r, w):
+    """``s2 inv(J.T W J)`` of a weighted linear least-squares fit, or None (m <= p)."""
+    m, p = J.shape
+    if m <= p:
+        return None
+    cov, _ = covariance_from_jacobian(J * np.sqrt(w)[:, None], r * np.sqrt(w))
+    return cov if np.isfinite(cov).all() else None
+
+
+def axis_standard_errors(fit: AxisFit, planes, voltages=None, *, weights=None,
+                         anchor=(0.0, 0.0, 0.0), method: str = 'paper') -> dict:
+    """1-sigma standard errors of an axis fit from the Jacobians of its three least squares.
+
+    - direction: residuals ``n . n_i`` (``- c`` for the cone), n turned about two unit
+      vectors perpendicular to it;
+    - point: residuals ``n_i . P + e_i - rho`` with P moved perpendicular to n, plus its
+      slide along n when n turns (P stays the axis point nearest the anchor);
+    - angle per volt: the polynomial fit of the plane rotations (k and poly are half the
+      plane's coefficients: a mirror doubles the angle).
+
+    Each is ``s2 inv(J.T W J)`` with the fit's plane weights; a part with no redundancy (as
+    many planes as parameters) is left out.
+
+    Parameters
+    ----------
+    fit : AxisFit
+        The solution of :func:`fit_axis` with the same planes, voltages, weights and method.
+    planes : array_like, shape (m, 4)
+    voltages : array_like, shape (m,), volts, optional
+    weights : array_like, shape (m,), optional
+    anchor : array_like, shape (3,), metres
+    method : {'paper', 'cone'}
+
+    Returns
+    -------
+    dict
+        Keyed as the stage's updates: ``laser_axis_dir`` (3, unit 1), ``laser_axis_point``
+        (3, metres), ``g2_tilt: {'k': rad/V, 'poly': [rad/V^2, ...]}``, as available.
+    """
+    pl = _unit_planes(planes)
+    N, e = pl[:, :3], pl[:, 3]
+    w = _plane_weights(weights, pl.shape[0])
+    n = fit.direction
+    t = np.linalg.svd(n[None, :])[2][1:].T  # (3, 2): unit vectors perpendicular to n
+    out = {}
+    Jd = N @ t
+    rd = N @ n
+    if method == 'cone':
+        Jd = np.column_stack([Jd, -np.ones(len(N))])
+        rd = rd - math.sin(fit.cone_angle)
+    cov = _wls_cov(Jd, rd, w)
+    cov_n = None
+    if cov is not None:
+        cov_n = t @ cov[:2, :2] @ t.T
+        out['laser_axis_dir'] = [float(v) for v in np.sqrt(np.diag(cov_n))]
+    Jp = N @ t
+    if fit.offset != 0.0:
+        Jp = np.column_stack([Jp, -np.ones(len(N))])
+    cov = _wls_cov(Jp, N @ fit.point + e - fit.offset, w)
+    if cov is not None and cov_n is not None:
+        # P slides along n when n turns (it stays the axis point nearest the anchor).
+        lever = fit.point - np.asarray(anchor, dtype=np.float64)
+        cov_p = t @ cov[:2, :2] @ t.T + np.outer(n, n) * float(lever @ cov_n @ lever)
+        out['laser_axis_point'] = [float(v) for v in np.sqrt(np.diag(cov_p))]
+    if fit.k is not None and voltages is not None:
+        u = np.asarray(voltages, dtype=np.float64)
+        V = np.column_stack([np.ones(len(u))] + [u ** (p + 1) for p in range(1 + len(fit.poly))])
+        coef = np.linalg.lstsq(V * np.sqrt(w)[:, None], fit.rotation_rad * np.sqrt(w),
+                               rcond=None)[0]
+        cov = _wls_cov(V, V @ coef - fit.rotation_rad, w)
+        if cov is not None:
+            sd = np.sqrt(np.diag(cov)) / 2.0
+            out['g2_tilt'] = {'k': float(sd[1]), 'poly': [float(v) for v in sd[2:]]}
+    return out
+
+
 def line_distance(p1, d1, p2, d2) -> float:
     """Shortest distance between two lines (points p, directions d), metres."""
     p1, d1, p2, d2 = (np.asarray(x, dtype=np.float64) for x in (p1, d1, p2, d2))
@@ -314,7 +390,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
                    max_pnp_rms_px: float = 0.5, min_stripe_points: int = 20,
                    min_poses: int = 2, min_spread: float = 1e-3, fit_offset: bool = False,
                    poly_degree: int = 1, anchor=(0.0, 0.0, 0.0),
-                   method: str = 'paper') -> StageResult:
+                   method: str = 'paper', edge_margin: float = 0.6e-3) -> StageResult:
     """Calibrate the G2 tilt axis (n, P) and the G2 tilt angle per volt.
 
     Parameters
@@ -334,7 +410,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         See :func:`fit_axis` (``method='cone', fit_offset=True`` for a laser whose fan does
         not contain the mirror axis). Planes are weighted by the squared spread of their points
         across the stripe (a plane from nearby board poses has a poorly known tilt).
-    k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread
+    k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread, edge_margin
         See :func:`laser_plane.board_stripe_points` and :func:`laser_plane.plane_from_stripes`.
 
     Returns
@@ -344,7 +420,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         enough, ``g2_tilt: {'k': ..., 'poly': [...]}``. Residuals: ``axis_angle_rms_rad``,
         ``axis_angle_max_rad``, ``axis_distance_rms_m``, ``axis_distance_max_m``,
         ``axis_offset_m``, ``axis_cone_angle_rad``, ``plane_rms_max_m``, ``angle_fit_rms_rad``,
-        ``planes_used``.
+        ``planes_used``. ``standard_errors``: see :func:`axis_standard_errors`.
 
     Raises
     ------
@@ -354,7 +430,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     model = calibration.model
     coll = board_stripe_points(views, model, board, extractor_config=extractor_config,
                                max_pnp_rms_px=max_pnp_rms_px,
-                               min_stripe_points=min_stripe_points)
+                               min_stripe_points=min_stripe_points, edge_margin=edge_margin)
     rejected = list(coll.rejected)
     groups: dict[int, list] = {}
     for s in coll.stripes:
@@ -403,6 +479,9 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         residuals['angle_fit_rms_rad'] = fit.angle_fit_rms_rad
     if not math.isfinite(sum(residuals.values())):
         raise ValueError(f'laser_axis: non-finite residuals {residuals}')
+    errors = {k: v for k, v in axis_standard_errors(
+        fit, np.array(planes), np.array(volts), weights=np.array(weights), anchor=anchor,
+        method=method).items() if k in updates}
     return StageResult(stage='laser_axis', updates=updates, residuals=residuals,
                        samples_used=len(coll.stripes), samples_rejected=len(rejected),
-                       rejected=rejected)
+                       rejected=rejected, standard_errors=errors)

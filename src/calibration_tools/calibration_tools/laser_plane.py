@@ -28,6 +28,7 @@ Stage
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -40,7 +41,12 @@ from calibration_tools.small_board import (
     inside_convex_hull,
 )
 from calibration_tools.sphere_fit import finite_rows
-from calibration_tools.stages import VOLTAGE_TOL, CaptureView, StageResult
+from calibration_tools.stages import (
+    VOLTAGE_TOL,
+    CaptureView,
+    StageResult,
+    covariance_from_jacobian,
+)
 
 log = logging.getLogger('galvoscan.calibration.laser_plane')
 
@@ -592,11 +598,82 @@ def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,
     return fit
 
 
+def plane_standard_errors(points, plane, groups) -> np.ndarray:
+    """1-sigma standard errors of a fitted plane's (a, b, c, e), from its views' lines.
+
+    The errors of one view (one board pose) are mostly one shift and tilt of its whole line,
+    not independent per point. So each view is reduced to its line: the plane residual at
+    the line's centroid, and the line's tilt out of the plane times its RMS half-length
+    (both metres). The plane is parametrised about the solution by two small rotations of
+    its normal (along in-plane unit vectors t1, t2) and its offset; the Jacobian of the
+    2G view residuals, each kind (offset, tilt) weighed by its own spread
+    ``s_k**2 = sum r_k**2 / (G - 1.5)``, gives the covariance ``inv(J.T W J)``.
+
+    Parameters
+    ----------
+    points : array_like, shape (n, 3), metres
+        The inlier points of the fit.
+    plane : array_like, shape (4,)
+        (a, b, c, e), unit normal, e in metres.
+    groups : array_like, shape (n,)
+        View of each point; at least 3 distinct views with 2 or more points each.
+
+    Returns
+    -------
+    ndarray, shape (4,)
+        Standard errors of a, b, c (1) and e (metres).
+    """
+    p = np.asarray(points, dtype=np.float64)
+    pl = np.asarray(plane, dtype=np.float64)
+    g = np.asarray(groups)
+    if p.ndim != 2 or p.shape[1] != 3 or pl.shape != (4,) or g.shape != (len(p),):
+        raise ValueError('points (n, 3), plane (4,) and groups (n,) expected')
+    n = pl[:3]
+    t1 = np.cross(n, np.eye(3)[int(np.argmin(np.abs(n)))])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(n, t1)
+    rows, res = [], []
+    for k in np.unique(g):
+        q = p[g == k]
+        if len(q) < 2:
+            continue
+        c = q.mean(axis=0)
+        d = np.linalg.svd(q - c, full_matrices=False)[2][0]
+        half = float(np.sqrt(np.mean(((q - c) @ d) ** 2)))
+        rows += [[t1 @ c, t2 @ c, 1.0], [half * (t1 @ d), half * (t2 @ d), 0.0]]
+        res += [n @ c + pl[3], half * (n @ d)]
+    if len(res) < 6:
+        raise ValueError(f'{len(res) // 2} views cannot give the spread of a plane (need 3)')
+    # Offsets and tilts have their own spread: weigh each kind by its own RMS (the three
+    # parameters' degrees of freedom shared between them).
+    J, r = np.array(rows), np.array(res)
+    G = len(r) // 2
+    for k in (0, 1):
+        s_k = math.sqrt(float(r[k::2] @ r[k::2]) / (G - 1.5))
+        J[k::2] /= max(s_k, 1e-300)
+        r[k::2] /= max(s_k, 1e-300)
+    cov, _ = covariance_from_jacobian(J, r)
+    M = np.zeros((4, 3))
+    M[:3, 0], M[:3, 1], M[3, 2] = t1, t2, 1.0
+    return np.sqrt(np.clip(np.diag(M @ cov @ M.T), 0.0, None))
+
+
+def _plane_errors(stripes, fit) -> dict:
+    """``{'laser_plane_v0': [sa, sb, sc, se]}`` of a fit, or {} with fewer than 3 views."""
+    pts = np.concatenate([s.points_v0 for s in stripes])[fit.inliers]
+    views = np.concatenate([np.full(len(s.points_v0), j) for j, s in enumerate(stripes)])
+    try:
+        se = plane_standard_errors(pts, fit.plane, views[fit.inliers])
+    except ValueError:
+        return {}
+    return {'laser_plane_v0': [float(v) for v in se]}
+
+
 # ----------------------------------------------------------------------------- stage
 def run_laser_plane(views, calibration, *, board, extractor_config=None,
                     k_sigma: float = 4.0, max_pnp_rms_px: float = 0.5,
                     min_stripe_points: int = 20, min_poses: int = 2,
-                    min_spread: float = 1e-3) -> StageResult:
+                    min_spread: float = 1e-3, edge_margin: float = 0.6e-3) -> StageResult:
     """Calibrate the laser plane at U2_tilt = 0 in V0.
 
     Parameters
@@ -610,14 +687,15 @@ def run_laser_plane(views, calibration, *, board, extractor_config=None,
         current ``laser_plane_v0`` normal is kept.
     board : board_layout.Checkerboard or board_layout.CircleGrid
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
-    k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread
+    k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread, edge_margin
         See :func:`board_stripe_points` and :func:`plane_from_stripes`.
 
     Returns
     -------
     StageResult
         ``updates = {'laser_plane_v0': [a, b, c, e]}``; residuals ``plane_rms_m``,
-        ``plane_max_abs_m``, ``pnp_rms_px_max``, ``points_used``, ``points_rejected``.
+        ``plane_max_abs_m``, ``pnp_rms_px_max``, ``points_used``, ``points_rejected``;
+        ``standard_errors`` of the four (:func:`plane_standard_errors`), from 3 views on.
 
     Raises
     ------
@@ -627,7 +705,8 @@ def run_laser_plane(views, calibration, *, board, extractor_config=None,
     model = calibration.model
     coll = board_stripe_points(views, model, board, extractor_config=extractor_config,
                                max_pnp_rms_px=max_pnp_rms_px,
-                               min_stripe_points=min_stripe_points, u2_tilt=0.0)
+                               min_stripe_points=min_stripe_points, u2_tilt=0.0,
+                               edge_margin=edge_margin)
     rejected = list(coll.rejected)
     try:
         fit = plane_from_stripes(coll.stripes, k_sigma=k_sigma,
@@ -639,6 +718,7 @@ def run_laser_plane(views, calibration, *, board, extractor_config=None,
     return StageResult(
         stage='laser_plane',
         updates={'laser_plane_v0': [float(v) for v in fit.plane]},
+        standard_errors=_plane_errors(coll.stripes, fit),
         residuals={
             'plane_rms_m': fit.rms,
             'plane_max_abs_m': fit.max_abs,

@@ -4,7 +4,12 @@ Every stage is an entry of :data:`REGISTRY`, in :data:`~calibration_tools.stages
 order, with
 
 - ``plan(model, quick)``: the capture steps (:mod:`calibration_tools.capture_plans`);
-- ``options``: the targets and options its solver is run with (those the plan is made for);
+- ``options``: the options its solver is run with;
+- ``targets(targets, model)``: the targets its solver is run with, from the kit's
+  :class:`~calibration_tools.capture_plans.Targets` that
+  :func:`~calibration_tools.capture_plans.choose_targets` derives from the operator's model:
+  the plan and the solver of a stage get them from that one function, for the same
+  calibration (the one the plan was made with);
 - ``run(views, calibration, options, progress)``: the solver, in the Open3D ``run(config)``
   style (:class:`~calibration_tools.stages.StageResult` out);
 - ``inputs``: what the operator must supply besides the captured views (the cell stage's
@@ -18,6 +23,7 @@ SciPy). No rclpy.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -30,6 +36,8 @@ from calibration_tools.stages import (
     CaptureView,
     StageResult,
 )
+
+log = logging.getLogger('galvoscan.calibration.plans')
 
 
 @dataclass(frozen=True)
@@ -44,7 +52,9 @@ class Stage:
     run : callable ``(views, calibration, options, report) -> StageResult``
         ``report(done, total, message)`` is always callable (a no-op without a listener).
     options : mapping
-        Targets and options passed to the solver.
+        Options passed to the solver.
+    targets : callable ``(targets: capture_plans.Targets, model) -> dict``
+        The targets passed to the solver (those its plan placed).
     inputs : tuple of str
         Options the operator supplies (each required), with a line saying what it is.
     """
@@ -54,6 +64,7 @@ class Stage:
     run: Callable
     options: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     inputs: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
+    targets: Callable = field(default=lambda targets, model: {})
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -64,15 +75,16 @@ def _run_intrinsics(views, calibration, options, report):
 
 
 def _run_dynamic_camera(views, calibration, options, report):
-    """The plan's board placements (:func:`capture_plans.circle_board_pose`) are the priors."""
+    """The plan's board placements (:func:`capture_plans.circle_board_poses`) are the priors."""
     from calibration_tools.dynamic_camera import run_dynamic_camera
 
+    placed = options['board_poses']
     poses = sorted({int(v.pose_index) for v in views})
-    unknown = [p for p in poses if p >= len(cp.CIRCLE_BOARD_OFFSETS)]
+    unknown = [p for p in poses if p >= len(placed)]
     if unknown:
         raise ValueError(f'dynamic_camera: pose_index {unknown} is not a placement of the '
-                         f'capture plan (0..{len(cp.CIRCLE_BOARD_OFFSETS) - 1})')
-    priors = {p: cp.circle_board_pose(p) for p in poses}
+                         f'capture plan (0..{len(placed) - 1})')
+    priors = {p: placed[p] for p in poses}
     return run_dynamic_camera(views, calibration, options['board'], board_pose=priors,
                               refine_poly=options['refine_poly'], progress=report)
 
@@ -101,7 +113,8 @@ def _laser_stage(solver: Callable) -> Callable:
     def run(views, calibration, options, report):
         boards = board_views(views)
         report(0, 1, f'{len({v.pose_index for v in boards})} board placements')
-        result = solver()(boards, calibration, board=options['board'])
+        result = solver()(boards, calibration, board=options['board'],
+                          edge_margin=options['edge_margin'])
         report(1, 1, 'done')
         return result
     return run
@@ -141,12 +154,19 @@ def _plan_cell_extrinsic(model, quick, options):
 
 
 # ----------------------------------------------------------------------------- plans
-_JOINT_LATERALS = (0.0, 0.02, -0.02, 0.04, -0.04, 0.06, -0.06, 0.08, -0.08)
-
-
 def _plan_joint_correction(model, quick):
-    return cp.joint_correction_steps(model, [0.0] if quick else list(_JOINT_LATERALS),
+    return cp.joint_correction_steps(model, [0.0] if quick else list(cp.JOINT_LATERALS),
                                      reach=(0.1, 0.1) if quick else (0.3, 0.1))
+
+
+def _circle_board(targets, model) -> dict:
+    return {'board': targets.circle_board,
+            'board_poses': cp.circle_board_poses(model, targets)}
+
+
+def _laser_board(targets, model) -> dict:
+    """The laser grid the plan placed, and how far stripe points keep from its circles."""
+    return {'board': targets.laser_board, 'edge_margin': targets.edge_margin}
 
 
 def _options(**kw) -> MappingProxyType:
@@ -157,24 +177,26 @@ def _options(**kw) -> MappingProxyType:
 REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
     Stage('intrinsics',
           lambda model, quick: cp.intrinsics_steps(model, 8 if quick else 30),
-          _run_intrinsics, _options(board=cp.INTRINSICS_BOARD)),
+          _run_intrinsics, targets=lambda t, m: {'board': t.checkerboard}),
     # The reference rig's galvos are non-linear by up to ~0.02 deg: fit their cubic.
     Stage('dynamic_camera',
           lambda model, quick: cp.dynamic_camera_steps(
               model, [20] if quick else [40, 12, 12, 12, 12]),
-          _run_dynamic_camera, _options(board=cp.CIRCLE_BOARD, refine_poly=2)),
+          _run_dynamic_camera, _options(refine_poly=2), targets=_circle_board),
     Stage('laser_plane',
           lambda model, quick: cp.laser_plane_steps(model, 1 if quick else 2),
-          _laser_stage(_laser_plane_solver), _options(board=cp.LASER_BOARD)),
-    Stage('laser_axis', cp.laser_axis_steps,
-          _laser_stage(_laser_axis_solver), _options(board=cp.LASER_BOARD)),
+          _laser_stage(_laser_plane_solver), targets=_laser_board),
+    Stage('laser_axis', cp.laser_axis_steps, _laser_stage(_laser_axis_solver),
+          targets=_laser_board),
     Stage('joint_correction', _plan_joint_correction,
-          _run_joint_correction, _options(sphere_radius=cp.SPHERE_RADIUS)),
+          _run_joint_correction,
+          targets=lambda t, m: {'sphere_radius': t.sphere_radius}),
     Stage('cell_extrinsic', _plan_cell_extrinsic, _run_cell_extrinsic,
-          _options(sphere_radius=cp.SPHERE_RADIUS),
+          _options(),
           _options(cell_reference='YAML file of the robot-reported sphere positions in the '
                                   'cell frame (see calibration_tools.cell_extrinsic.'
-                                  'read_reference)')),
+                                  'read_reference)'),
+          targets=lambda t, m: {'sphere_radius': t.sphere_radius}),
 )})
 assert tuple(REGISTRY) == KNOWN_STAGES, 'REGISTRY and KNOWN_STAGES must name the same stages'
 
@@ -230,26 +252,46 @@ def plan(name: str, calibration, quick: bool = False, inputs=None) -> list[Captu
 
     Returns
     -------
-    list of CaptureStep
+    capture_plans.Plan or list of CaptureStep
+        A :class:`~calibration_tools.capture_plans.Plan` carries its ``report``: the steps
+        that were replaced or dropped and why (each also logged as a warning).
+
+    Raises
+    ------
+    ValueError
+        Unknown stage, missing inputs, or what can be placed cannot constrain the stage's
+        parameters (:class:`~calibration_tools.capture_plans.PlanError`, naming them).
     """
     entry = stage(name)
     options = stage_inputs(name, inputs)
+    model = cp.current_model(calibration)
     if entry.inputs:
         options['calibration'] = calibration
-        return entry.plan(cp.current_model(calibration), bool(quick), options)
-    return entry.plan(cp.current_model(calibration), bool(quick))
+        options.update(entry.targets(cp.choose_targets(model), model))
+        steps = entry.plan(model, bool(quick), options)
+    else:
+        steps = entry.plan(model, bool(quick))
+    for line in getattr(steps, 'report', ()):
+        log.warning('plan %s: %s', name, line)
+    return steps
 
 
-def stage_options(name: str) -> dict:
-    """Targets and options the stage's solver is run with (those its plan is made for)."""
-    return dict(stage(name).options)
+def stage_options(name: str, calibration=None) -> dict:
+    """Options the stage's solver is run with, with the targets for ``calibration``'s model
+    (those its plan is made for) when it is given."""
+    entry = stage(name)
+    out = dict(entry.options)
+    if calibration is not None:
+        model = cp.current_model(calibration)
+        out.update(entry.targets(cp.choose_targets(model), model))
+    return out
 
 
 def run(name: str, views: Sequence[CaptureView], calibration,
         progress: Callable | None = None, inputs=None) -> StageResult:
     """Run the registered solver of stage ``name`` (``stage_runner.compute`` checks the input)."""
     entry = stage(name)
-    options = stage_inputs(name, inputs)
+    options = {**stage_inputs(name, inputs), **stage_options(name, calibration)}
 
     def report(done, total, message=''):
         if progress is not None:

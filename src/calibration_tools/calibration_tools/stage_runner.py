@@ -7,6 +7,9 @@
   CaptureView`;
 - :func:`compute`: one stage on those views, with the solver, targets and options of its
   entry in :mod:`calibration_tools.registry`;
+- :func:`coverage` and :func:`coverage_line`: what a computed stage rests on (views used,
+  voltage ranges spanned, residuals, standard errors where the stage gives them), for its
+  log line and the service response;
 - :func:`bag_digest` and :func:`flatten` for the file's provenance and the service response.
 """
 
@@ -168,6 +171,61 @@ def flatten(updates: dict, prefix: str = '') -> dict:
     return out
 
 
+# ----------------------------------------------------------------------------- coverage
+#: Voltage channels a coverage reports, by index of ``CaptureView.voltages``.
+_CHANNELS = (('U1_pan', 0), ('U1_tilt', 1), ('U2_tilt', 3))
+
+
+def coverage(result: StageResult, views: Sequence[CaptureView]) -> dict:
+    """What a computed stage rests on.
+
+    Parameters
+    ----------
+    result : StageResult
+    views : sequence of CaptureView
+        The views the stage was computed from.
+
+    Returns
+    -------
+    dict
+        ``views`` (captured), ``laser_views``, ``used`` and ``rejected`` (the stage's
+        samples), ``poses`` (target placements), ``span_V`` ({channel: [min, max]} volts over
+        the views, for U1_pan, U1_tilt and, over the laser views, U2_tilt), ``residuals``
+        (the stage's, SI units) and ``standard_errors`` (when the stage gives them).
+    """
+    views = list(views)
+    U = np.array([np.asarray(v.voltages, dtype=np.float64) for v in views]).reshape(-1, 4)
+    lit = np.array([bool(v.laser_on) for v in views], dtype=bool)
+    span = {}
+    for name, j in _CHANNELS:
+        sel = U[lit, j] if name.startswith('U2') else U[:, j]
+        if sel.size:
+            span[name] = [float(sel.min()), float(sel.max())]
+    return {
+        'views': len(views), 'laser_views': int(lit.sum()),
+        'used': int(result.samples_used), 'rejected': int(result.samples_rejected),
+        'poses': len({int(v.pose_index) for v in views}),
+        'span_V': span,
+        'residuals': {k: float(v) for k, v in result.residuals.items()},
+        'standard_errors': flatten(dict(getattr(result, 'standard_errors', None) or {})),
+    }
+
+
+def coverage_line(stage: str, cov: dict) -> str:
+    """One line of a stage's :func:`coverage`, for logs and the service response."""
+    span = ', '.join(f'{k} {a:+.2f}..{b:+.2f} V' for k, (a, b) in cov['span_V'].items()
+                     if a != b or k.startswith('U1'))
+    res = ', '.join(f'{k} {v:.3g}' for k, v in cov['residuals'].items()
+                    if 'rms' in k or 'max' in k)
+    line = (f'{stage} coverage: {cov["used"]} samples used, {cov["rejected"]} rejected, from '
+            f'{cov["views"]} views ({cov["laser_views"]} lit) of {cov["poses"]} placement(s); '
+            f'span {span}; residuals {res or "none"}')
+    if cov['standard_errors']:
+        line += '; standard errors ' + ', '.join(
+            f'{k} {v:.3g}' for k, v in list(cov['standard_errors'].items())[:8])
+    return line
+
+
 # ----------------------------------------------------------------------------- compute
 def compute(stage: str, views: Sequence[CaptureView], calibration,
             progress: Callable | None = None, inputs=None) -> StageResult:
@@ -193,7 +251,9 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
     Returns
     -------
     StageResult
-        Merge it with :func:`calibration_tools.stages.apply_result`.
+        Merge it with :func:`calibration_tools.stages.apply_result`. Its
+        ``extra['coverage']`` holds the stage's :func:`coverage` (also logged, as
+        :func:`coverage_line`).
 
     Raises
     ------
@@ -209,4 +269,7 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
             raise ValueError(f'views[{i}] must be a CaptureView, got {type(v).__name__}')
     if not hasattr(calibration, 'model'):
         raise ValueError('calibration must be a reconstructor.calibration_file.Calibration')
-    return registry.run(stage, views, calibration, progress, inputs)
+    result = registry.run(stage, views, calibration, progress, inputs)
+    result.extra['coverage'] = coverage(result, views)
+    log.info(coverage_line(stage, result.extra['coverage']))
+    return result

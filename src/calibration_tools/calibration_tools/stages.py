@@ -6,9 +6,11 @@ A stage is a pure function ``run(views, calibration, **options) -> StageResult``
   ``galvoscan calibrate`` on a bag directory, or straight from the simulator in tests);
 - ``calibration`` is the current :class:`reconstructor.calibration_file.Calibration`
   (approximate values that earlier stages or nominal rig data provide);
-- the result names the parameters it estimated and carries the residuals. The caller
-  merges ``result.updates`` into the model and ``result.metadata`` into
-  ``calibration.stages[stage]``, then saves the file.
+- the result names the parameters it estimated and carries the residuals and the
+  standard error of every estimated parameter (:func:`covariance_from_jacobian`). The
+  caller merges ``result.updates`` into the model and the stage's record (residuals,
+  ``standard_errors``, ...) into ``calibration.stages[stage]`` (:func:`apply_result`), then
+  saves the file.
 """
 
 from __future__ import annotations
@@ -139,6 +141,13 @@ class StageResult:
     extra : dict
         Stage-specific results to store in the calibration file beside the model
         (e.g. ``{'joint_correction': {...}}``).
+    standard_errors : dict
+        1-sigma standard error of each estimated parameter, keyed as ``updates`` (nested
+        dicts; list-valued parameters such as ``intrinsics.dist`` as lists of the same
+        length), in the same SI units. From the Jacobian at the stage's solution
+        (:func:`covariance_from_jacobian`); a parameter the stage holds fixed or pins with
+        a prior says so in ``extra`` and in its module's docstring. Stored in the
+        calibration file as ``stages.<stage>.standard_errors`` (flat dotted keys).
     """
 
     stage: str
@@ -148,6 +157,74 @@ class StageResult:
     samples_rejected: int = 0
     rejected: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
+    standard_errors: dict = field(default_factory=dict)
+
+
+def covariance_from_jacobian(jac, residuals, *, n_params: int | None = None,
+                             prior_sigma=None) -> tuple[np.ndarray, float]:
+    """Covariance of least-squares parameters from the Jacobian at the solution.
+
+    ``cov = inv(J.T @ J / s2 + diag(1 / prior_sigma**2))`` with ``s2 = sum(r**2) / (m - p)``,
+    the residual variance of the data (the classical ``s2 * inv(J.T @ J)`` without priors).
+    Parameters that the fit held fixed must not be columns of ``jac``.
+
+    Parameters
+    ----------
+    jac : array_like, shape (m, p)
+        Derivatives of the m data residuals with respect to the p free parameters (any
+        units; the covariance comes out in the units of the columns).
+    residuals : array_like, shape (m,)
+        Data residuals at the solution (prior terms excluded).
+    n_params : int, optional
+        Number of parameters the fit estimated, for the degrees of freedom (default p).
+    prior_sigma : array_like, shape (p,), optional
+        1-sigma width of a Gaussian prior per parameter, in column units (``inf``: none).
+
+    Returns
+    -------
+    cov : ndarray, shape (p, p)
+        Covariance; rows of parameters the data and priors do not fix are ``inf``.
+    s : float
+        Residual standard deviation, in residual units.
+    """
+    J = np.asarray(jac, dtype=np.float64)
+    r = np.asarray(residuals, dtype=np.float64).ravel()
+    if J.ndim != 2 or J.shape[0] != r.size:
+        raise ValueError(f'jac must have shape ({r.size}, p), got {J.shape}')
+    p = J.shape[1]
+    n = p if n_params is None else int(n_params)
+    if not (np.isfinite(J).all() and np.isfinite(r).all()):
+        raise ValueError('jac and residuals must be finite')
+    if r.size <= n:
+        raise ValueError(f'{r.size} residuals cannot give the spread of {n} parameters')
+    s2 = float(r @ r) / (r.size - n)
+    info = J.T @ J / max(s2, 1e-300)
+    if prior_sigma is not None:
+        ps = np.asarray(prior_sigma, dtype=np.float64)
+        if ps.shape != (p,) or np.any(~(ps > 0)):
+            raise ValueError(f'prior_sigma must have shape ({p},) and be > 0')
+        info = info + np.diag(1.0 / ps**2)
+    # Scale the columns to unit norm before inverting (units differ by many decades).
+    d = np.sqrt(np.diag(info))
+    d = np.where(d > 0, d, 1.0)
+    w, V = np.linalg.eigh(info / np.outer(d, d))
+    rank_ok = w > w.max() * 1e-12
+    inv_w = np.where(rank_ok, 1.0 / np.where(rank_ok, w, 1.0), 0.0)
+    cov = (V * inv_w) @ V.T / np.outer(d, d)
+    if not rank_ok.all():  # directions nothing determines: infinite variance there
+        null = V[:, ~rank_ok]
+        bad = np.abs(null).max(axis=1) > 1e-6
+        cov[bad, :] = np.inf
+        cov[:, bad] = np.inf
+    return cov, math.sqrt(s2)
+
+
+def correlation(cov) -> np.ndarray:
+    """Correlation matrix of a covariance, shape (p, p) (NaN where a variance is 0 or inf)."""
+    c = np.asarray(cov, dtype=np.float64)
+    sd = np.sqrt(np.diag(c))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return c / np.outer(sd, sd)
 
 
 def _merge(base: dict, updates: dict, prefix: str = '') -> dict:
@@ -178,6 +255,8 @@ def apply_result(calibration, result: StageResult, sources=()):
     if result.stage not in KNOWN_STAGES:
         raise ValueError(f"stage: unknown '{result.stage}'")
     model = RigModel.from_dict(_merge(calibration.model.to_dict(), result.updates))
+    errors = _flat_errors(result.standard_errors)
+    _check_errors(errors, result)
     stages = dict(calibration.stages)
     cell_T_v0 = calibration.cell_T_v0
     if CELL_STAGE in result.extra:
@@ -193,6 +272,8 @@ def apply_result(calibration, result: StageResult, sources=()):
         'residuals': {k: float(v) for k, v in result.residuals.items()},
         'updated': sorted(_flat_keys(result.updates)),
     }
+    if errors:
+        stages[result.stage]['standard_errors'] = errors
     if CELL_STAGE in result.extra:
         stages[result.stage].update({k: v for k, v in result.extra[CELL_STAGE].items()
                                      if k != 'cell_T_v0'})
@@ -210,6 +291,32 @@ def apply_result(calibration, result: StageResult, sources=()):
         jc = calibration.joint_correction
     return calibration_file.Calibration(model=model, source='calibrated', stages=stages,
                                         joint_correction=jc, cell_T_v0=cell_T_v0)
+
+
+def _flat_errors(d, prefix='') -> dict:
+    """Standard errors as flat dotted keys with plain floats (lists stay lists)."""
+    out = {}
+    for key, value in d.items():
+        if isinstance(value, dict):
+            out.update(_flat_errors(value, f'{prefix}{key}.'))
+        elif isinstance(value, (list, tuple, np.ndarray)):
+            out[f'{prefix}{key}'] = [float(v) for v in np.asarray(value, dtype=float).ravel()]
+        else:
+            out[f'{prefix}{key}'] = float(value)
+    return out
+
+
+def _check_errors(errors: dict, result: StageResult) -> None:
+    """Standard errors must name updated parameters and be finite and >= 0."""
+    updated = set(_flat_keys(result.updates))
+    for key, value in errors.items():
+        if key not in updated:
+            raise ValueError(f'{result.stage}: standard error of {key}, which the stage does '
+                             f'not update')
+        v = np.asarray(value, dtype=np.float64)
+        if not (np.isfinite(v).all() and (v >= 0).all()):
+            raise ValueError(f'{result.stage}: standard error of {key} must be finite and '
+                             f'>= 0, got {value}')
 
 
 def _flat_keys(d, prefix=''):

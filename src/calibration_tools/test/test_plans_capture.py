@@ -95,7 +95,7 @@ def test_dynamic_camera_views_are_aimed_at_the_placed_board_with_the_model(plans
     steps = plans[('dynamic_camera', False)]
     assert [s.pose_index for s in steps] == list(range(5))
     for s in steps:
-        T = cp.circle_board_pose(s.pose_index)
+        T = cp.circle_board_pose(s.pose_index, m)
         np.testing.assert_allclose(_pose(_objects(s)[0]), T, atol=1e-9)
         pts = B.points(big) @ T[:3, :3].T + T[:3, 3]
         # The first views are centred on large circles (identification anchors).
@@ -181,9 +181,11 @@ def test_plans_follow_the_model_and_only_the_model():
         # The G1 aim follows the model (the sphere's G1 grid is a fixed 0.1 V lattice, the
         # sphere itself goes where the model's laser plane is).
         assert volts if stage != 'joint_correction' else scenes, stage
-    # The big board stays where the operator put it; the laser boards follow the plane.
-    assert plan('dynamic_camera', other)[0].scene_yaml == plan('dynamic_camera',
-                                                                 NOMINAL)[0].scene_yaml
+    # The big board goes to the model's working depth (where its laser sheet crosses the
+    # optical axis); the laser boards follow the plane.
+    for cal in (NOMINAL, other):
+        z = _pose(_objects(plan('dynamic_camera', cal)[0])[0])[2, 3]
+        assert z == pytest.approx(cp.laser_crossing_depth(cp.current_model(cal)), abs=1e-9)
     assert plan('laser_plane', other)[0].scene_yaml != plan('laser_plane', NOMINAL)[0].scene_yaml
     with pytest.raises(ValueError, match='stage'):
         plan('focus', NOMINAL)

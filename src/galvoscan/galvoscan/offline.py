@@ -130,8 +130,11 @@ def _report(result, progress: Progress):
         progress.log(f'  ... and {len(result.rejected) - 10} more rejections')
     for key, value in result.residuals.items():
         progress.log(f'  residual {key} = {value:.6g}')
+    sigma = flatten(getattr(result, 'standard_errors', None) or {})
     for key, value in flatten(result.updates).items():
-        progress.log(f'  {key} = {value:.9g}')
+        se = sigma.get(key)
+        tail = '' if se is None else ' (held fixed)' if se == 0 else f' +- {se:.3g}'
+        progress.log(f'  {key} = {value:.9g}{tail}')
 
 
 def run_stage(args, progress: Progress) -> int:
