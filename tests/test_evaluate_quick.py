@@ -1,11 +1,17 @@
-"""The main job end to end, reduced (--quick): graph, calibration services, scans, report."""
+"""The main job end to end, reduced (--quick): graph, calibration services, scans, report;
+the by-distance evaluation (the rig re-set, calibrated and scanned there) at two of the
+paper's distances, and the off-nominal table at all six."""
 
 import json
 import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+
+from galvoscan_sim import load_rig
+from galvoscan_sim.rig_family import working_distance, working_point
 
 pytestmark = pytest.mark.dds
 
@@ -13,12 +19,24 @@ KEYS = ('stair_step_error_rmse_mm', 'plate_flatness_rmse_mm', 'sphere_radius_err
         'transfer_matrix_error_rmse_mm', 'joint_error_before_mm', 'joint_error_after_mm',
         'range_x_mm', 'range_y_mm', 'runtime_s')
 DISTANCES = ('100', '200', '350', '400', '650', '1000')
+BY_DISTANCE = ('200', '1000')   # a short and a long one (each its own graph and calibration)
+
+
+def finite_or_not_measured(table, details, mm):
+    """A figure is a finite error, or null with the reason it was not measured."""
+    value = table[mm]
+    if value is None:
+        assert details[mm]['reason'].startswith('not measured: '), mm
+        return False
+    assert math.isfinite(value) and value >= 0.0, (mm, value)
+    return True
 
 
 def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     out = tmp_path / 'out'
     proc = subprocess.run([sys.executable, '-m', 'galvoscan.cli', 'evaluate',
-                           '--quick', '--out', str(out), '--seed', '1'],
+                           '--quick', '--out', str(out), '--seed', '1',
+                           '--distances', ','.join(BY_DISTANCE)],
                           env=ros_env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
     metrics = json.loads((out / 'metrics.json').read_text())
@@ -31,18 +49,34 @@ def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     assert math.isfinite(metrics['cell_extrinsic_error_mm'])
     details = json.loads((out / 'details.json').read_text())
     assert details['stages']['cell_extrinsic']['positions'] == 6
+    # the reference rig is set up for 544 mm from its G1 exit mirror, 650 mm deep along V0
+    assert abs(metrics['working_distance_mm'] - 544.4) < 0.5
+    assert abs(metrics['working_point_depth_mm'] - 650.0) < 1.0
+    # off-nominal: calibrated at 544 mm, the object moved to each paper distance
+    off = metrics['stair_step_error_rmse_mm_off_nominal']
+    assert set(off) == set(DISTANCES)
+    assert sum(finite_or_not_measured(off, details['stair_off_nominal'], mm)
+               for mm in DISTANCES) >= 4
+    # by distance: the rig re-set for each distance, calibrated and scanned there
     by_distance = metrics['stair_step_error_rmse_mm_by_distance']
-    assert set(by_distance) == set(DISTANCES)
-    for mm, value in by_distance.items():
-        # a distance the rig cannot measure is null, with the reason in details.json
-        if value is None:
-            assert details['stair_by_distance'][mm]['reason'], mm
-        else:
-            assert math.isfinite(value)
-    assert sum(v is not None for v in by_distance.values()) >= 4
+    assert set(by_distance) == set(BY_DISTANCE)
+    rows = details['stair_by_distance']
+    assert sum(finite_or_not_measured(by_distance, rows, mm) for mm in BY_DISTANCE) >= 1
+    for mm in BY_DISTANCE:
+        if 'rig' not in rows[mm]:
+            continue
+        rig = load_rig(rows[mm]['rig'])      # the re-set rig the graph ran on
+        assert abs(working_distance(rig) - int(mm) / 1e3) < 1e-3, mm
+        assert np.allclose(rows[mm]['working_point_w_m'], working_point(rig))
+        if by_distance[mm] is not None:
+            # calibrated there: its own calibration, scored against that rig's truth
+            assert (out / 'by_distance' / f'{mm}mm' / 'calibration.yaml').stat().st_size > 0
+            assert math.isfinite(rows[mm]['transfer_matrix_error_rmse_mm'])
+            assert rows[mm]['positions_used'] == 1
     cvt = metrics['calibrated_vs_true']
     assert {'fx_px', 'l_m', 'd_m', 'laser_axis_direction_error_deg'} <= set(cvt)
-    for name in ('report.md', 'calibration.yaml', 'stair_650mm.ply', 'plate.ply',
-                 'sphere.ply', 'stair_error_vs_angle.png'):
+    for name in ('report.md', 'calibration.yaml', 'stair_working_point.ply', 'plate.ply',
+                 'sphere.ply', 'stair_error_vs_angle.png', 'stair_error_by_distance.png'):
         assert (out / name).stat().st_size > 0, name
-    assert 'paper' in (out / 'report.md').read_text()
+    text = (out / 'report.md').read_text()
+    assert 'paper' in text and 'by working distance' in text and 'Off-nominal' in text

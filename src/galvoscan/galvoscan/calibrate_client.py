@@ -12,24 +12,38 @@ from calibration_tools.stages import STAGES
 from reconstructor import calibration_file
 
 
+class StageError(RuntimeError):
+    """A calibration stage failed; ``stage`` names it, the message says why."""
+
+    def __init__(self, stage: str, message: str):
+        super().__init__(message)
+        self.stage = stage
+
+
 def capture_and_compute(client, stage: str):
     """One stage through the node's services: ``(capture response, compute response)``.
 
     Raises
     ------
-    RuntimeError
-        Either service reports failure (its message).
+    StageError
+        Either service reports failure, or does not answer (its message).
     """
     from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration
 
-    cap = client.call(CaptureCalibration, 'calibration/capture',
-                      CaptureCalibration.Request(stage=stage), timeout=900.0)
+    try:
+        cap = client.call(CaptureCalibration, 'calibration/capture',
+                          CaptureCalibration.Request(stage=stage), timeout=900.0)
+    except RuntimeError as exc:
+        raise StageError(stage, f'capture {stage}: {exc}') from None
     if not cap.success:
-        raise RuntimeError(f'capture {stage}: {cap.message}')
-    comp = client.call(ComputeCalibration, 'calibration/compute',
-                       ComputeCalibration.Request(stage=stage), timeout=900.0)
+        raise StageError(stage, f'capture {stage}: {cap.message}')
+    try:
+        comp = client.call(ComputeCalibration, 'calibration/compute',
+                           ComputeCalibration.Request(stage=stage), timeout=900.0)
+    except RuntimeError as exc:
+        raise StageError(stage, f'compute {stage}: {exc}') from None
     if not comp.success:
-        raise RuntimeError(f'compute {stage}: {comp.message}')
+        raise StageError(stage, f'compute {stage}: {comp.message}')
     return cap, comp
 
 

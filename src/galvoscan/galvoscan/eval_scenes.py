@@ -4,9 +4,20 @@ The world frame W of these scenes is the rig's nominal V0 (x right, y down, z aw
 the scanner). Each function returns the YAML text and what the evaluation needs to know
 about the object (its pose ``W_T_O`` and dimensions): the experimenter's knowledge of
 where they put it.
+
+Objects are placed around the evaluated rig's working point (:class:`Site`), where its
+laser sheet crosses its optical axis, not at a fixed depth: the same evaluation runs on a
+rig set up for 100 mm or for 1000 mm. The sizes of the plate and the sphere scale with the
+working point's depth (the field of view at a given lens grows in proportion to depth);
+lateral placements too, but never further out, relative to the rig's own G1 reach at that
+depth, than on the reference rig. The paper's values are those at :data:`REFERENCE_DEPTH`.
+The stair block is the paper's standard component and keeps its size at every distance
+(its 30 mm step is what is measured).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -16,7 +27,132 @@ STAIR_STEP = 0.03                 # the paper's 30 mm step [m]
 STAIR_TILT = (0.12, -0.35, 0.0)   # rotation vector [rad] that shows the riser to the laser
 SPHERE_RADIUS = 0.0254            # 2 inch calibration sphere [m]
 PLATE_SIZE = 0.74                 # [m]
+PLATE_VIEW_HALF = 0.28            # plate views: aims over +-this on the plate [m]
+REFERENCE_DEPTH = 0.65            # depth along V0 of the paper's scenes [m]
+STAIR_GRID_HALF = (0.38, 0.33)    # stair positions over +-x, +-y at the reference depth [m]
+#: G1's reach on the reference rig at the reference depth, x and y [m]: where the view axis
+#: meets the plane 650 mm deep at +-VOLTAGE_LIMIT, rounded down to 1 mm (pinned by a
+#: test). Lateral placements are never further out, relative to a rig's own reach, than
+#: on the reference rig.
+REFERENCE_REACH = (0.476, 0.455)
+#: How far the stair block's outermost aim can lie beyond its position [m]: the +-30 mm
+#: face aims plus up to 17 mm from the block's tilt (its faces 20 and 50 mm up).
+STAIR_AIM_EXTENT = 0.05
 PLATE_POSES = ((0.08, 0.12, 0.0), (-0.10, 0.05, 0.0), (0.03, -0.15, 0.10))  # rotvecs [rad]
+
+
+@dataclass(frozen=True)
+class Site:
+    """Where an evaluation puts its objects: around a rig's working point.
+
+    Attributes
+    ----------
+    centre_W : ndarray, shape (3,), metres
+        The working point in W (the sheet at U2 = 0 crossing the optical axis at U1 = 0).
+    scale : float
+        Object size factor: the working point's depth over :data:`REFERENCE_DEPTH`, rounded
+        to 0.01 (objects come in sizes; 1 for a rig set up as the paper's).
+    lateral : tuple of float
+        Placement factors along x and y: ``scale``, or less where G1's reach at the working
+        depth is smaller than ``scale`` times :data:`REFERENCE_REACH` (rounded to 0.01).
+    reach : tuple of float
+        G1's reach at the working depth along x and y [m] (:func:`g1_reach`).
+    exit_m : float
+        Distance from W's origin to the G1 exit mirror along the axis [m]: a stand-off D
+        (working distance, as :func:`galvoscan_sim.rig_family.working_distance` defines it)
+        lies ``exit_m + D`` from W's origin.
+    """
+
+    centre_W: np.ndarray
+    scale: float
+    lateral: tuple
+    reach: tuple
+    exit_m: float
+
+    @property
+    def depth(self) -> float:
+        """Depth of the working point along W's z [m]."""
+        return float(self.centre_W[2])
+
+    def offset(self, shift) -> np.ndarray:
+        """The working point moved by ``shift`` (3,) [m], a shift at the reference depth on
+        the reference rig: x and y times ``lateral``, z times ``scale``."""
+        f = np.array([self.lateral[0], self.lateral[1], self.scale])
+        return self.centre_W + f * np.asarray(shift, dtype=np.float64)
+
+    def at_standoff(self, distance: float) -> np.ndarray:
+        """The point on the line from W's origin through the working point at stand-off
+        ``distance`` [m] from the G1 exit mirror, shape (3,) [m]."""
+        u = self.centre_W / np.linalg.norm(self.centre_W)
+        return u * (self.exit_m + float(distance))
+
+    def stair_grid(self, n_x: int, n_y: int, spread: float = 1.0) -> list:
+        """n_x x n_y stair positions (3,) [m] over the range at the working point's depth,
+        row by row (x fastest).
+
+        The grid spans ``spread`` times :data:`STAIR_GRID_HALF` times ``lateral``, narrowed
+        where the block's outermost aim (:data:`STAIR_AIM_EXTENT` beyond a position; the
+        block keeps its size) would lie further out in G1's reach than on the reference rig.
+        """
+        half = []
+        for i in (0, 1):
+            ref = (STAIR_GRID_HALF[i] + STAIR_AIM_EXTENT) / REFERENCE_REACH[i]
+            h = min(STAIR_GRID_HALF[i] * self.lateral[i],
+                    ref * self.reach[i] - STAIR_AIM_EXTENT)
+            half.append(spread * max(h, 0.0))
+        xs = np.linspace(-half[0], half[0], n_x) if n_x > 1 else [0.0]
+        ys = np.linspace(-half[1], half[1], n_y) if n_y > 1 else [0.0]
+        return [self.centre_W + np.array([x, y, 0.0]) for y in ys for x in xs]
+
+
+def g1_reach(rig, depth: float) -> np.ndarray:
+    """How far G1 can turn the view at ``depth`` [m]: where the view axis meets the plane
+    z = depth (V0) at +-VOLTAGE_LIMIT on each G1 axis, the nearer side, shape (2,) [m]
+    (x, y). ``rig`` is a ``galvoscan_sim.Rig`` (its physics, not the model)."""
+    from galvoscan_common.frame import VOLTAGE_LIMIT
+
+    out = []
+    for axis in (0, 1):
+        side = []
+        for sign in (-1.0, 1.0):
+            u = np.zeros(4)
+            u[axis] = sign * VOLTAGE_LIMIT
+            th = rig.mirror_angles(rig.applied_voltages(u))
+            T = rig.V0_T_V(th[0], th[1])
+            ray, o = T[:3, 2], T[:3, 3]
+            side.append(abs((o + (depth - o[2]) / ray[2] * ray)[axis]))
+        out.append(min(side))
+    return np.array(out)
+
+
+def site_of(rig) -> Site:
+    """The :class:`Site` of a rig (a ``galvoscan_sim.Rig`` or a rig description dict).
+
+    Raises
+    ------
+    ValueError
+        The rig's laser sheet does not cross its optical axis in front of the scanner.
+    """
+    from galvoscan_sim import Rig, rig_from_dict
+    from galvoscan_sim.rig_family import working_distance, working_point
+
+    if not isinstance(rig, Rig):
+        rig = rig_from_dict(rig, '<rig description>')
+    c = np.asarray(working_point(rig), dtype=np.float64)
+    depth = float(np.linalg.norm(c))
+    if not np.all(np.isfinite(c)) or c[2] <= 0:
+        raise ValueError(f'rig: no working point in front of the scanner ({c})')
+    scale = max(round(depth / REFERENCE_DEPTH, 2), 0.01)
+    reach = g1_reach(rig, float(c[2]))
+    lateral = tuple(max(round(min(scale, float(r)), 2), 0.01)
+                    for r in reach / np.asarray(REFERENCE_REACH))
+    return Site(c, scale, lateral, tuple(float(r) for r in reach),
+                depth - float(working_distance(rig)))
+
+
+#: The site of the paper's rig (working point on W's z axis at 650 mm, stand-off unknown).
+PAPER_SITE = Site(np.array([0.0, 0.0, REFERENCE_DEPTH]), 1.0, (1.0, 1.0), REFERENCE_REACH,
+                  0.0)
 
 
 def _pose(R: Rotation, t) -> np.ndarray:
@@ -64,39 +200,52 @@ objects:
     return text, {'W_T_O': W_T_O, 'size': STAIR_SIZE, 'step_height': STAIR_STEP, 'aim_W': aim}
 
 
-def plate(index: int, distance: float = 0.65) -> tuple[str, dict]:
-    """The 740 x 740 mm flat plate at ``distance`` [m], in pose ``index`` of PLATE_POSES."""
+def plate(index: int, site: Site = PAPER_SITE) -> tuple[str, dict]:
+    """The flat plate (740 x 740 mm at scale 1) centred at ``site``'s working point, in pose
+    ``index`` of PLATE_POSES.
+
+    Returns the scene text and ``{'W_T_O', 'size', 'view_half'}``: the plate's pose (4, 4),
+    its size (2,) [m] and the half extent [m] over which views are aimed on it.
+    """
     R = Rotation.from_rotvec(PLATE_POSES[index % len(PLATE_POSES)])
-    t = np.array([0.0, 0.0, distance])
+    t = np.asarray(site.centre_W, dtype=np.float64)
+    size = PLATE_SIZE * site.scale
     text = f"""format_version: 1
 name: eval_plate_{index}
-description: 740 x 740 mm flat plate, pose {index}
+description: {size * 1e3:.0f} x {size * 1e3:.0f} mm flat plate, pose {index}
 objects:
   - type: flat_plate
     name: plate
     pose: {{translation: {_fmt(t)}, rotation_vector: {_fmt(R.as_rotvec())}}}
-    size: [{PLATE_SIZE}, {PLATE_SIZE}]
+    size: [{size:.9g}, {size:.9g}]
     thickness: 0.02
     albedo: 0.5
 """
-    return text, {'W_T_O': _pose(R, t), 'size': (PLATE_SIZE, PLATE_SIZE)}
+    return text, {'W_T_O': _pose(R, t), 'size': (size, size),
+                  'view_half': PLATE_VIEW_HALF * min(site.scale, *site.lateral)}
 
 
-def sphere(position) -> tuple[str, dict]:
-    """The calibration sphere with its front at ``position`` [m]."""
+def sphere(position, radius: float = SPHERE_RADIUS) -> tuple[str, dict]:
+    """The calibration sphere of ``radius`` [m] with its front at ``position`` (3,) [m]."""
     p = np.asarray(position, dtype=np.float64)
-    centre = p + p / np.linalg.norm(p) * SPHERE_RADIUS
+    centre = p + p / np.linalg.norm(p) * radius
     text = f"""format_version: 1
 name: eval_sphere
-description: 50.8 mm calibration sphere
+description: {2e3 * radius:.1f} mm calibration sphere
 objects:
   - type: sphere
     name: sphere
     pose: {{translation: {_fmt(centre)}, rotation_vector: [0, 0, 0]}}
-    radius: {SPHERE_RADIUS}
+    radius: {radius:.9g}
     albedo: 0.75
 """
-    return text, {'centre_W': centre, 'radius': SPHERE_RADIUS, 'aim_W': p}
+    return text, {'centre_W': centre, 'radius': radius, 'aim_W': p}
+
+
+def sphere_radius(site: Site) -> float:
+    """The evaluation sphere's radius at ``site`` [m]: the 2 inch sphere, smaller at short
+    range in proportion to the field of view (never larger: it must fit the views)."""
+    return SPHERE_RADIUS * min(1.0, site.scale)
 
 
 def wall(distance: float = 0.65) -> tuple[str, dict]:
@@ -115,21 +264,32 @@ objects:
 
 
 #: Where the evaluation's "robot" puts the sphere for the cell extrinsic, in the rig's
-#: nominal V0 [m]: over the range at 650 mm, not on one line or plane.
+#: nominal V0 [m], for a rig set up as the paper's (working point at 650 mm): over the
+#: range there, not on one line or plane. Other rigs: offsets from the working point
+#: scaled by the site's scale.
 CELL_POSITIONS = ((0.0, 0.0, 0.65), (0.25, 0.15, 0.6), (-0.25, 0.15, 0.7),
                   (0.22, -0.15, 0.72), (-0.22, -0.16, 0.58), (0.04, 0.18, 0.66))
 
 
-def cell_reference(nominal_W_T_V0, cell_frame: str = 'world') -> tuple[str, np.ndarray]:
+def cell_positions(nominal_W_T_V0, site: Site = PAPER_SITE) -> np.ndarray:
+    """The robot's sphere positions (n, 3) [m] in W around ``site``'s working point."""
+    T = np.asarray(nominal_W_T_V0, dtype=np.float64)
+    offsets = np.asarray(CELL_POSITIONS) - np.array([0.0, 0.0, REFERENCE_DEPTH])
+    f = np.array([site.lateral[0], site.lateral[1], site.scale])
+    return site.centre_W + (f * offsets) @ T[:3, :3].T
+
+
+def cell_reference(nominal_W_T_V0, site: Site = PAPER_SITE,
+                   cell_frame: str = 'world') -> tuple[str, np.ndarray]:
     """The cell stage's reference file text, with W as the cell frame.
 
     The robot is programmed with the scanner's designed mounting ``nominal_W_T_V0``
-    (4, 4): it reports the positions it moved the sphere to, in W, and the file carries the
-    designed mounting as ``nominal_cell_T_v0`` (to aim G1). Returns the text and the
-    positions (n, 3) [m] in W.
+    (4, 4): it reports the positions it moved the sphere to (:func:`cell_positions`), in
+    W, and the file carries the designed mounting as ``nominal_cell_T_v0`` (to aim G1).
+    Returns the text and the positions (n, 3) [m] in W.
     """
     T = np.asarray(nominal_W_T_V0, dtype=np.float64)
-    p = np.asarray(CELL_POSITIONS) @ T[:3, :3].T + T[:3, 3]
+    p = cell_positions(T, site)
     lines = [f'cell_frame: {cell_frame}', 'unit: m', 'positions:']
     lines += [f'  {k}: {_fmt(q)}' for k, q in enumerate(p)]
     lines += ['nominal_cell_T_v0:'] + [f'  - {_fmt(row)}' for row in T]

@@ -5,11 +5,24 @@
 2. Runs every calibration stage through the calibration node's services (capture, then
    compute); the sim scene service places the boards and the sphere.
 3. Scans the paper's test objects through the same graph and scores the clouds against the
-   scene's ground truth: the stair block at 30 positions at 650 mm and at the paper's
-   other working distances, the flat plate in 3 poses, the calibration sphere, the range
-   covered at 650 mm.
-4. Writes ``metrics.json``, ``report.md`` with plots, the clouds as PLY and the
-   calibration file into ``--out``.
+   scene's ground truth, every object placed around the rig's working point (where its
+   laser sheet crosses its optical axis; :class:`galvoscan.eval_scenes.Site`): the stair
+   block at 30 positions, the flat plate in 3 poses, the calibration sphere, the range
+   covered at that depth; and the off-nominal table: the stair block moved to each of the
+   paper's distances in front of this rig, calibrated for its own distance.
+4. By distance, as the paper's Fig. 13: for each of 100, 200, 350, 400, 650 and 1000 mm,
+   the same rig re-set for that working distance
+   (:func:`galvoscan_sim.rig_family.reset_for_distance`: sheet re-aimed, focus and exposure
+   adjusted, imperfections kept) under the running graph (the driver cleaned up and
+   configured on it, the calibration node restarted from its design values), calibrated
+   there (quick plans, every stage) and the stair block scanned at its working point. A distance is
+   the working distance as ``galvoscan_sim.rig_family.working_distance`` defines it: the
+   stand-off of the crossing from the G1 exit mirror (the reference rig is set up for
+   544 mm, its crossing 650 mm deep along V0). A distance that cannot be measured is
+   ``null`` with its reason; every other figure is still computed.
+5. Writes ``metrics.json``, ``details.json``, ``report.md`` with plots, the clouds as PLY
+   and the calibration files into ``--out`` (``failure.json`` when the evaluated rig's own
+   calibration fails: the stage and the message).
 """
 
 from __future__ import annotations
@@ -32,7 +45,13 @@ from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
 from reconstructor.model import v0_T_v
 from reconstructor.planning import aim_camera, view_sweep
 
+#: The paper's working distances (Fig. 13): stand-off from the G1 exit mirror [mm].
 DISTANCES_MM = (100, 200, 350, 400, 650, 1000)
+#: A distance this close to the rig's own working distance [mm] is the rig as given.
+NOMINAL_TOLERANCE_MM = 0.5
+#: Stair positions at each distance: the working point, then left, right, up and down
+#: halfway out to the edge of the stair grid (indices into a 3 x 3 grid of half spread).
+BY_DISTANCE_CROSS = (4, 3, 5, 1, 7)
 PAPER = {  # the paper's figures, for comparison in the report only
     'stair_step_error_rmse_mm': 0.165, 'plate_flatness_rmse_mm': 0.281,
     'transfer_matrix_error_rmse_mm': 1.231, 'joint_error_before_mm': 4.928,
@@ -148,12 +167,18 @@ class GraphClient:
 
 
 class Evaluation:
-    def __init__(self, args, client, progress, model, W_T_V0):
+    """Scans of the evaluation scenes through the graph, scored against the scene truth.
+
+    Objects are placed around ``site`` (the evaluated rig's working point, see
+    :class:`galvoscan.eval_scenes.Site`).
+    """
+
+    def __init__(self, args, client, progress, model, W_T_V0, site):
         self.args, self.client, self.progress = args, client, progress
         self.model = model            # the calibrated model (aiming is done with it)
         self.W_T_V0 = W_T_V0          # truth: only to express clouds in object frames
         self.V0_T_W = np.linalg.inv(W_T_V0)
-        self.out = Path(args.out)
+        self.site = site
         self.lost_frames = 0
 
     def _scan(self, voltages):
@@ -183,32 +208,38 @@ class Evaluation:
                                  info['step_height'])
         return res, cloud
 
-    def stair_grid(self, n_x, n_y, frames):
-        xs = np.linspace(-0.38, 0.38, n_x) if n_x > 1 else [0.0]
-        ys = np.linspace(-0.33, 0.33, n_y) if n_y > 1 else [0.0]
-        positions = [(x, y, 0.65) for y in ys for x in xs]
-        self.progress.stage('stair block at 650 mm', len(positions), 'positions')
+    def stair_series(self, title, positions, frames):
+        """The stair block at each of ``positions`` (n, 3) [m] in W.
+
+        Returns one row per position (``error_mm``, or ``None`` and the ``reason``) and the
+        clouds of the positions measured.
+        """
+        self.progress.stage(title, len(positions), 'positions')
         rows, clouds = [], []
         for p in positions:
             try:
                 res, cloud = self.stair_at(p, frames)
-                rows.append({'position_m': list(p), 'error_mm': res.error * 1e3,
+                rows.append({'position_m': [float(v) for v in p], 'error_mm': res.error * 1e3,
                              'thickness_mm': res.thickness * 1e3, 'n_plane1': res.n_plane1,
                              'n_plane2': res.n_plane2})
                 clouds.append(cloud)
                 note = f'error {res.error * 1e3:+.3f} mm'
             except (ValueError, RuntimeError) as exc:
-                rows.append({'position_m': list(p), 'error_mm': None, 'reason': str(exc)})
+                rows.append({'position_m': [float(v) for v in p], 'error_mm': None,
+                             'reason': str(exc)})
                 note = f'skipped: {exc}'
             self.progress.advance(note=note)
         return rows, clouds
 
-    def stair_distances(self, frames):
-        self.progress.stage('stair block at other distances', len(DISTANCES_MM), 'distances')
+    def off_nominal(self, frames):
+        """The stair block moved to each paper distance (stand-off from the G1 exit mirror)
+        in front of this rig, which stays calibrated and set up for its own distance."""
+        self.progress.stage('stair block moved off the working distance', len(DISTANCES_MM),
+                            'distances')
         out = {}
         for mm in DISTANCES_MM:
             try:
-                res, _ = self.stair_at((0.0, 0.0, mm / 1e3), frames)
+                res, _ = self.stair_at(self.site.at_standoff(mm / 1e3), frames)
                 out[str(mm)] = {'error_mm': res.error * 1e3, 'n_plane1': res.n_plane1}
                 note = f'{mm} mm: error {res.error * 1e3:+.3f} mm'
             except (ValueError, RuntimeError) as exc:
@@ -222,10 +253,10 @@ class Evaluation:
         self.progress.stage('flat plate', len(poses), 'poses')
         rows, all_d, clouds = [], [], []
         for k in poses:
-            text, info = eval_scenes.plate(k)
+            text, info = eval_scenes.plate(k, self.site)
             self.client.set_scene(text)
             parts = []
-            half = 0.28
+            half = info['view_half']
             grid = np.linspace(-half, half, views_per_axis) if views_per_axis > 1 else [0.0]
             for gx in grid:
                 for gy in grid:
@@ -248,12 +279,14 @@ class Evaluation:
 
     def sphere(self, frames):
         self.progress.stage('calibration sphere', 1, 'scans')
-        text, info = eval_scenes.sphere((0.05, -0.04, 0.65))
+        text, info = eval_scenes.sphere(self.site.offset((0.05, -0.04, 0.0)),
+                                        eval_scenes.sphere_radius(self.site))
         self.client.set_scene(text)
         cloud, _ = self._scan(self._aimed_sweep(info['aim_W'], frames))
         centre, radius, rms = metrics.fit_sphere(xyz(cloud))
         self.progress.advance(note=f'radius error {(radius - info["radius"]) * 1e3:+.3f} mm')
         return {'radius_error_mm': (radius - info['radius']) * 1e3, 'fit_rms_mm': rms * 1e3,
+                'radius_mm': info['radius'] * 1e3,
                 'points': int(cloud.shape[0]), 'centre_v0_m': np.asarray(centre).tolist(),
                 'centre_true_w_m': np.asarray(info['centre_W']).tolist()}, cloud
 
@@ -272,8 +305,10 @@ class Evaluation:
                 return xyz(cloud), u1
         return np.zeros((0, 3)), None
 
-    def coverage(self, frames, distance=0.65):
-        """Range covered at ``distance``: a wall scanned at the extreme reachable views."""
+    def coverage(self, frames):
+        """Range covered at the working point's depth: a wall scanned at the extreme
+        reachable views."""
+        distance = self.site.depth
         self.progress.stage(f'range at {distance * 1e3:.0f} mm', 4, 'views')
         text, _ = eval_scenes.wall(distance)
         self.client.set_scene(text)
@@ -302,18 +337,180 @@ def _cell_point_error_mm(cal, sphere_res):
     return float(np.linalg.norm(p - np.asarray(sphere_res['centre_true_w_m'])) * 1e3)
 
 
-def _write_params(path, args, cal_path, data_dir, cell_reference=''):
+def _write_params(path, args, rig, cal_path, data_dir, cell_reference='', quick=False):
     params = {
         'calibration': {'ros__parameters': {
-            'calibration_file': str(cal_path), 'quick': bool(args.quick),
+            'calibration_file': str(cal_path), 'quick': bool(quick),
             'data_dir': str(data_dir), 'cell_reference': str(cell_reference)}},
         'galvo_driver': {'ros__parameters': {
-            'backend': 'sim', 'rig': args.rig, 'scene': 'stair_block', 'seed': args.seed}},
+            'backend': 'sim', 'rig': str(rig), 'scene': 'stair_block', 'seed': args.seed}},
         'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
         'reconstructor': {'ros__parameters': {'calibration_file': str(cal_path),
                                               'marker_period': 0.0}},
     }
     path.write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+class Graph:
+    """The graph on a simulated rig, one process per node, and the evaluation's client.
+
+    A context manager: entering starts the nodes (the calibration node unless the
+    simulator truth is used) and waits until they are up; leaving stops them.
+    :meth:`switch_rig` re-sets the rig under the running graph.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        ``seed`` and ``truth_calibration`` are used.
+    rig : str
+        The rig's name or YAML path (the driver's ``rig`` parameter).
+    out : Path
+        This graph's folder: parameters, logs, captured bags, ``calibration.yaml``.
+    env : dict
+        The nodes' environment (its ``ROS_DOMAIN_ID`` is the client's domain).
+    quick : bool
+        Reduced capture plans.
+    cell_reference : str or Path
+        The cell stage's reference file ('' when the cell stage is not run).
+    """
+
+    def __init__(self, args, rig, out, env, progress, quick=False, cell_reference=''):
+        from galvoscan import bringup
+
+        self.out, self.env, self.progress = Path(out), env, progress
+        self.cal_path = self.out / 'calibration.yaml'
+        if self.cal_path.exists():
+            self.cal_path.unlink()
+        params = self.out / 'params.yaml'
+        _write_params(params, args, rig, self.cal_path, self.out / 'calibration_data',
+                      cell_reference, quick)
+        self.nodes = list(bringup.DEFAULT_NODES) + (
+            [] if args.truth_calibration else ['calibration'])
+        params = bringup.with_sim_starting_calibration(params, self.nodes, self.out / 'start')
+        self.sup = bringup.Supervisor(self.nodes, params, env=env, log_dir=self.out / 'logs')
+        self.client = None
+
+    def __enter__(self):
+        self.progress.log(f'starting the graph ({", ".join(self.nodes)}), logs in '
+                          f'{self.out / "logs"}')
+        self.sup.start()
+        try:
+            self.client = GraphClient(int(self.env['ROS_DOMAIN_ID']))
+            self.client.wait_ready()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        if self.client is not None:
+            self.client.close()
+        self.sup.stop()
+        return False
+
+    def _lifecycle(self, *transitions):
+        from lifecycle_msgs.msg import Transition
+        from lifecycle_msgs.srv import ChangeState
+
+        for label in transitions:
+            tid = getattr(Transition, f'TRANSITION_{label.upper()}')
+            resp = self.client.call(ChangeState, 'galvo_driver/change_state',
+                                    ChangeState.Request(transition=Transition(id=tid)))
+            if not resp.success:
+                raise RuntimeError(f'galvo_driver: lifecycle transition {label} failed')
+
+    def _set_parameters(self, node, **values):
+        from rcl_interfaces.srv import SetParameters
+        from rclpy.parameter import Parameter
+
+        resp = self.client.call(SetParameters, f'{node}/set_parameters', SetParameters.Request(
+            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]))
+        bad = [f'{k}: {r.reason}' for k, r in zip(values, resp.results, strict=True)
+               if not r.successful]
+        if bad:
+            raise RuntimeError(f'{node}: parameters refused: {"; ".join(bad)}')
+
+    def switch_rig(self, rig_path, folder, quick=True):
+        """Re-set the simulated rig under the running graph, as a technician re-sets the
+        bench while the software keeps running: the driver is cleaned up and configured on
+        ``rig_path``; the calibration node starts again from that rig's design values and
+        writes ``folder/calibration.yaml`` (bags under ``folder``).
+
+        Raises
+        ------
+        RuntimeError
+            A transition, a parameter or the starting calibration was refused.
+        """
+        from galvoscan_msgs.srv import LoadCalibration
+        from lifecycle_msgs.srv import GetState
+
+        from galvoscan.simulated_rig import nominal_calibration
+        from reconstructor import calibration_file
+
+        folder = Path(folder)
+        state = self.client.call(GetState, 'galvo_driver/get_state',
+                                 GetState.Request()).current_state.label
+        # from wherever an earlier switch left it (a refused rig leaves it unconfigured)
+        self._lifecycle(*{'active': ('deactivate', 'cleanup'), 'inactive': ('cleanup',)}.get(
+            state, ()))
+        self._set_parameters('galvo_driver', rig=str(rig_path))
+        self._lifecycle('configure', 'activate')
+        self.cal_path = folder / 'calibration.yaml'
+        self.cal_path.unlink(missing_ok=True)
+        if 'calibration' not in self.nodes:
+            return
+        start = folder / 'start' / 'nominal_calibration.yaml'
+        start.parent.mkdir(parents=True, exist_ok=True)
+        calibration_file.save(nominal_calibration(str(rig_path)), start)
+        self._set_parameters('calibration', calibration_file=str(self.cal_path),
+                             quick=bool(quick), data_dir=str(folder / 'calibration_data'))
+        resp = self.client.call(LoadCalibration, 'calibration/load',
+                                LoadCalibration.Request(path=str(start)))
+        if not resp.success:
+            raise RuntimeError(f'calibration/load {start}: {resp.message}')
+
+    def calibrate(self, args, rig, quick, cell=False):
+        """Calibrate the chain through the calibration node (and the cell stage), or use the
+        simulator truth with ``--truth-calibration``; load the result in the reconstructor.
+
+        Returns
+        -------
+        cal : reconstructor.calibration_file.Calibration
+        stage_info : dict
+            The stages' figures (``cell_extrinsic`` holds ``failed`` when it failed).
+
+        Raises
+        ------
+        galvoscan.calibrate_client.StageError
+            A stage of the chain failed (names the stage).
+        """
+        from galvoscan_msgs.srv import LoadCalibration
+
+        from galvoscan.calibrate_client import calibrate_all, calibrate_cell
+        from galvoscan.simulated_rig import truth_calibration
+        from reconstructor import calibration_file
+
+        stage_info = {}
+        if args.truth_calibration:
+            calibration_file.save(truth_calibration(rig), self.cal_path)
+            self.progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a '
+                              'result)')
+        else:
+            stage_info = calibrate_all(self.client, self.cal_path, self.progress, quick=quick)
+            if cell:
+                try:  # a rig the cell positions do not suit still gets every other figure
+                    stage_info['cell_extrinsic'] = calibrate_cell(
+                        self.client, self.cal_path, rig, self.progress)
+                except RuntimeError as exc:
+                    stage_info['cell_extrinsic'] = {'failed': str(exc)}
+                    self.progress.log(f'cell extrinsic not measured: {exc}')
+        cal = calibration_file.load(self.cal_path)
+        resp = self.client.call(LoadCalibration, 'reconstructor/reload_calibration',
+                                LoadCalibration.Request(path=str(self.cal_path)))
+        if not resp.success:
+            raise RuntimeError(resp.message)
+        self.client.warm_up(np.zeros((1, 4)))
+        return cal, stage_info
 
 
 def _output_folder(out: Path) -> Path:
@@ -340,6 +537,128 @@ def _output_folder(out: Path) -> Path:
     return out
 
 
+def _nominal(args, graph, rig, site, progress):
+    """The evaluated rig as given: calibrate (full plans unless ``--quick``, cell stage
+    included), then every scene around its working point and the off-nominal table.
+
+    Returns ``(result, details, clouds)``: metrics, details and the clouds for the report.
+    """
+    from galvoscan import report
+    from galvoscan.calibrate_client import true_transfer_error_mm
+
+    q = args.quick
+    cal, stage_info = graph.calibrate(args, rig, quick=q, cell=True)
+    ev = Evaluation(args, graph.client, progress, cal.model, rig.W_T_V0, site)
+    stair_rows, stair_clouds = ev.stair_series(
+        f'stair block at the working point ({site.depth * 1e3:.0f} mm deep)',
+        site.stair_grid(2 if q else 6, 1 if q else 5), 4 if q else 8)
+    off_nominal = ev.off_nominal(4 if q else 8)
+    plate_rows, plate_rmse, plate_clouds = ev.plate(2 if q else 3, 4 if q else 6)
+    sphere_res, sphere_cloud = ev.sphere(10 if q else 40)
+    rng, range_views = ev.coverage(3)
+    errors = [r['error_mm'] for r in stair_rows if r['error_mm'] is not None]
+    cell = stage_info.get('cell_extrinsic', {})
+    result = {
+        'stair_step_error_rmse_mm': metrics.rmse(errors),
+        'stair_step_error_rmse_mm_off_nominal': {
+            k: (abs(v['error_mm']) if v.get('error_mm') is not None else None)
+            for k, v in off_nominal.items()},
+        'plate_flatness_rmse_mm': plate_rmse,
+        'sphere_radius_error_mm': sphere_res['radius_error_mm'],
+        'sphere_fit_rms_mm': sphere_res['fit_rms_mm'],
+        'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model, rig),
+        'joint_error_before_mm': stage_info.get('joint_error_before_mm'),
+        'joint_error_after_mm': stage_info.get('joint_error_after_mm'),
+        'cell_extrinsic_error_mm': cell.get('error_mm'),
+        'cell_extrinsic_error_deg': cell.get('error_deg'),
+        'cell_sphere_centre_error_mm': _cell_point_error_mm(cal, sphere_res),
+        'range_x_mm': rng['x'], 'range_y_mm': rng['y'],
+        'stair_positions_used': len(errors), 'stair_positions_total': len(stair_rows),
+        'frames_lost': ev.lost_frames,
+        'calibration_source': cal.source,
+        'calibrated_vs_true': report.calibrated_vs_true(cal.model, rig),
+    }
+    details = {'stair': stair_rows, 'stair_off_nominal': off_nominal, 'plate': plate_rows,
+               'sphere': sphere_res, 'range_views_V': range_views, 'stages': stage_info}
+    return result, details, {'stair': stair_clouds, 'plate': plate_clouds,
+                             'sphere': sphere_cloud}
+
+
+def _not_measured(exc, **extra) -> dict:
+    row = {'error_mm': None, 'reason': f'not measured: {exc}', **extra}
+    stage = getattr(exc, 'stage', None)
+    if stage:
+        row['failed_stage'] = stage
+    return row
+
+
+def _at_distance(args, graph, description, mm, out, progress) -> dict:
+    """The evaluated rig re-set for stand-off ``mm`` under the running ``graph``, calibrated
+    there (quick plans, every stage) and the stair block scanned at its working point.
+
+    Returns the distance's row: ``error_mm`` (RMSE over the positions) or ``None`` with the
+    ``reason`` (and ``failed_stage`` when a calibration stage failed).
+    """
+    from galvoscan.calibrate_client import true_transfer_error_mm
+    from galvoscan_sim import load_rig
+    from galvoscan_sim.rig_family import reset_for_distance
+
+    t0 = time.monotonic()
+    try:
+        folder = out / 'by_distance' / f'{mm}mm'
+        folder.mkdir(parents=True, exist_ok=True)
+        rig_path = folder / 'rig.yaml'
+        rig_path.write_text(yaml.safe_dump(reset_for_distance(description, mm / 1e3),
+                                           sort_keys=False))
+        rig = load_rig(str(rig_path))
+        site = eval_scenes.site_of(rig)
+    except (ValueError, RuntimeError, OSError) as exc:
+        return _not_measured(f're-set for {mm} mm: {exc}')
+    row = {'rig': str(rig_path), 'working_point_w_m': site.centre_W.tolist(),
+           'scene_scale': site.scale, 'calibration_plans': 'quick'}
+    grid = site.stair_grid(3, 3, spread=0.5)
+    positions = [grid[k] for k in BY_DISTANCE_CROSS[:1 if args.quick else None]]
+    try:
+        graph.switch_rig(rig_path, folder, quick=True)
+        cal, _ = graph.calibrate(args, rig, quick=True)
+        t_cal = time.monotonic()
+        row['transfer_matrix_error_rmse_mm'] = true_transfer_error_mm(cal.model, rig)
+        ev = Evaluation(args, graph.client, progress, cal.model, rig.W_T_V0, site)
+        rows, _ = ev.stair_series(f'{mm} mm: stair block at the working point',
+                                  positions, 4 if args.quick else 8)
+    except (ValueError, RuntimeError, OSError) as exc:
+        return {**row, **_not_measured(exc), 'wall_s': time.monotonic() - t0}
+    except Exception as exc:  # noqa: BLE001 - one distance never stops the others
+        return {**row, **_not_measured(f'{type(exc).__name__}: {exc}'),
+                'wall_s': time.monotonic() - t0}
+    errors = [r['error_mm'] for r in rows if r['error_mm'] is not None]
+    row.update({'positions': rows, 'positions_used': len(errors),
+                'calibration_s': t_cal - t0, 'scan_s': time.monotonic() - t_cal,
+                'wall_s': time.monotonic() - t0})
+    if not errors:
+        return {**row, **_not_measured('no stair position measured: ' + '; '.join(
+            r['reason'] for r in rows))}
+    return {**row, 'error_mm': metrics.rmse(errors)}
+
+
+def _by_distance(args, graph, description, nominal_mm, nominal_rmse, out, progress) -> dict:
+    """:func:`_at_distance` at each of ``args.distances``; a distance within
+    NOMINAL_TOLERANCE_MM of the rig's own working distance takes the nominal evaluation."""
+    rows = {}
+    for mm in args.distances:
+        if abs(mm - nominal_mm) <= NOMINAL_TOLERANCE_MM:
+            rows[str(mm)] = {'error_mm': nominal_rmse, 'calibration_plans': 'as evaluated',
+                             'note': 'the evaluated rig as given (its own working distance)'}
+        else:
+            progress.log(f'by distance: the rig re-set for {mm} mm')
+            rows[str(mm)] = _at_distance(args, graph, description, mm, out, progress)
+        r = rows[str(mm)]
+        progress.log(f'by distance, {mm} mm: ' + (
+            f"stair RMSE {r['error_mm']:.3f} mm" if r['error_mm'] is not None
+            else r['reason']))
+    return rows
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog='galvoscan evaluate', description=__doc__.split('\n')[0])
     p.add_argument('--rig', default='reference', help='rig name or YAML (default: reference)')
@@ -350,114 +669,105 @@ def build_parser():
     p.add_argument('--truth-calibration', action='store_true',
                    help="skip calibration and use the simulator's true parameters "
                         '(labelled as such: an upper bound, not a result)')
+    p.add_argument('--distances', type=_distances, default=DISTANCES_MM, metavar='MM[,MM..]',
+                   help='working distances [mm] of the by-distance evaluation (the rig '
+                        're-set, calibrated and scanned at each), 100 to 1000; "none" skips '
+                        'it (default: the paper\'s ' + ','.join(map(str, DISTANCES_MM)) + ')')
     p.add_argument('--demo', action='store_true', help=argparse.SUPPRESS)
     return p
 
 
+def _distances(text: str) -> tuple:
+    """``--distances``: comma-separated working distances [mm] in 100..1000, or 'none'."""
+    if text.strip().lower() == 'none':
+        return ()
+    out = []
+    for part in text.split(','):
+        try:
+            mm = int(part)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"'{part}' is not a whole number of millimetres") from None
+        if not 100 <= mm <= 1000:
+            raise argparse.ArgumentTypeError(f'{mm} mm is outside 100..1000 mm')
+        out.append(mm)
+    return tuple(dict.fromkeys(out))
+
+
+def _load(args):
+    """The evaluated rig, its description, its site and the output folder.
+
+    Raises
+    ------
+    ValueError, OSError
+        A rig that cannot be read, has no working point, or an unwritable ``--out``.
+    """
+    from galvoscan_sim import load_rig
+    from galvoscan_sim.config import read_yaml_file
+    from galvoscan_sim.rig_family import working_distance
+
+    rig = load_rig(args.rig)
+    description = read_yaml_file(Path(rig.source))
+    site = eval_scenes.site_of(rig)
+    return rig, description, site, working_distance(rig), _output_folder(Path(args.out))
+
+
+def _write_failure(out, exc):
+    """``failure.json``: what stopped the evaluation (the stage, when a stage failed)."""
+    (out / 'failure.json').write_text(json.dumps(
+        {'stage': getattr(exc, 'stage', None), 'message': str(exc)}, indent=1))
+
+
 def main(argv=None):
     args = build_parser().parse_args(argv)
-    from galvoscan import bringup, report
-    from galvoscan.calibrate_client import calibrate_all, calibrate_cell, true_transfer_error_mm
-    from galvoscan.simulated_rig import nominal_rig, truth_calibration
-    from galvoscan_sim import load_rig
-    from reconstructor import calibration_file
+    from galvoscan import report
+    from galvoscan.simulated_rig import nominal_rig
 
     t0 = time.monotonic()
     try:
-        rig = load_rig(args.rig)
-        out = _output_folder(Path(args.out))
+        rig, description, site, wd, out = _load(args)
     except (ValueError, OSError) as exc:
         print(f'galvoscan evaluate: {exc}', file=sys.stderr)
         return 2
+    for stale in ('failure.json', 'metrics.json'):
+        (out / stale).unlink(missing_ok=True)
     progress = Progress()
-    cal_path = out / 'calibration.yaml'
-    if cal_path.exists():
-        cal_path.unlink()
+    progress.log(f'rig {rig.name}: working distance {wd * 1e3:.1f} mm (stand-off from the '
+                 f'G1 exit mirror), working point {site.depth * 1e3:.1f} mm deep, scene '
+                 f'scale {site.scale:g}')
     domain = os.environ.get('ROS_DOMAIN_ID') or str(random.randint(101, 230))
     env = {**os.environ, 'ROS_DOMAIN_ID': domain,
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-    params = out / 'params.yaml'
     cell_ref = out / 'cell_reference.yaml'
-    cell_ref.write_text(eval_scenes.cell_reference(nominal_rig(rig).W_T_V0)[0])
-    _write_params(params, args, cal_path, out / 'calibration_data', cell_ref)
-    nodes = list(bringup.DEFAULT_NODES) + ([] if args.truth_calibration else ['calibration'])
-    params = bringup.with_sim_starting_calibration(params, nodes, out / 'start')
-    sup = bringup.Supervisor(nodes, params, env=env, log_dir=out / 'logs')
-    progress.log(f'starting the graph ({", ".join(nodes)}), logs in {out / "logs"}')
-    sup.start()
-    client = GraphClient(int(domain))
-    result = {}
+    cell_ref.write_text(eval_scenes.cell_reference(nominal_rig(rig).W_T_V0, site)[0])
     try:
-        client.wait_ready()
-        if args.truth_calibration:
-            cal = truth_calibration(rig)
-            calibration_file.save(cal, cal_path)
-            stage_info = {}
-            progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a result)')
-        else:
-            stage_info = calibrate_all(client, cal_path, progress, quick=args.quick)
-            try:  # a rig the cell positions do not suit still gets every other figure
-                stage_info['cell_extrinsic'] = calibrate_cell(client, cal_path, rig, progress)
-            except RuntimeError as exc:
-                stage_info['cell_extrinsic'] = {'failed': str(exc)}
-                progress.log(f'cell extrinsic not measured: {exc}')
-            cal = calibration_file.load(cal_path)
-        from galvoscan_msgs.srv import LoadCalibration
-        resp = client.call(LoadCalibration, 'reconstructor/reload_calibration',
-                           LoadCalibration.Request(path=str(cal_path)))
-        if not resp.success:
-            raise RuntimeError(resp.message)
-        client.warm_up(np.zeros((1, 4)))
-        ev = Evaluation(args, client, progress, cal.model, rig.W_T_V0)
-        q = args.quick
-        stair_rows, stair_clouds = ev.stair_grid(2 if q else 6, 1 if q else 5, 4 if q else 8)
-        by_distance = ev.stair_distances(4 if q else 8)
-        plate_rows, plate_rmse, plate_clouds = ev.plate(2 if q else 3, 4 if q else 6)
-        sphere_res, sphere_cloud = ev.sphere(10 if q else 40)
-        rng, range_views = ev.coverage(3)
-        errors = [r['error_mm'] for r in stair_rows if r['error_mm'] is not None]
-        by_distance['650'] = {'error_mm': metrics.rmse(errors)}
-        result = {
-            'stair_step_error_rmse_mm': metrics.rmse(errors),
-            'stair_step_error_rmse_mm_by_distance': {
-                k: (abs(v['error_mm']) if v.get('error_mm') is not None else None)
-                for k, v in by_distance.items()},
-            'plate_flatness_rmse_mm': plate_rmse,
-            'sphere_radius_error_mm': sphere_res['radius_error_mm'],
-            'sphere_fit_rms_mm': sphere_res['fit_rms_mm'],
-            'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model, rig),
-            'joint_error_before_mm': stage_info.get('joint_error_before_mm'),
-            'joint_error_after_mm': stage_info.get('joint_error_after_mm'),
-            'cell_extrinsic_error_mm': stage_info.get('cell_extrinsic', {}).get('error_mm'),
-            'cell_extrinsic_error_deg': stage_info.get('cell_extrinsic', {}).get('error_deg'),
-            'cell_sphere_centre_error_mm': _cell_point_error_mm(cal, sphere_res),
-            'range_x_mm': rng['x'], 'range_y_mm': rng['y'],
-            'stair_positions_used': len(errors), 'stair_positions_total': len(stair_rows),
-            'frames_lost': ev.lost_frames,
-            'calibration_source': cal.source,
-            'calibrated_vs_true': report.calibrated_vs_true(cal.model, rig),
-            'runtime_s': time.monotonic() - t0,
-        }
-        save_cloud(np.concatenate(stair_clouds), out / 'stair_650mm.ply')
-        save_cloud(np.concatenate(plate_clouds), out / 'plate.ply')
-        save_cloud(sphere_cloud, out / 'sphere.ply')
-        details = {'stair': stair_rows, 'stair_by_distance': by_distance, 'plate': plate_rows,
-                   'sphere': sphere_res, 'range_views_V': range_views, 'stages': stage_info}
-        (out / 'details.json').write_text(json.dumps(details, indent=1, default=float))
-        (out / 'metrics.json').write_text(json.dumps(result, indent=1, default=float))
-        report.write_report(out, result, details, PAPER,
-                            {'stair': stair_clouds, 'plate': plate_clouds})
-        progress.log(f'wrote {out}/metrics.json, report.md, clouds and calibration '
-                     f'in {time.monotonic() - t0:.0f} s')
-        print(json.dumps({k: v for k, v in result.items() if k != 'calibrated_vs_true'},
-                         default=float))
-        return 0
+        with Graph(args, args.rig, out, env, progress, quick=args.quick,
+                   cell_reference=cell_ref) as graph:
+            result, details, clouds = _nominal(args, graph, rig, site, progress)
+            by_distance = _by_distance(args, graph, description, wd * 1e3,
+                                       result['stair_step_error_rmse_mm'], out, progress)
     except (RuntimeError, ValueError) as exc:
         progress.log(f'evaluation failed: {exc}')
+        _write_failure(out, exc)
         return 1
-    finally:
-        client.close()
-        sup.stop()
+    details['stair_by_distance'] = by_distance
+    result = {'stair_step_error_rmse_mm': result.pop('stair_step_error_rmse_mm'),
+              'stair_step_error_rmse_mm_by_distance': {
+                  k: v['error_mm'] for k, v in by_distance.items()},
+              **result, 'working_distance_mm': wd * 1e3,
+              'working_point_depth_mm': site.depth * 1e3, 'scene_scale': site.scale,
+              'runtime_s': time.monotonic() - t0}
+    save_cloud(np.concatenate(clouds['stair']), out / 'stair_working_point.ply')
+    save_cloud(np.concatenate(clouds['plate']), out / 'plate.ply')
+    save_cloud(clouds['sphere'], out / 'sphere.ply')
+    (out / 'details.json').write_text(json.dumps(details, indent=1, default=float))
+    (out / 'metrics.json').write_text(json.dumps(result, indent=1, default=float))
+    report.write_report(out, result, details, PAPER, clouds)
+    progress.log(f'wrote {out}/metrics.json, report.md, clouds and calibration '
+                 f'in {time.monotonic() - t0:.0f} s')
+    print(json.dumps({k: v for k, v in result.items() if k != 'calibrated_vs_true'},
+                     default=float))
+    return 0
 
 
 if __name__ == '__main__':

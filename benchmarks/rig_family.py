@@ -1,0 +1,210 @@
+"""Drawn rigs of the family, each calibrated and evaluated through the graph.
+
+Run: ``.venv/bin/python benchmarks/rig_family.py [--rigs 20] [--seed-start 0] [--quick]
+[--out DIR] [--timeout S]``
+
+For each seed from ``--seed-start``: ``galvoscan_sim.rig_family.draw_rig(seed)`` (a rig of
+the family, at a working distance drawn in 100..1000 mm) is written to
+``DIR/seed_NNN/rig.yaml`` and ``galvoscan evaluate --rig`` runs on it in a process of its
+own: the graph is brought up, every calibration stage runs through the calibration node
+(full plans; quick with ``--quick``), the scenes are scanned around the rig's working
+point, and the by-distance evaluation re-sets, calibrates and scans the rig at each of the
+paper's six distances. A rig that fails (a stage, a crash, the timeout) is recorded and the
+next one runs.
+
+One progress line per rig. At the end: the completion and pass rates (pass: completed, stair
+RMSE <= 0.165 mm and plate RMSE <= 0.281 mm at the rig's own distance, a finite stair figure
+at every distance), median / p90 / max of the stair, plate, sphere-radius and
+transfer-matrix errors, and which stage failed on which rig (and at which distance). Times
+are wall-clock on a shared machine. The last line of stdout is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from galvoscan_sim.rig_family import draw_rig, working_distance
+
+#: The issue's acceptance thresholds at a rig's own distance [mm] (the paper's figures).
+STAIR_LIMIT_MM = 0.165
+PLATE_LIMIT_MM = 0.281
+DISTANCES = ('100', '200', '350', '400', '650', '1000')
+FIGURES = (  # (metrics key, short name, absolute value)
+    ('stair_step_error_rmse_mm', 'stair_rmse_mm', False),
+    ('plate_flatness_rmse_mm', 'plate_rmse_mm', False),
+    ('sphere_radius_error_mm', 'sphere_radius_error_mm', True),
+    ('transfer_matrix_error_rmse_mm', 'transfer_matrix_error_rmse_mm', False),
+)
+
+
+def _finite(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def _read_json(path: Path):
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def run_rig(seed: int, folder: Path, quick: bool, timeout: float) -> dict:
+    """Draw rig ``seed`` and evaluate it; never raises (a failure is recorded)."""
+    t0 = time.monotonic()
+    row = {'seed': seed, 'completed': False, 'failures': []}
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        description = draw_rig(seed)
+        row['working_distance_mm'] = working_distance(description) * 1e3
+        rig_path = folder / 'rig.yaml'
+        rig_path.write_text(yaml.safe_dump(description, sort_keys=False))
+    except (ValueError, RuntimeError, OSError) as exc:
+        row['failures'].append({'distance': None, 'stage': 'draw', 'message': str(exc)})
+        row['wall_s'] = time.monotonic() - t0
+        return row
+    out = folder / 'evaluation'
+    argv = [sys.executable, '-m', 'galvoscan.cli', 'evaluate', '--rig', str(rig_path),
+            '--out', str(out), '--seed', str(seed)] + (['--quick'] if quick else [])
+    try:
+        with open(folder / 'evaluate.log', 'w') as log:
+            rc = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT, timeout=timeout,
+                                env=os.environ.copy()).returncode
+    except subprocess.TimeoutExpired:
+        rc = None
+    row['wall_s'] = time.monotonic() - t0
+    metrics = _read_json(out / 'metrics.json')
+    if rc != 0 or metrics is None:
+        failure = _read_json(out / 'failure.json') or {}
+        row['failures'].append({
+            'distance': None, 'stage': failure.get('stage'),
+            'message': failure.get('message') or (
+                f'timed out after {timeout:.0f} s' if rc is None
+                else f'exit status {rc}, see {folder / "evaluate.log"}')})
+        return row
+    row['completed'] = True
+    for key, name, absolute in FIGURES:
+        v = metrics.get(key)
+        row[name] = abs(v) if absolute and _finite(v) else v
+    row['by_distance_mm'] = metrics.get('stair_step_error_rmse_mm_by_distance', {})
+    details = _read_json(out / 'details.json') or {}
+    for mm, d in (details.get('stair_by_distance') or {}).items():
+        if d.get('error_mm') is None:
+            row['failures'].append({'distance': mm, 'stage': d.get('failed_stage'),
+                                    'message': d.get('reason', '').removeprefix(
+                                        'not measured: ')})
+    return row
+
+
+def _passes(row) -> bool:
+    by = row.get('by_distance_mm') or {}
+    return (row['completed'] and _finite(row.get('stair_rmse_mm'))
+            and row['stair_rmse_mm'] <= STAIR_LIMIT_MM
+            and _finite(row.get('plate_rmse_mm')) and row['plate_rmse_mm'] <= PLATE_LIMIT_MM
+            and all(_finite(by.get(mm)) for mm in DISTANCES))
+
+
+def _stats(values) -> dict:
+    v = np.array([x for x in values if _finite(x)], dtype=np.float64)
+    if v.size == 0:
+        return {'median': None, 'p90': None, 'max': None, 'n': 0}
+    return {'median': float(np.median(v)), 'p90': float(np.percentile(v, 90)),
+            'max': float(v.max()), 'n': int(v.size)}
+
+
+def _f(v) -> str:
+    return f'{v:.3f}' if _finite(v) else 'n/a'
+
+
+def _short(text: str, limit: int = 240) -> str:
+    return text if len(text) <= limit else text[:limit - 3] + '...'
+
+
+def _line(i, n, row) -> str:
+    head = f"rig {i}/{n} seed {row['seed']}"
+    if 'working_distance_mm' in row:
+        head += f" (working distance {row['working_distance_mm']:.0f} mm)"
+    if not row['completed']:
+        f = row['failures'][0]
+        return (f"{head}: FAILED at {f['stage'] or '?'}: {_short(f['message'])} "
+                f"[{row['wall_s']:.0f} s]")
+    by = row.get('by_distance_mm') or {}
+    finite = sum(_finite(by.get(mm)) for mm in DISTANCES)
+
+    return (f"{head}: stair {_f(row.get('stair_rmse_mm'))} mm, plate "
+            f"{_f(row.get('plate_rmse_mm'))} mm, sphere "
+            f"{_f(row.get('sphere_radius_error_mm'))} mm, transfer "
+            f"{_f(row.get('transfer_matrix_error_rmse_mm'))} mm, distances {finite}/6 "
+            f"finite{' PASS' if _passes(row) else ' FAIL'} [{row['wall_s']:.0f} s]")
+
+
+def summarise(rows, wall_s: float, quick: bool) -> dict:
+    """The benchmark's summary (printed and returned as the last line's JSON)."""
+    n = len(rows)
+    completed = sum(r['completed'] for r in rows)
+    passed = sum(_passes(r) for r in rows)
+    finite = sum(r['completed'] and all(_finite((r.get('by_distance_mm') or {}).get(mm))
+                                        for mm in DISTANCES) for r in rows)
+    print(f'\n{n} rigs: {completed} completed ({100 * completed / max(n, 1):.0f} %), '
+          f'{passed} passed ({100 * passed / max(n, 1):.0f} %), {finite} with a finite stair '
+          f'figure at all six distances')
+    summary = {'rigs': n, 'completed': completed, 'passed': passed, 'distances_finite': finite,
+               'quick': quick}
+    for _, name, _ in FIGURES:
+        s = _stats(r.get(name) for r in rows)
+        print(f"  {name:32s} median {_f(s['median'])}  p90 {_f(s['p90'])}  max "
+              f"{_f(s['max'])}  (n = {s['n']})")
+        for k in ('median', 'p90', 'max'):
+            summary[f'{name}_{k}'] = s[k]
+    for mm in DISTANCES:
+        s = _stats((r.get('by_distance_mm') or {}).get(mm) for r in rows)
+        print(f"  stair at {mm:>4s} mm (re-set)         median {_f(s['median'])}  max "
+              f"{_f(s['max'])}  (n = {s['n']})")
+        summary[f'stair_rmse_mm_at_{mm}_median'] = s['median']
+    failures = [{'seed': r['seed'], **f} for r in rows for f in r['failures']]
+    if failures:
+        print('failures:')
+    for f in failures:
+        where = f"at {f['distance']} mm" if f['distance'] else 'own distance'
+        print(f"  seed {f['seed']} ({where}): stage {f['stage'] or '?'}: "
+              f"{_short(f['message'])}")
+    summary['failures'] = [{k: f[k] for k in ('seed', 'distance', 'stage')} for f in failures]
+    summary['wall_s'] = wall_s
+    return summary
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('--rigs', type=int, default=20, help='number of rigs (default 20)')
+    p.add_argument('--seed-start', type=int, default=0, help='first draw seed (default 0)')
+    p.add_argument('--quick', action='store_true', help='quick capture plans and scans')
+    p.add_argument('--out', default='out/rig_family', help='output folder')
+    p.add_argument('--timeout', type=float, default=3600.0,
+                   help='per-rig time limit [s] (default 3600)')
+    args = p.parse_args(argv)
+    if args.rigs < 1 or args.seed_start < 0 or args.timeout <= 0:
+        p.error('--rigs must be >= 1, --seed-start >= 0 and --timeout > 0')
+    t0 = time.monotonic()
+    rows = []
+    seeds = range(args.seed_start, args.seed_start + args.rigs)
+    for i, seed in enumerate(seeds, 1):
+        row = run_rig(seed, Path(args.out) / f'seed_{seed:03d}', args.quick, args.timeout)
+        rows.append(row)
+        print(_line(i, args.rigs, row), flush=True)
+    summary = summarise(rows, time.monotonic() - t0, args.quick)
+    (Path(args.out) / 'rigs.json').write_text(json.dumps(rows, indent=1, default=float))
+    print(json.dumps(summary, default=float))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
