@@ -370,9 +370,19 @@ def run_cell_extrinsic(views, calibration, options: dict, progress=None):
 
 def result_extra(solution: CellExtrinsic, cell_frame: str) -> dict:
     """What the calibration file keeps of a solution (plain floats)."""
+    return mounting_record(solution.cell_T_v0, cell_frame, solution.translation_std,
+                           solution.rotation_std, solution.rms)
+
+
+def mounting_record(cell_T_v0, cell_frame: str, translation_std, rotation_std,
+                    rms: float) -> dict:
+    """A measured ``cell_T_v0`` as the calibration file keeps it (plain floats): the pose,
+    its parent frame, each axis' standard error [m, rad] and the fit's RMS [m]. The cell
+    stage and the hand-eye stage both store theirs this way
+    (:func:`calibration_tools.stages.apply_result`)."""
     return {'cell_frame': cell_frame,
-            'cell_T_v0': [[float(v) for v in row] for row in solution.cell_T_v0],
-            'translation_std_m': [float(v) for v in solution.translation_std],
-            'rotation_std_rad': [float(v) for v in solution.rotation_std],
-            'rms_m': solution.rms}
+            'cell_T_v0': [[float(v) for v in row] for row in np.asarray(cell_T_v0)],
+            'translation_std_m': [float(v) for v in translation_std],
+            'rotation_std_rad': [float(v) for v in rotation_std],
+            'rms_m': float(rms)}
 

@@ -13,7 +13,10 @@ order, with
 - ``run(views, calibration, options, progress)``: the solver, in the Open3D ``run(config)``
   style (:class:`~calibration_tools.stages.StageResult` out);
 - ``inputs``: what the operator must supply besides the captured views (the cell stage's
-  robot-reported positions); they reach ``plan`` and ``run`` as options.
+  robot-reported positions, the hand-eye stage's robot poses and artefact); they reach
+  ``plan`` and ``run`` as options;
+- ``pose_topic_input``: the input that the calibration node may take from the robot's
+  ``geometry_msgs/PoseStamped`` topic instead, one robot pose per capture (hand-eye).
 
 The node, the offline command and the benchmarks all go through :func:`plan` and
 :func:`calibration_tools.stage_runner.compute`, which look stages up here; no other module
@@ -55,8 +58,11 @@ class Stage:
         Options passed to the solver.
     targets : callable ``(targets: capture_plans.Targets, model) -> dict``
         The targets passed to the solver (those its plan placed).
-    inputs : tuple of str
+    inputs : mapping of str to str
         Options the operator supplies (each required), with a line saying what it is.
+    pose_topic_input : str
+        The one of ``inputs`` (robot flange poses) that the calibration node may instead
+        record from the robot's pose topic, one pose per capture; '' for none.
     """
 
     name: str
@@ -65,6 +71,7 @@ class Stage:
     options: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     inputs: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     targets: Callable = field(default=lambda targets, model: {})
+    pose_topic_input: str = ''
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -153,6 +160,18 @@ def _plan_cell_extrinsic(model, quick, options):
     return plan_steps(model, quick, options)
 
 
+def _run_hand_eye(views, calibration, options, report):
+    from calibration_tools.hand_eye import run_hand_eye
+
+    return run_hand_eye(views, calibration, options, progress=report)
+
+
+def _plan_hand_eye(model, quick, options):
+    from calibration_tools.hand_eye import plan_steps
+
+    return plan_steps(model, quick, options)
+
+
 # ----------------------------------------------------------------------------- plans
 def _plan_joint_correction(model, quick):
     return cp.joint_correction_steps(model, [0.0] if quick else list(cp.JOINT_LATERALS),
@@ -197,6 +216,14 @@ REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
                                   'cell frame (see calibration_tools.cell_extrinsic.'
                                   'read_reference)'),
           targets=lambda t, m: {'sphere_radius': t.sphere_radius}),
+    Stage('hand_eye', _plan_hand_eye, _run_hand_eye, _options(),
+          _options(robot_poses='YAML or CSV file of the robot\'s flange poses, base_T_flange '
+                               '(see calibration_tools.robot_poses.read_robot_poses); the '
+                               'calibration node can record them from the robot\'s pose topic '
+                               'instead',
+                   hand_eye_artefact='YAML file of the artefact\'s sphere layout and where it '
+                                     'stands (see calibration_tools.hand_eye.read_artefact)'),
+          pose_topic_input='robot_poses'),
 )})
 assert tuple(REGISTRY) == KNOWN_STAGES, 'REGISTRY and KNOWN_STAGES must name the same stages'
 

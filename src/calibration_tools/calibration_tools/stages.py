@@ -26,8 +26,14 @@ STAGES = ('intrinsics', 'dynamic_camera', 'laser_plane', 'laser_axis', 'joint_co
 #: Where the calibrated scanner sits in the robot cell (``cell_T_v0``): done once the rig is
 #: calibrated and mounted, with a robot; not part of the rig's chain.
 CELL_STAGE = 'cell_extrinsic'
+#: Where the scanner sits on a robot's flange (``cell_T_v0`` with the flange as the cell
+#: frame), by hand-eye calibration; like the cell stage, not part of the rig's chain.
+HAND_EYE_STAGE = 'hand_eye'
+#: The stages that measure the file's ``cell_T_v0``: each stores it under its own name in
+#: ``StageResult.extra``, with its frame and standard errors.
+MOUNTING_STAGES = (CELL_STAGE, HAND_EYE_STAGE)
 #: Every stage the node and the offline command run.
-KNOWN_STAGES = (*STAGES, CELL_STAGE)
+KNOWN_STAGES = (*STAGES, *MOUNTING_STAGES)
 #: Voltages closer than this are one and the same command (one board placement, one G1
 #: node of a grid, one laser plane) [V].
 VOLTAGE_TOL = 1e-3
@@ -259,11 +265,17 @@ def apply_result(calibration, result: StageResult, sources=()):
     _check_errors(errors, result)
     stages = dict(calibration.stages)
     cell_T_v0 = calibration.cell_T_v0
-    if CELL_STAGE in result.extra:
-        cell_T_v0 = np.asarray(result.extra[CELL_STAGE]['cell_T_v0'], dtype=np.float64)
-    elif cell_T_v0 is not None and result.updates and CELL_STAGE in stages:
+    mounting = result.extra.get(result.stage) if result.stage in MOUNTING_STAGES else None
+    if mounting is not None:
+        cell_T_v0 = np.asarray(mounting['cell_T_v0'], dtype=np.float64)
+        for other in MOUNTING_STAGES:  # the file holds one cell_T_v0: the newest
+            if other != result.stage and other in stages:
+                stages[other] = {**stages[other], 'superseded_by': result.stage}
+    elif cell_T_v0 is not None and result.updates:
         # V0 is the model's frame: a changed model moves it by as much as the change
-        stages[CELL_STAGE] = {**stages[CELL_STAGE], 'model_changed_by': result.stage}
+        for other in MOUNTING_STAGES:
+            if other in stages:
+                stages[other] = {**stages[other], 'model_changed_by': result.stage}
     stages[result.stage] = {
         'created': calibration_file.now_iso(),
         'bags': [dict(s) for s in sources],
@@ -274,9 +286,8 @@ def apply_result(calibration, result: StageResult, sources=()):
     }
     if errors:
         stages[result.stage]['standard_errors'] = errors
-    if CELL_STAGE in result.extra:
-        stages[result.stage].update({k: v for k, v in result.extra[CELL_STAGE].items()
-                                     if k != 'cell_T_v0'})
+    if mounting is not None:
+        stages[result.stage].update({k: v for k, v in mounting.items() if k != 'cell_T_v0'})
     if result.extra.get('nodes'):  # per-view figures of a stage, for reports
         keep = ('pose_index', 'u1_pan', 'u1_tilt', 'status', 'error1_rms_m', 'error2_rms_m',
                 'error3_rms_m')

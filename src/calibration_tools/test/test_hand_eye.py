@@ -113,3 +113,142 @@ def test_the_simulated_mounting_is_recovered():
     print(f'with robot noise: {off * 1e3:.4f} mm off, consistency '
           f'{noisy.translation_rms * 1e3:.4f} mm')
     assert noisy.translation_rms > 3 * sol.translation_rms
+
+
+def test_the_stated_standard_errors_match_the_scatter():
+    """Over 80 draws of scanner noise (20 um, and 0.2 mrad: the refinement's lever of 0.1 m),
+    the stated standard errors of flange_T_v0 match the scatter of the solutions."""
+    A, B = robot_poses(8, seed=2)
+    rng = np.random.default_rng(4)
+    errs, stds = [], []
+    for _ in range(80):
+        noisy = np.array([C @ pose(rng.normal(0, 2e-4, 3), rng.normal(0, 20e-6, 3)) for C in B])
+        sol = solve_hand_eye(A, noisy)
+        turn = sol.flange_T_v0[:3, :3] @ FLANGE_T_V0[:3, :3].T  # about the flange axes
+        errs.append(np.concatenate([sol.flange_T_v0[:3, 3] - FLANGE_T_V0[:3, 3],
+                                    Rotation.from_matrix(turn).as_rotvec()]))
+        stds.append(np.concatenate([sol.translation_std, sol.rotation_std]))
+    ratio = np.std(errs, axis=0) / np.sqrt(np.mean(np.square(stds), axis=0))
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+
+
+# ----------------------------------------------------------------------------- the stage
+def flange_rig(tmp_path, mounting):
+    """The ideal-image rig bolted to a flange: its world frame W is the flange, and
+    ``W_T_V0`` (the ideal rig's W is its nominal V0) becomes ``mounting``."""
+    import yaml
+
+    from galvoscan_sim.rig import RIG_DIR, load_rig
+
+    data = yaml.safe_load((RIG_DIR / 'ideal.yaml').read_text())
+    W_T_G = pose(data['world']['pose_g1']['rotation_vector'],
+                 data['world']['pose_g1']['translation'])
+    T = mounting @ W_T_G
+    data['world']['pose_g1'] = {
+        'translation': T[:3, 3].tolist(),
+        'rotation_vector': Rotation.from_matrix(T[:3, :3]).as_rotvec().tolist()}
+    path = tmp_path / 'on_flange.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return path, load_rig(path)
+
+
+def write_stage_inputs(tmp_path, nominal, n=7, seed=0, layout=LAYOUT, csv=True):
+    """The operator's files: the flange poses of a robot program made with the ``nominal``
+    mounting (the artefact in view at ~0.6 m, tilted by up to ~15 deg), and the artefact."""
+    from calibration_tools.robot_poses import pose_fields
+
+    rng = np.random.default_rng(seed)
+    lines = ['base_frame,flange_frame,x,y,z,qx,qy,qz,qw']
+    for _ in range(n):
+        v0_T_target = pose(rng.uniform(-0.25, 0.25, 3) + [np.pi, 0, 0],
+                           [rng.uniform(-0.12, 0.0), rng.uniform(-0.1, 0.0),
+                            rng.uniform(0.55, 0.7)])
+        T = BASE_T_TARGET @ np.linalg.inv(v0_T_target) @ np.linalg.inv(nominal)
+        p, q = pose_fields(T)
+        lines.append(','.join(['base_link', 'tool0'] + [repr(v) for v in p + q]))
+    poses = tmp_path / 'robot_poses.csv'
+    poses.write_text('\n'.join(lines) + '\n')
+    artefact = tmp_path / 'artefact.yaml'
+    artefact.write_text(f'unit: m\nsphere_radius: {RADIUS}\nlayout: {layout.tolist()}\n'
+                        f'base_T_target: {BASE_T_TARGET.tolist()}\n'
+                        f'nominal_flange_T_v0: {nominal.tolist()}\n')
+    return poses, artefact
+
+
+def test_the_stage_recovers_the_mounting_through_the_offline_command(tmp_path, capsys):
+    """``galvoscan calibrate hand_eye --sim``: the ideal-image rig on a simulated flange,
+    carried to 7 poses (a robot program made with a mounting 3 mm and 1 deg off), the
+    artefact's 4 spheres swept at each through the capture steps every stage uses; the
+    file's cell_T_v0 is the rig's true mounting within 0.05 mm and 0.01 deg, its frame the
+    flange, and it supersedes an earlier cell_extrinsic result."""
+    import dataclasses
+
+    from galvoscan.offline import main
+    from galvoscan.simulated_rig import truth_calibration
+    from reconstructor import calibration_file
+
+    rig_path, rig = flange_rig(tmp_path, FLANGE_T_V0)
+    truth = rig.W_T_V0
+    nominal = truth @ pose(np.radians([0.6, -0.5, 0.6]), [0.002, -0.002, 0.001])
+    poses, artefact = write_stage_inputs(tmp_path, nominal)
+    start = dataclasses.replace(truth_calibration(rig), source='calibrated',
+                                cell_T_v0=np.eye(4), stages={'cell_extrinsic': {}})
+    cal_path = tmp_path / 'cal.yaml'
+    calibration_file.save(start, cal_path)
+    assert main(['hand_eye', '--sim', '--quick', '--rig', str(rig_path), '--calibration',
+                 str(cal_path), '--robot-poses', str(poses), '--artefact', str(artefact)]) == 0
+    out = capsys.readouterr().out
+    assert 'hand_eye: 7 samples used, 0 rejected' in out, out
+    assert 'hand_eye: simulator check: cell_T_v0 is' in out, out
+    cal = calibration_file.load(cal_path)
+    dt = np.linalg.norm(cal.cell_T_v0[:3, 3] - truth[:3, 3])
+    angle = np.degrees(rotation_angle(cal.cell_T_v0[:3, :3] @ truth[:3, :3].T))
+    entry = cal.stages['hand_eye']
+    print(f"\nhand_eye stage on the simulated flange: {dt * 1e3:.4f} mm, {angle:.5f} deg "
+          f"off; stated 1-sigma {np.round(np.array(entry['translation_std_m']) * 1e3, 4)} mm, "
+          f"{np.round(np.degrees(entry['rotation_std_rad']), 5)} deg; base_T_target scatter "
+          f"{entry['residuals']['base_T_target_rms_m'] * 1e3:.4f} mm")
+    assert dt < 0.05e-3 and angle < 0.01
+    assert entry['cell_frame'] == 'tool0' and entry['base_frame'] == 'base_link'
+    assert entry['poses'] == list(range(7)) and len(entry['translation_std_m']) == 3
+    assert 0 < max(entry['translation_std_m']) < 0.05e-3
+    np.testing.assert_allclose(entry['base_T_target'], BASE_T_TARGET, atol=1e-4)
+    assert cal.stages['cell_extrinsic']['superseded_by'] == 'hand_eye'
+
+
+def test_the_stage_refuses_what_cannot_fix_the_mounting(tmp_path):
+    """Too few poses, an artefact file with a bad layout or no mounting to aim with, and
+    inputs given to a stage that does not take them: each refused, saying why."""
+    from calibration_tools.registry import plan, stage_inputs
+    from galvoscan.offline import main
+    from galvoscan.simulated_rig import truth_calibration
+    from galvoscan_sim.rig import load_rig
+
+    cal = truth_calibration(load_rig('ideal'))
+    poses, artefact = write_stage_inputs(tmp_path, FLANGE_T_V0, n=4)
+    inputs = {'robot_poses': str(poses), 'hand_eye_artefact': str(artefact)}
+    with pytest.raises(ValueError, match='4 poses: hand-eye calibration needs at least 5'):
+        plan('hand_eye', cal, inputs=inputs)
+    with pytest.raises(ValueError, match='hand_eye needs robot_poses'):
+        plan('hand_eye', cal, inputs={'hand_eye_artefact': str(artefact)})
+    with pytest.raises(ValueError, match='cell_extrinsic takes no input hand_eye_artefact, '
+                                         'robot_poses'):
+        stage_inputs('cell_extrinsic', {**inputs, 'cell_reference': 'ref.yaml'})
+    poses, _ = write_stage_inputs(tmp_path, FLANGE_T_V0)
+    inputs['robot_poses'] = str(poses)
+    for text, match in (
+            (artefact.read_text().replace('nominal_flange_T_v0', '# '), 'nominal_flange_T_v0 is '
+                                                                       'needed'),
+            (artefact.read_text().replace('0.03]]', '0.0]]').replace('[0.0, 0.1, 0.0]',
+                                                                     '[0.2, 0.0, 0.0]')
+             .replace('[0.11, 0.09, 0.0]', '[0.3, 0.0, 0.0]'), 'layout: .*one line'),
+            (artefact.read_text() + 'colour: red\n', r"unknown keys \['colour'\]"),
+            (artefact.read_text().replace('unit: m', 'unit: mm'), 'unit'),
+            (artefact.read_text().replace(f'sphere_radius: {RADIUS}', 'sphere_radius: 10'),
+             'sphere_radius')):
+        bad = tmp_path / 'bad_artefact.yaml'
+        bad.write_text(text)
+        with pytest.raises(ValueError, match=match):
+            plan('hand_eye', cal, inputs={**inputs, 'hand_eye_artefact': str(bad)})
+    assert main(['all', '--sim', '--calibration', str(tmp_path / 'c.yaml'),
+                 '--robot-poses', str(poses)]) == 1

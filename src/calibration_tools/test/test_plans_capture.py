@@ -253,9 +253,9 @@ def test_the_registry_is_the_one_table_of_stages():
     from pathlib import Path
 
     from calibration_tools import registry, stage_runner
-    from calibration_tools.stages import CELL_STAGE, KNOWN_STAGES, STAGES
+    from calibration_tools.stages import CELL_STAGE, HAND_EYE_STAGE, KNOWN_STAGES, STAGES
 
-    assert tuple(registry.REGISTRY) == KNOWN_STAGES == (*STAGES, CELL_STAGE)
+    assert tuple(registry.REGISTRY) == KNOWN_STAGES == (*STAGES, CELL_STAGE, HAND_EYE_STAGE)
     for name in ('focus', '', None, 3):
         with pytest.raises(ValueError, match='unknown'):
             registry.plan(name, None)

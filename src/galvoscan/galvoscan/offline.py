@@ -2,27 +2,34 @@
 
     galvoscan calibrate STAGE --bags DIR [DIR ...] --calibration FILE
                         [--initial FILE | --rig NAME] [--reference FILE]
+                        [--robot-poses FILE --artefact FILE]
     galvoscan calibrate STAGE --sim [--rig NAME] [--seed N] [--quick] --calibration FILE
-                        [--reference FILE]
+                        [--reference FILE] [--robot-poses FILE --artefact FILE]
     galvoscan calibrate all --sim [--rig NAME] [--seed N] [--quick] --calibration FILE
                         [--initial FILE]
 
 STAGE is one of intrinsics, dynamic_camera, laser_plane, laser_axis, joint_correction (the
 rig's chain, which ``all`` runs in order) or cell_extrinsic (where the calibrated scanner
-sits in the robot cell: ``--reference FILE`` gives the robot-reported sphere positions,
-see :func:`calibration_tools.cell_extrinsic.read_reference`; the result is the file's
-``cell_T_v0``, which the reconstructor publishes on ``/tf_static``). The
-bags are rosbag2 directories recorded by the calibration node (``poseNNN_stepMMM``), or the
-node's run folder holding them. The stage starts from FILE when it exists, else from
-``--initial FILE``, else from the design values of the simulated rig ``--rig`` (see
-:func:`galvoscan.simulated_rig.nominal_calibration`); the result is merged and FILE
-is written atomically, with the bags' paths and sha256 digests.
+sits in the robot cell: ``--reference FILE`` gives the robot-reported sphere positions, see
+:func:`calibration_tools.cell_extrinsic.read_reference`; the result is the file's
+``cell_T_v0``, which the reconstructor publishes on ``/tf_static``) or hand_eye (where the
+scanner sits on a robot's flange: ``--robot-poses FILE``, the flange poses, see
+:func:`calibration_tools.robot_poses.read_robot_poses`, and ``--artefact FILE``, see
+:func:`calibration_tools.hand_eye.read_artefact`; the result is the file's ``cell_T_v0``
+with the flange as its frame). The bags are rosbag2 directories recorded by the calibration
+node (``poseNNN_stepMMM``), or the node's run folder holding them. The stage starts from
+FILE when it exists, else from ``--initial FILE``, else from the design values of the
+simulated rig ``--rig`` (see :func:`galvoscan.simulated_rig.nominal_calibration`); the
+result is merged and FILE is written atomically, with the bags' paths and sha256 digests.
 
-``STAGE --sim`` captures that one stage on the rig simulator in this process, starting
-from FILE. ``all --sim`` runs every stage of the chain in order on the rig simulator: each stage's
-capture plan (made with the calibration so far) is rendered as the driver's sim backend
-would, computed and merged, and FILE is written after every stage. It starts from
-``--initial FILE`` or the design values of ``--rig`` (FILE is replaced).
+``STAGE --sim`` captures that one stage on the rig simulator in this process, starting from
+FILE. For cell_extrinsic and hand_eye it also prints how far the result lies from the
+simulator's true mounting, the rig's ``W_T_V0`` (W is the cell for cell_extrinsic, the
+flange for hand_eye), in mm and degrees. ``all --sim`` runs every stage of the chain in
+order on the rig simulator: each stage's capture plan (made with the calibration so far) is
+rendered as the driver's sim backend would, computed and merged, and FILE is written after
+every stage. It starts from ``--initial FILE`` or the design values of ``--rig`` (FILE is
+replaced).
 
 Exit status: 0 on success, 1 on any error (the message says what is wrong).
 """
@@ -35,7 +42,7 @@ import sys
 import time
 from pathlib import Path
 
-from calibration_tools.stages import KNOWN_STAGES, STAGES
+from calibration_tools.stages import KNOWN_STAGES, MOUNTING_STAGES, STAGES
 from galvoscan.progress import Progress
 
 PROG = 'galvoscan calibrate'
@@ -71,12 +78,24 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0, help='--sim: simulator seed')
     p.add_argument('--reference', metavar='FILE',
                    help='cell_extrinsic: robot-reported sphere positions (YAML, metres)')
+    p.add_argument('--robot-poses', metavar='FILE',
+                   help='hand_eye: the flange poses base_T_flange (YAML or CSV: metres, '
+                        'quaternion x y z w)')
+    p.add_argument('--artefact', metavar='FILE',
+                   help="hand_eye: the artefact's sphere layout and where it stands (YAML)")
     return p
 
 
+#: Command-line option -> the stage input it gives (:func:`calibration_tools.registry.
+#: stage_inputs` refuses one the stage does not take).
+_INPUT_OPTIONS = {'reference': 'cell_reference', 'robot_poses': 'robot_poses',
+                  'artefact': 'hand_eye_artefact'}
+
+
 def _inputs(args) -> dict:
-    """The operator's inputs for the stage (``--reference`` is cell_extrinsic's)."""
-    return {'cell_reference': args.reference} if args.reference else {}
+    """The operator's inputs for the stage, from the options given."""
+    return {name: getattr(args, option) for option, name in _INPUT_OPTIONS.items()
+            if getattr(args, option)}
 
 
 def _starting_calibration(args, fresh: bool):
@@ -130,6 +149,17 @@ def _report(result, progress: Progress):
         progress.log(f'  ... and {len(result.rejected) - 10} more rejections')
     for key, value in result.residuals.items():
         progress.log(f'  residual {key} = {value:.6g}')
+    mounting = result.extra.get(result.stage) if result.stage in MOUNTING_STAGES else None
+    if mounting is not None:  # the measured cell_T_v0 and its standard errors
+        import numpy as np
+        from scipy.spatial.transform import Rotation
+
+        T = np.asarray(mounting['cell_T_v0'])
+        progress.log(f"  cell_T_v0 ({mounting['cell_frame']} -> v0): translation "
+                     f'{np.round(T[:3, 3], 6).tolist()} m +- '
+                     f"{np.round(mounting['translation_std_m'], 7).tolist()}, rotation vector "
+                     f'{np.round(Rotation.from_matrix(T[:3, :3]).as_rotvec(), 6).tolist()} '
+                     f"rad +- {np.round(mounting['rotation_std_rad'], 7).tolist()}")
     sigma = flatten(getattr(result, 'standard_errors', None) or {})
     for key, value in flatten(result.updates).items():
         se = sigma.get(key)
@@ -204,9 +234,28 @@ def _sim_stage(stage, cal, sim, rig, args, progress: Progress):
     cal = apply_result(cal, result, [source])
     calibration_file.save(cal, args.calibration)
     _report(result, progress)
+    if stage in MOUNTING_STAGES:
+        progress.log(_mounting_check(cal, rig, stage))
     progress.log(f'{stage}: {total_frames(steps)} frames in {len(steps)} steps, capture '
                  f'{t1 - t0:.1f} s, compute {time.monotonic() - t1:.1f} s')
     return cal
+
+
+def _mounting_check(cal, rig, stage: str) -> str:
+    """How far the measured ``cell_T_v0`` lies from the simulator's true mounting (the rig's
+    ``W_T_V0``): the simulator's check of a mounting stage, for people (mm, deg)."""
+    import numpy as np
+
+    from calibration_tools.cell_extrinsic import rotation_angle
+
+    T, truth = cal.cell_T_v0, rig.W_T_V0
+    mm = float(np.linalg.norm(T[:3, 3] - truth[:3, 3])) * 1e3
+    deg = float(np.degrees(rotation_angle(T[:3, :3] @ truth[:3, :3].T)))
+    sigma = cal.stages[stage]
+    return (f'{stage}: simulator check: cell_T_v0 is {mm:.4f} mm and {deg:.5f} deg from the '
+            f"true mounting (the rig's W_T_V0); stated 1-sigma "
+            f"{', '.join(f'{v * 1e3:.4f}' for v in sigma['translation_std_m'])} mm, "
+            f"{', '.join(f'{np.degrees(v):.5f}' for v in sigma['rotation_std_rad'])} deg")
 
 
 def run_stage_sim(args, progress: Progress) -> int:
@@ -227,8 +276,9 @@ def run_all_sim(args, progress: Progress) -> int:
         raise UsageError('all needs --sim (bags are captured and computed per stage)')
     if args.bags:
         raise UsageError('all --sim captures its own data: no --bags')
-    if args.reference:
-        raise UsageError('all runs the rig chain; cell_extrinsic (--reference) runs after it')
+    if _inputs(args):
+        raise UsageError('all runs the rig chain; cell_extrinsic (--reference) and hand_eye '
+                         '(--robot-poses, --artefact) run after it')
     cal, origin = _starting_calibration(args, fresh=True)
     sim, rig = _simulator(args)
     progress.log(f'calibrating the simulated rig {rig.name} (seed {args.seed}'
