@@ -12,6 +12,19 @@ Services
     calibration/load     galvoscan_msgs/LoadCalibration
     calibration/save     galvoscan_msgs/SaveCalibration
 
+Subscriptions (spun only while a capture runs)
+    robot/flange_pose    geometry_msgs/PoseStamped (``robot_pose_topic``): the robot's flange
+                         in its base frame, for the hand-eye stage when ``robot_poses`` is
+                         empty. Then each ``calibration/capture`` of that stage is one robot
+                         pose: the node takes the latest pose (refused if stamped longer than
+                         ``robot_pose_max_age`` ago), captures the artefact from it and, after
+                         every capture step, refuses the pose if the stream went stale or the
+                         flange moved beyond ``robot_still_m`` / ``robot_still_rad`` (the
+                         robot must hold still while the scanner measures). Accepted poses
+                         accumulate in one run folder with its ``robot_poses.yaml`` until a
+                         ``calibration/compute`` of the stage succeeds; a refused one leaves
+                         nothing behind.
+
 Long stages log their progress (counts and an ETA). The stage maths lives in the pure
 modules (``stage_runner``, ``capture_plans`` and the stage modules); this node only moves
 data between ROS and them.
@@ -19,7 +32,9 @@ data between ROS and them.
 
 from __future__ import annotations
 
+import shutil
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -34,14 +49,16 @@ from galvoscan_msgs.srv import (
     SetScene,
     StartScan,
 )
-from rcl_interfaces.msg import ParameterDescriptor
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 
-from calibration_tools import stage_runner
+from calibration_tools import robot_poses, stage_runner
 from calibration_tools.registry import plan
+from calibration_tools.registry import stage as stage_entry
 from calibration_tools.stages import KNOWN_STAGES, apply_result
 from galvoscan_bag.writer import BagWriter
 from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subscription
@@ -53,7 +70,7 @@ from reconstructor import calibration_file
 class _Capture(Node):
     """The node that talks to the driver and records, spun only while a capture runs."""
 
-    def __init__(self, context, errors: CallbackErrors):
+    def __init__(self, context, errors: CallbackErrors, pose_topic: str):
         super().__init__('calibration_capture', context=context)
         self.writer = None
         self.frames = 0
@@ -67,6 +84,24 @@ class _Capture(Node):
         self.clients_ = {n: self.create_client(t, n) for n, t in (
             ('scan/start', StartScan), ('scan/progress', GetScanProgress),
             ('sim/set_scene', SetScene))}
+        self.pose_topic = pose_topic
+        self.watch = robot_poses.PoseWatch(1.0, 1e-4, 2e-4)  # limits set per capture
+        self.create_subscription(PoseStamped, pose_topic, guard_subscription(
+            pose_topic, self._on_pose, log, errors), qos_profile_sensor_data)
+
+    def now(self) -> float:
+        """This node's clock [s], the one pose stamps are judged on."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_pose(self, msg):
+        p, q = msg.pose.position, msg.pose.orientation
+        try:
+            T = robot_poses.pose_matrix((p.x, p.y, p.z), (q.x, q.y, q.z, q.w), 'pose')
+            frame = robot_poses.frame_name(msg.header.frame_id, 'header.frame_id')
+        except ValueError as exc:
+            self.watch.reject(str(exc))  # a measurement it falls in is refused
+            raise
+        self.watch.add(T, msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, frame)
 
     def _on_image(self, data):
         if self.writer is not None:
@@ -77,6 +112,23 @@ class _Capture(Node):
         if self.writer is not None:
             self.writer.write('/galvo/state', data, time.time_ns())
             self.states += 1
+
+
+@dataclass
+class _PoseSeries:
+    """Robot poses recorded from the pose topic for one stage, and their bags (one folder)."""
+
+    root: Path
+    run_dir: Path
+    flange_frame: str
+    base_frame: str = ''
+    poses: list = field(default_factory=list)
+    bags: list = field(default_factory=list)
+
+
+def _ranged(description: str, low: float, high: float) -> ParameterDescriptor:
+    return ParameterDescriptor(description=description, floating_point_range=[
+        FloatingPointRange(from_value=low, to_value=high)])
 
 
 class CalibrationNode(Node):
@@ -95,10 +147,34 @@ class CalibrationNode(Node):
         self.declare_parameter('cell_reference', '', ParameterDescriptor(
             description='cell_extrinsic: YAML of the robot-reported sphere positions in the '
                         'cell frame (calibration_tools.cell_extrinsic.read_reference)'))
+        self.declare_parameter('robot_poses', '', ParameterDescriptor(
+            description='hand_eye: YAML or CSV file of the robot\'s flange poses '
+                        '(calibration_tools.robot_poses.read_robot_poses); empty: record them '
+                        'from robot_pose_topic, one robot pose per calibration/capture'))
+        self.declare_parameter('hand_eye_artefact', '', ParameterDescriptor(
+            description='hand_eye: YAML of the artefact\'s sphere layout and where it stands '
+                        '(calibration_tools.hand_eye.read_artefact)'))
+        self.declare_parameter('robot_pose_topic', 'robot/flange_pose', ParameterDescriptor(
+            description='hand_eye: geometry_msgs/PoseStamped of the flange in the robot\'s '
+                        'base frame (header.frame_id), streamed by the robot driver',
+            read_only=True))
+        self.declare_parameter('robot_flange_frame', 'tool0', ParameterDescriptor(
+            description='hand_eye: the frame the pose topic\'s poses are of (the flange); '
+                        'the result\'s cell_frame'))
+        self.declare_parameter('robot_pose_max_age', 0.5, _ranged(
+            'hand_eye: a robot pose stamped longer ago than this is refused [s]', 0.01, 60.0))
+        self.declare_parameter('robot_still_m', 1e-4, _ranged(
+            'hand_eye: the flange may move this far while the scanner measures [m]',
+            1e-7, 0.01))
+        self.declare_parameter('robot_still_rad', 2e-4, _ranged(
+            'hand_eye: the flange may turn this far while the scanner measures [rad]',
+            1e-7, 0.1))
         self._last_bags = {}
+        self._series: dict[str, _PoseSeries] = {}
         self.calibration = self._initial()
         self.callback_errors = CallbackErrors()
-        self.counters = {'captures': 0, 'computes': 0, 'frames_recorded': 0}
+        self.counters = {'captures': 0, 'computes': 0, 'frames_recorded': 0,
+                         'robot_poses_recorded': 0, 'robot_poses_refused': 0}
         for srv_type, name, callback in (
                 (CaptureCalibration, 'calibration/capture', self._on_capture),
                 (ComputeCalibration, 'calibration/compute', self._on_compute),
@@ -107,11 +183,15 @@ class CalibrationNode(Node):
             self.create_service(srv_type, name, guard_service(
                 name, callback, self.get_logger(), self.callback_errors))
         publish_periodically(
-            self, 'calibration', lambda: self.counters, self.callback_errors,
+            self, 'calibration', lambda: {
+                **self.counters, 'robot_pose_messages': self._cap.watch.received,
+                'robot_pose_messages_unreadable': self._cap.watch.rejected},
+            self.callback_errors,
             message=lambda: ('calibration loaded' if self.calibration is not None
                              else 'no calibration loaded'))
         self._cap_executor = SingleThreadedExecutor(context=self.context)
-        self._cap = _Capture(self.context, self.callback_errors)
+        self._cap = _Capture(self.context, self.callback_errors,
+                             self.get_parameter('robot_pose_topic').value)
         self._cap_executor.add_node(self._cap)
 
     def _initial(self):
@@ -181,24 +261,17 @@ class CalibrationNode(Node):
         if self.calibration is None:
             resp.success, resp.message = False, 'no starting calibration (see the log)'
             return resp
+        if self._pose_topic_input(stage):
+            return self._capture_robot_pose(stage, req, resp, t0)
         try:
             steps = plan(stage, self.calibration, quick=self.get_parameter('quick').value,
                          inputs=self._inputs(stage))
             if req.max_frames:
                 steps = _cap_frames(steps, req.max_frames)
             root = Path(req.output_dir or self.get_parameter('data_dir').value)
-            run_dir = root / f"{stage}_{time.strftime('%Y%m%d-%H%M%S')}"
-            bags, frames, wanted = [], 0, 0
-            total = sum(len(s.voltages) for s in steps)
-            for i, step in enumerate(steps):
-                bag = run_dir / f'pose{step.pose_index:03d}_step{i:03d}'
-                got, n = self._record_step(step, bag)
-                bags.append(str(bag))
-                frames, wanted = frames + got, wanted + n
-                elapsed = time.monotonic() - t0
-                eta = elapsed / max(frames, 1) * (total - frames)
-                self.get_logger().info(f'capture {stage}: step {i + 1}/{len(steps)}, '
-                                       f'{frames}/{total} frames, ETA {eta:.0f} s')
+            run_dir = _new_run_dir(root, stage)
+            bags = []
+            frames, wanted = self._run_steps(stage, steps, run_dir, t0, bags)
         except (RuntimeError, ValueError, OSError) as exc:
             resp.success, resp.message = False, f'capture {stage} failed: {exc}'
             self.get_logger().error(resp.message)
@@ -215,10 +288,111 @@ class CalibrationNode(Node):
         self.get_logger().info(resp.message)
         return resp
 
+    def _run_steps(self, stage, steps, run_dir, t0, bags: list, after_step=None, first=0):
+        """Record every step into its own bag under ``run_dir`` (numbered from ``first``),
+        appending each bag's path to ``bags`` as it starts; ``after_step(i, step)`` may refuse
+        what was just recorded (raise). Returns (frames, frames wanted)."""
+        frames, wanted = 0, 0
+        total = sum(len(s.voltages) for s in steps)
+        for i, step in enumerate(steps):
+            bag = run_dir / f'pose{step.pose_index:03d}_step{first + i:03d}'
+            bags.append(str(bag))
+            got, n = self._record_step(step, bag)
+            frames, wanted = frames + got, wanted + n
+            if after_step is not None:
+                after_step(i, step)
+            elapsed = time.monotonic() - t0
+            eta = elapsed / max(frames, 1) * (total - frames)
+            self.get_logger().info(f'capture {stage}: step {i + 1}/{len(steps)}, '
+                                   f'{frames}/{total} frames, ETA {eta:.0f} s')
+        return frames, wanted
+
+    # -- robot poses from the pose topic ----------------------------------------------
+    def _pose_topic_input(self, stage: str) -> str:
+        """The stage input recorded from the pose topic ('' when the stage has none or the
+        operator gave it as a parameter)."""
+        name = stage_entry(stage).pose_topic_input
+        return name if name and not self.get_parameter(name).value else ''
+
+    def _hold_robot_pose(self):
+        """Wait (up to robot_pose_max_age) for a fresh robot pose and hold it."""
+        cap, watch = self._cap, self._cap.watch
+        watch.release()
+        watch.set_limits(*(self.get_parameter(n).value for n in (
+            'robot_pose_max_age', 'robot_still_m', 'robot_still_rad')))
+        t_end = time.monotonic() + watch.max_age + 0.5
+        while True:
+            self._cap_executor.spin_once(timeout_sec=0.02)
+            try:
+                return watch.hold(cap.now(), cap.pose_topic)
+            except ValueError:
+                if time.monotonic() > t_end:
+                    raise
+
+    def _capture_robot_pose(self, stage, req, resp, t0):
+        """One robot pose of a stage whose poses come from the pose topic (see the module)."""
+        cap, name = self._cap, self._pose_topic_input(stage)
+        root = Path(req.output_dir or self.get_parameter('data_dir').value)
+        series = self._series.get(stage)
+        if series is None or series.root != root:
+            series = _PoseSeries(root, _new_run_dir(root, stage),
+                                 self.get_parameter('robot_flange_frame').value)
+        number, bags = len(series.poses), []
+        try:
+            T, _, base = self._hold_robot_pose()
+            if series.base_frame and base != series.base_frame:
+                raise ValueError(f'the pose is in frame {base}, the series\' earlier poses in '
+                                 f'{series.base_frame}')
+            poses = robot_poses.RobotPoses(base, series.flange_frame, T[None], (number,),
+                                           cap.pose_topic)
+            steps = plan(stage, self.calibration, quick=self.get_parameter('quick').value,
+                         inputs={**self._inputs(stage), name: poses})
+            if req.max_frames:
+                steps = _cap_frames(steps, req.max_frames)
+
+            def still(i, step):
+                cap.watch.check_still(cap.now(), f'robot pose {number}, step {i + 1}/'
+                                      f'{len(steps)} ({step.note})', cap.pose_topic)
+
+            frames, wanted = self._run_steps(stage, steps, series.run_dir, t0, bags, still,
+                                             first=len(series.bags))
+            recorded = robot_poses.RobotPoses(
+                base, series.flange_frame, np.stack([*series.poses, T]),
+                tuple(range(number + 1)), cap.pose_topic)
+            robot_poses.write_robot_poses(recorded, series.run_dir / RECORDED_POSES)
+        except (RuntimeError, ValueError, OSError) as exc:
+            for bag in bags:  # a refused pose leaves nothing behind
+                shutil.rmtree(bag, ignore_errors=True)
+            self.counters['robot_poses_refused'] += 1
+            resp.success = False
+            resp.message = f'capture {stage}: robot pose {number} refused: {exc}'
+            self.get_logger().error(resp.message)
+            return resp
+        finally:
+            cap.watch.release()
+        series.poses.append(T)
+        series.bags += bags
+        series.base_frame = base
+        self._series[stage] = series
+        self._last_bags[stage] = list(series.bags)
+        self.counters['captures'] += 1
+        self.counters['frames_recorded'] += frames
+        self.counters['robot_poses_recorded'] += 1
+        resp.success = frames > 0
+        resp.bag_path, resp.frames_recorded = str(series.run_dir), frames
+        resp.poses = len(series.poses)
+        resp.duration = time.monotonic() - t0
+        resp.message = (f'{stage}: robot pose {number} recorded from {cap.pose_topic} '
+                        f'({base} -> {series.flange_frame} at '
+                        f'{np.round(T[:3, 3], 4).tolist()} m), {frames}/{wanted} frames in '
+                        f'{len(bags)} bags under {series.run_dir}; {len(series.poses)} robot '
+                        f'poses in this series (compute needs at least '
+                        f'{robot_poses.MIN_POSES})')
+        self.get_logger().info(resp.message)
+        return resp
+
     def _inputs(self, stage: str) -> dict:
         """What the operator supplies for ``stage`` (node parameters named as its inputs)."""
-        from calibration_tools.registry import stage as stage_entry
-
         return {k: self.get_parameter(k).value for k in stage_entry(stage).inputs}
 
     # -- compute ----------------------------------------------------------------------
@@ -239,9 +413,13 @@ class CalibrationNode(Node):
             self.get_logger().info(f'compute {stage}: {done}/{total} {note} ETA {eta:.0f} s')
 
         try:
+            inputs = self._inputs(stage)
+            name = self._pose_topic_input(stage)
+            if name:  # the poses recorded with these bags
+                inputs[name] = str(_recorded_poses(bags))
             views = stage_runner.views_from_bags(bags)
             result = stage_runner.compute(stage, views, self.calibration, progress=progress,
-                                          inputs=self._inputs(stage))
+                                          inputs=inputs)
             sources = [{'path': b, 'sha256': stage_runner.bag_digest(b)} for b in bags]
             new = apply_result(self.calibration, result, sources)
             path = self.get_parameter('calibration_file').value
@@ -252,6 +430,9 @@ class CalibrationNode(Node):
             return resp
         self.calibration = new
         self.counters['computes'] += 1
+        series = self._series.get(stage)
+        if series is not None and name and Path(inputs[name]).parent == series.run_dir:
+            del self._series[stage]  # computed: the next capture starts a new series
         resp.success = True
         resp.samples_used, resp.samples_rejected = result.samples_used, result.samples_rejected
         r = result.residuals
@@ -299,6 +480,32 @@ class CalibrationNode(Node):
         self._cap_executor.shutdown()
         self._cap.destroy_node()
         return super().destroy_node()
+
+
+#: The file a series of robot poses recorded from the pose topic is written to, beside its
+#: bags (the offline command reads it with --robot-poses).
+RECORDED_POSES = 'robot_poses.yaml'
+
+
+def _new_run_dir(root: Path, stage: str) -> Path:
+    """``root/<stage>_<time>``, with a suffix if a capture of this second already has it."""
+    base = root / f"{stage}_{time.strftime('%Y%m%d-%H%M%S')}"
+    run_dir, n = base, 1
+    while run_dir.exists():
+        n += 1
+        run_dir = base.with_name(f'{base.name}_{n}')
+    return run_dir
+
+
+def _recorded_poses(bags) -> Path:
+    """The robot poses file the node wrote beside ``bags`` (all in one run folder)."""
+    folders = {Path(b).parent for b in stage_runner.expand_bag_dirs(bags)}
+    found = sorted(f / RECORDED_POSES for f in folders if (f / RECORDED_POSES).is_file())
+    if len(found) != 1 or len(folders) != 1:
+        raise ValueError(f'the bags are not one series recorded from the robot pose topic '
+                         f'(folders {sorted(str(f) for f in folders)}, {len(found)} with '
+                         f'{RECORDED_POSES}); or set the robot_poses parameter to a poses file')
+    return found[0]
 
 
 def _cap_frames(steps, max_frames):
