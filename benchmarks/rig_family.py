@@ -42,6 +42,7 @@ DISTANCES = ('100', '200', '350', '400', '650', '1000')
 FIGURES = (  # (metrics key, short name, absolute value)
     ('stair_step_error_rmse_mm', 'stair_rmse_mm', False),
     ('plate_flatness_rmse_mm', 'plate_rmse_mm', False),
+    ('plate_flatness_rmse_mm_range_scaled', 'plate_range_scaled_rmse_mm', False),
     ('sphere_radius_error_mm', 'sphere_radius_error_mm', True),
     ('transfer_matrix_error_rmse_mm', 'transfer_matrix_error_rmse_mm', False),
 )
@@ -141,7 +142,8 @@ def _line(i, n, row) -> str:
     finite = sum(_finite(by.get(mm)) for mm in DISTANCES)
 
     return (f"{head}: stair {_f(row.get('stair_rmse_mm'))} mm, plate "
-            f"{_f(row.get('plate_rmse_mm'))} mm, sphere "
+            f"{_f(row.get('plate_rmse_mm'))} mm (scaled with depth "
+            f"{_f(row.get('plate_range_scaled_rmse_mm'))} mm), sphere "
             f"{_f(row.get('sphere_radius_error_mm'))} mm, transfer "
             f"{_f(row.get('transfer_matrix_error_rmse_mm'))} mm, distances {finite}/6 "
             f"finite{' PASS' if _passes(row) else ' FAIL'} [{row['wall_s']:.0f} s]")

@@ -15,7 +15,8 @@ from galvoscan_sim.rig_family import working_distance, working_point
 
 pytestmark = pytest.mark.dds
 
-KEYS = ('stair_step_error_rmse_mm', 'plate_flatness_rmse_mm', 'sphere_radius_error_mm',
+KEYS = ('stair_step_error_rmse_mm', 'plate_flatness_rmse_mm',
+        'plate_flatness_rmse_mm_range_scaled', 'sphere_radius_error_mm',
         'transfer_matrix_error_rmse_mm', 'joint_error_before_mm', 'joint_error_after_mm',
         'range_x_mm', 'range_y_mm', 'runtime_s')
 DISTANCES = ('100', '200', '350', '400', '650', '1000')

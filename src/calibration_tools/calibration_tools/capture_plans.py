@@ -89,8 +89,11 @@ MIN_LASER_PITCH_MARGINS = 5.0
 #: Pitches [m] of the dynamic camera's 35 x 35 circle boards (the paper's board is 20 mm;
 #: circles of 1/2 and 3/4 of the pitch).
 CIRCLE_BOARD_PITCHES = (0.001, 0.0025, 0.005, 0.010, 0.020, 0.040)
-#: Calibration sphere radii [m].
-SPHERE_RADII = (0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.010, 0.015, 0.020, 0.025)
+#: Calibration sphere radii [m]: grade balls come in fine steps of diameter; a short-range
+#: view (a few mm) needs the steps between 1 and 5 mm radius, or its sphere is left far
+#: smaller than the view allows and the stripe draws too short an arc on it.
+SPHERE_RADII = (0.0005, 0.00075, 0.001, 0.00125, 0.0015, 0.002, 0.0025, 0.003, 0.004,
+                0.005, 0.0075, 0.010, 0.015, 0.020, 0.025)
 
 #: How much of the view [1] each target may fill: a checkerboard's squares, a laser grid's
 #: board, a circle board's pitch (at least this many pitches across the shorter side of

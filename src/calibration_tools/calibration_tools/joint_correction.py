@@ -240,12 +240,25 @@ def _coverage(a: np.ndarray, b: np.ndarray, tol: float) -> float:
     return float(np.mean(d <= tol))
 
 
+#: Distances of the fit and registration, as fractions of the sphere's radius: the values
+#: the stage was tuned with on the reference kit's 10 mm sphere (0.2 mm inlier distance,
+#: 0.1 mm largest fit RMS, 0.3 mm coverage match, 0.2 mm ICP distance). The plans choose the
+#: sphere for the view (``capture_plans.SPHERE_FILL``), so the pixel footprint and the
+#: point noise scale with the radius too. Absolute values would let a small sphere's cap be
+#: fitted to the wall behind it: a straight stripe stays within a tolerance t of a sphere of
+#: radius R over 2 sqrt(2 R t), which at R = 1 mm and t = 0.2 mm is longer than the arc the
+#: stripe draws on the sphere.
+RELATIVE_TOLERANCES = {'sphere_inlier_tol': 0.02, 'max_sphere_rms': 0.01,
+                       'coverage_tol': 0.03, 'icp_max_distance': 0.02}
+
+
 def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=(0.0, 0.0),
                              registration: str = 'icp', min_points: int = 100,
-                             min_sphere_points: int = 50, sphere_inlier_tol: float = 2e-4,
-                             max_sphere_rms: float = 1e-4, max_off_sphere: float = 0.5,
-                             coverage_tol: float = 3e-4, min_coverage: float = 0.9,
-                             icp_max_distance: float = 2e-4, icp_max_iterations: int = 100,
+                             min_sphere_points: int = 50, sphere_inlier_tol: float | None = None,
+                             max_sphere_rms: float | None = None, max_off_sphere: float = 0.5,
+                             coverage_tol: float | None = None, min_coverage: float = 0.9,
+                             icp_max_distance: float | None = None,
+                             icp_max_iterations: int = 100,
                              min_fitness: float = 0.6, icp_tolerance: float = 1e-7,
                              viewpoint=(0.0, 0.0, 0.0)) -> JointCorrectionResult:
     """Register every node to its position's reference node and build the correction table.
@@ -264,9 +277,10 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
     min_sphere_points : int
         Nodes with fewer points on the fitted sphere are skipped.
     sphere_inlier_tol : float, metres
-        Inlier distance of the sphere fit.
+        Inlier distance of the sphere fit (default: :data:`RELATIVE_TOLERANCES` of the
+        radius).
     max_sphere_rms : float, metres
-        Nodes whose sphere fit RMS is larger are skipped.
+        Nodes whose sphere fit RMS is larger are skipped (default: relative, likewise).
     max_off_sphere : float
         Largest accepted fraction of the node's points off the sphere that have no
         counterpart in the reference cloud (after the sphere-centre alignment); more means
@@ -299,6 +313,12 @@ def compute_joint_correction(nodes, *, sphere_radius: float, reference_voltages=
         Bad arguments, or no node registered (the reasons are in the message).
     """
     ref_key = _check_arguments(nodes, registration, sphere_radius, reference_voltages)
+    given = {'sphere_inlier_tol': sphere_inlier_tol, 'max_sphere_rms': max_sphere_rms,
+             'coverage_tol': coverage_tol, 'icp_max_distance': icp_max_distance}
+    tol = {k: float(sphere_radius) * RELATIVE_TOLERANCES[k] if v is None else float(v)
+           for k, v in given.items()}
+    sphere_inlier_tol, max_sphere_rms = tol['sphere_inlier_tol'], tol['max_sphere_rms']
+    coverage_tol, icp_max_distance = tol['coverage_tol'], tol['icp_max_distance']
     results: dict[int, NodeResult] = {}
 
     def skip(i, why, status='skipped'):

@@ -200,16 +200,23 @@ objects:
     return text, {'W_T_O': W_T_O, 'size': STAIR_SIZE, 'step_height': STAIR_STEP, 'aim_W': aim}
 
 
-def plate(index: int, site: Site = PAPER_SITE) -> tuple[str, dict]:
-    """The flat plate (740 x 740 mm at scale 1) centred at ``site``'s working point, in pose
-    ``index`` of PLATE_POSES.
+def plate(index: int, site: Site = PAPER_SITE, *, grow: bool = False) -> tuple[str, dict]:
+    """The flat plate centred at ``site``'s working point, in pose ``index`` of PLATE_POSES.
+
+    By default it is the paper's 740 x 740 mm plate, a physical artefact like the stair
+    block: it keeps its size at a longer working distance and shrinks with ``site.scale``
+    only where the range is smaller (short range). With ``grow`` it is scaled with the
+    working depth either way, so that it spans the same viewing angles as the paper's
+    plate at 650 mm: a harder test at long range, where the model's angular errors grow in
+    millimetres with the distance.
 
     Returns the scene text and ``{'W_T_O', 'size', 'view_half'}``: the plate's pose (4, 4),
     its size (2,) [m] and the half extent [m] over which views are aimed on it.
     """
     R = Rotation.from_rotvec(PLATE_POSES[index % len(PLATE_POSES)])
     t = np.asarray(site.centre_W, dtype=np.float64)
-    size = PLATE_SIZE * site.scale
+    factor = site.scale if grow else min(1.0, site.scale)
+    size = PLATE_SIZE * factor
     text = f"""format_version: 1
 name: eval_plate_{index}
 description: {size * 1e3:.0f} x {size * 1e3:.0f} mm flat plate, pose {index}
@@ -222,7 +229,7 @@ objects:
     albedo: 0.5
 """
     return text, {'W_T_O': _pose(R, t), 'size': (size, size),
-                  'view_half': PLATE_VIEW_HALF * min(site.scale, *site.lateral)}
+                  'view_half': PLATE_VIEW_HALF * min(factor, *site.lateral)}
 
 
 def sphere(position, radius: float = SPHERE_RADIUS) -> tuple[str, dict]:

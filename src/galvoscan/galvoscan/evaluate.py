@@ -248,12 +248,15 @@ class Evaluation:
             self.progress.advance(note=note)
         return out
 
-    def plate(self, views_per_axis, frames):
+    def plate(self, views_per_axis, frames, grow=False):
+        """The flat plate in each pose (``eval_scenes.plate``; ``grow``: scaled with the
+        working depth). Returns the rows, the RMSE [mm] and the clouds."""
         poses = range(len(eval_scenes.PLATE_POSES))
-        self.progress.stage('flat plate', len(poses), 'poses')
+        self.progress.stage('flat plate' + (', scaled with the working depth' if grow else ''),
+                            len(poses), 'poses')
         rows, all_d, clouds = [], [], []
         for k in poses:
-            text, info = eval_scenes.plate(k, self.site)
+            text, info = eval_scenes.plate(k, self.site, grow=grow)
             self.client.set_scene(text)
             parts = []
             half = info['view_half']
@@ -554,6 +557,9 @@ def _nominal(args, graph, rig, site, progress):
         site.stair_grid(2 if q else 6, 1 if q else 5), 4 if q else 8)
     off_nominal = ev.off_nominal(4 if q else 8)
     plate_rows, plate_rmse, plate_clouds = ev.plate(2 if q else 3, 4 if q else 6)
+    scaled_rows, scaled_rmse = plate_rows, plate_rmse  # the same plate where scale <= 1
+    if site.scale > 1.0:
+        scaled_rows, scaled_rmse, _ = ev.plate(2 if q else 3, 4 if q else 6, grow=True)
     sphere_res, sphere_cloud = ev.sphere(10 if q else 40)
     rng, range_views = ev.coverage(3)
     errors = [r['error_mm'] for r in stair_rows if r['error_mm'] is not None]
@@ -564,6 +570,7 @@ def _nominal(args, graph, rig, site, progress):
             k: (abs(v['error_mm']) if v.get('error_mm') is not None else None)
             for k, v in off_nominal.items()},
         'plate_flatness_rmse_mm': plate_rmse,
+        'plate_flatness_rmse_mm_range_scaled': scaled_rmse,
         'sphere_radius_error_mm': sphere_res['radius_error_mm'],
         'sphere_fit_rms_mm': sphere_res['fit_rms_mm'],
         'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model, rig),
@@ -579,6 +586,7 @@ def _nominal(args, graph, rig, site, progress):
         'calibrated_vs_true': report.calibrated_vs_true(cal.model, rig),
     }
     details = {'stair': stair_rows, 'stair_off_nominal': off_nominal, 'plate': plate_rows,
+               'plate_range_scaled': scaled_rows,
                'sphere': sphere_res, 'range_views_V': range_views, 'stages': stage_info}
     return result, details, {'stair': stair_clouds, 'plate': plate_clouds,
                              'sphere': sphere_cloud}

@@ -46,7 +46,10 @@ def test_a_rig_reset_for_a_distance_gets_scenes_there(mm):
     assert site.lateral[0] <= site.scale and site.lateral[1] <= site.scale
     _, plate = eval_scenes.plate(0, site)
     assert np.allclose(plate['W_T_O'][:3, 3], site.centre_W)
-    assert plate['size'][0] == pytest.approx(eval_scenes.PLATE_SIZE * site.scale)
+    # the paper's plate: smaller at short range, never larger; scaled either way with grow
+    assert plate['size'][0] == pytest.approx(eval_scenes.PLATE_SIZE * min(1.0, site.scale))
+    _, grown = eval_scenes.plate(0, site, grow=True)
+    assert grown['size'][0] == pytest.approx(eval_scenes.PLATE_SIZE * site.scale)
     assert eval_scenes.sphere_radius(site) <= eval_scenes.SPHERE_RADIUS
     text, _ = eval_scenes.cell_reference(np.eye(4), site)
     assert 'positions:' in text
