@@ -499,15 +499,20 @@ def _register_position(nodes, idx, ref, fits, results, table, skip, *, registrat
             r.sphere_centre = sf.centre
         T0 = register_sphere_centres(f.centre, rf.centre)
         moved_sphere = apply_transform(T0, f.sphere_points)
-        cov = min(_coverage(rf.sphere_points, moved_sphere, coverage_tol),
-                  _coverage(moved_sphere, rf.sphere_points, coverage_tol))
+        # Matching distances never below the two clouds' own noise (their sphere fits'
+        # RMS): at short range the points scatter by more than a fraction of a small
+        # sphere's radius. On the reference kit the tuned distances are the larger.
+        noise = float(np.hypot(f.rms, rf.rms))
+        cov_tol, icp_d = max(coverage_tol, 3.0 * noise), max(icp_max_distance, 2.0 * noise)
+        cov = min(_coverage(rf.sphere_points, moved_sphere, cov_tol),
+                  _coverage(moved_sphere, rf.sphere_points, cov_tol))
         r.coverage = cov
         if cov < min_coverage:
             skip(i, f'sphere arc covers only {cov * 100:.0f} % of the reference arc (or is '
                     f'covered that little by it): partly occluded or out of view')
             continue
         d_all, _ = nearest_neighbours(apply_transform(T0, n.points), rn.points)
-        off = float(np.mean(d_all > 10.0 * icp_max_distance))
+        off = float(np.mean(d_all > 10.0 * icp_d))
         if off > max_off_sphere:
             skip(i, f'{off * 100:.0f} % of the points have no counterpart in the reference '
                     f'cloud: something in front of the sphere or another scene')
@@ -515,7 +520,7 @@ def _register_position(nodes, idx, ref, fits, results, table, skip, *, registrat
         if registration == 'sphere':
             T = T0
         else:
-            icp = register_icp(n.points, target, init=T0, max_distance=icp_max_distance,
+            icp = register_icp(n.points, target, init=T0, max_distance=icp_d,
                                max_iterations=icp_max_iterations, min_fitness=min_fitness,
                                tolerance=icp_tolerance, target_tangents=tangents)
             r.icp_fitness, r.icp_rmse = icp.fitness, icp.inlier_rmse
@@ -531,9 +536,8 @@ def _register_position(nodes, idx, ref, fits, results, table, skip, *, registrat
                 continue
             T = icp.transform
         r.registration = T
-        r.errors = registration_errors(n.points, rn.points, T, max_distance=icp_max_distance)
-        r.errors_dense = registration_errors(n.points, target, T,
-                                             max_distance=icp_max_distance)
+        r.errors = registration_errors(n.points, rn.points, T, max_distance=icp_d)
+        r.errors_dense = registration_errors(n.points, target, T, max_distance=icp_d)
         C = C_ref @ T
         r.transform = C
         r.status = 'registered'
