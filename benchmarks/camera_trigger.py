@@ -1,41 +1,47 @@
 """Frames paired with the galvo board's trigger events, with drops injected on both sides.
 
-The firmware emulator scans ``--frames`` rows at ``--fps``; its trigger hook fires the
-camera at each trigger instant (the emulator's trigger output wired to the camera's line in),
-the real serial host (:class:`~galvo_driver.serial_link.backend.SerialBackend`) uploads the
-scan and reads the trigger EVENTs over a pty, and
-:class:`~galvo_driver.trigger_pairing.TriggerPairer` pairs frames with events as they arrive.
+The firmware emulator scans ``--frames`` rows at ``--fps``; the real serial host
+(:class:`~galvo_driver.serial_link.backend.SerialBackend`) uploads the scan and reads the
+trigger EVENTs over a pty, and :class:`~galvo_driver.trigger_pairing.TriggerPairer` pairs
+frames with events as they arrive.
 
 Cameras (``--camera``):
 
-* ``synthetic`` (default): frames with ids and timestamps on a simulated camera clock with
-  its own offset and rate (``--camera-drift-ppm``), a latency and a jitter; no pixels.
-* ``fake``: :class:`galvo_driver.fake_camera.FakeCamera` (Aravis' GigE Vision fake camera on
-  loopback) opened with :class:`galvo_driver.genicam_camera.GenICamCamera` in software
-  trigger mode; the hook executes ``TriggerSoftware``.
+* ``fake`` (default): :class:`galvo_driver.fake_camera.FakeCamera` (Aravis' GigE Vision
+  fake camera on loopback, real GVCP/GVSP; ``--width`` x ``--height`` Mono8) hardware-
+  triggered on ``Line0``: the emulator's trigger hook is the wire, it sends each edge with
+  the trigger's own instant (``pulse_line(edge_at(t))``). The camera is driven by the
+  driver's own :class:`~galvo_driver.rig_backend.RigBackend` (``camera_clock='host'``,
+  TriggerMode On, TriggerSource Line0), whose pairer's results are tapped for the checks.
+* ``synthetic``: frames with ids and timestamps on a simulated camera clock with its own
+  offset and rate (``--camera-drift-ppm``), a latency and a jitter; no pixels; paired by a
+  TriggerPairer fed directly.
 
 Injected faults, at seeded random trigger indices: lost EVENTs (the emulator loses a byte
 of the EVENT frame), duplicated EVENTs, camera frames lost in transfer (the camera exposed,
-its frame id advanced, the frame never reaches the host), missed camera triggers (the hook
-does not fire the camera: no exposure, no frame id), and the board clock drifting by
+its frame id advanced, the frame never reaches the pairer), missed camera triggers (no
+edge reaches the camera: no exposure, no frame id), and the board clock drifting by
 ``--drift-ppm``.
 
 The truth: every frame is traced to the trigger instant that exposed it (the synthetic
-camera records it; for the fake camera, the trigger whose TriggerSoftware call window
-contains the frame's timestamp, both on CLOCK_REALTIME) and that trigger's codes come from
-the emulator's own record (:meth:`FirmwareEmulator.triggers`), never from an EVENT.
+camera records it; the fake camera writes the instant of the line edge into the image's
+first bytes, ``edge_of``, and the hook recorded which trigger sent that edge), and that
+trigger's codes come from the emulator's own record (:meth:`FirmwareEmulator.triggers`),
+never from an EVENT. With the fake camera, every frame the backend delivers is checked
+(seq, voltages, laser), as test_rig_backend.py does.
 
     .venv/bin/python benchmarks/camera_trigger.py [--frames 10000] [--fps 500]
-        [--camera synthetic|fake] [--seed 1]
+        [--camera fake|synthetic] [--seed 1]
 
 Last line: one JSON object with frames, fps, mistagged, unaccounted, injected_drops,
-injected_drops_detected, clock_offset_error_us_p99 and the pairer's counters.
+injected_drops_detected, clock_offset_error_us_p99, the drift estimated and true, the
+pairer's counters and (fake camera) why each trigger without a frame has none.
 """
 
 from __future__ import annotations
 
 import argparse
-import bisect
+import gc
 import heapq
 import json
 import math
@@ -44,10 +50,12 @@ import random
 import sys
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from galvo_driver.fake_camera import edge_at, edge_of
+from galvo_driver.rig_backend import RigBackend
 from galvo_driver.serial_link import protocol as p
 from galvo_driver.serial_link.backend import SerialBackend
 from galvo_driver.serial_link.emulator import FirmwareEmulator
@@ -374,12 +382,17 @@ def run_synthetic(args) -> dict:
     errs = offset_errors_us(run.outcome, args.exposure, lambda f: f.exposure_board_us)
     injected = faults.lost_events | faults.lost_frames | faults.missed_triggers
     return summary(args, n, run.wall_s, len(run.emulator.triggers()), run.outcome,
-                   run.check(), errs, injected, run.pairer, run.emulator, run.backend_stats)
+                   run.check(), errs, injected, run.pairer, run.emulator, run.backend_stats,
+                   camera_ppm=args.camera_drift_ppm)
 
 
 def summary(args, n, wall, n_triggers, outcome, res, errs, injected, pairer, emu,
-            backend_stats) -> dict:
+            backend_stats, camera_ppm: float) -> dict:
+    """The figures of a run; ``camera_ppm``: the camera clock's true rate error against the
+    emulator's ``time.monotonic()`` [ppm] (the drift the pairer's fit should find is that of
+    the camera clock against the board clock)."""
     abs_err = np.abs(errs)
+    drift_true = ((1 + camera_ppm * 1e-6) / (1 + args.drift_ppm * 1e-6) - 1) * 1e6
     times = [r.t for r in emu.triggers()]
     rate = (len(times) - 1) / (times[-1] - times[0]) if len(times) > 1 else 0.0
     return {
@@ -393,7 +406,9 @@ def summary(args, n, wall, n_triggers, outcome, res, errs, injected, pairer, emu
         'clock_offset_error_us_p99': round(float(np.percentile(abs_err, 99)), 2)
         if len(abs_err) else None,
         'clock_offset_error_us_max': round(float(abs_err.max()), 2) if len(abs_err) else None,
-        'drift_ppm_set': args.drift_ppm, 'drift_ppm_estimated': round(pairer.fit.drift_ppm, 2),
+        'drift_ppm_set': args.drift_ppm,
+        'drift_ppm_true': round(drift_true, 2),  # camera clock vs board clock
+        'drift_ppm_estimated': round(pairer.fit.drift_ppm, 2),
         'late_triggers': emu.stats['late_triggers'],
         'backend_lost_events': backend_stats['lost_events'],
         'pairer': {k: v for k, v in pairer.counters.items() if v},
@@ -404,7 +419,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--frames', type=int, default=10_000)
     parser.add_argument('--fps', type=float, default=500.0)
-    parser.add_argument('--camera', choices=('synthetic', 'fake'), default='synthetic')
+    parser.add_argument('--camera', choices=('fake', 'synthetic'), default='fake')
     parser.add_argument('--drop-rate', type=float, default=0.002,
                         help='fraction of triggers per injected fault kind')
     parser.add_argument('--drift-ppm', type=float, default=200.0,
@@ -426,170 +441,242 @@ def main(argv=None) -> int:
 
 @dataclass(frozen=True)
 class FakeFrame:
-    """A fake-camera frame without its pixels (10,000 of them would not fit in memory),
-    and its truth: the last trigger before its exposure start (see :class:`FakeCameraSide`)."""
+    """A fake-camera frame as the checks keep it: without its pixels (the pairer's results
+    for 10,000 images need not stay in memory), with its truth from the line edge that
+    exposed it (the instant the image carries, ``edge_of``): that trigger's emulator
+    instant and index, and the board clock at it [us] (the exposure start: the fake camera
+    latches the edge instant, no trigger delay)."""
 
     frame_id: int
     timestamp_ns: int
     trigger_t: float | None
+    index: int | None
     exposure_board_us: float
 
 
-class FakeCameraSide:
-    """Helper A's fake camera in software-trigger mode, fired from the emulator's hook.
+class LineWire:
+    """The board's trigger output wired to the fake camera's ``Line0``: the emulator's hook.
 
-    The fake camera stamps a frame with CLOCK_REALTIME when it makes it; the truth of a
-    frame is then the last board trigger (its instant mapped to CLOCK_REALTIME) before the
-    exposure start, provided no trigger follows within the exposure (the voltages would
-    have changed during it: truth unknown).
+    At each trigger it arms the injected duplicate EVENT, then sends the line edge with the
+    trigger's own instant (``edge_at(t)``: the hook may run late, a wire does not), except
+    for the injected missed camera triggers. It records which trigger each edge came from:
+    the truth of every frame, read back from the instant the image carries.
     """
 
-    def __init__(self, cam, emulator: FirmwareEmulator, faults: Faults, exposure: float):
-        self.cam, self.emulator, self.faults, self.exposure = cam, emulator, faults, exposure
-        self.real_minus_mono = time.time() - time.monotonic()
-        self.trigger_times: list[float] = []  # board trigger instants, CLOCK_REALTIME [s]
-        self.trigger_mono: list[float] = []
-        self.trigger_index: list[int] = []
-        self.delivered: list[int] = []
-        self.dropped_lost: list[int] = []
-        self.max_trigger_call_s = 0.0
-        self._queue: queue.Queue = queue.Queue()
-        self._stop = threading.Event()
-        self._line_cond = threading.Condition()
-        self._line_pending = self._line_closed = False
-        self.overlapped = 0
-        self._thread = threading.Thread(target=self._grab, daemon=True)
-        self._thread.start()
-        self._line_thread = threading.Thread(target=self._trigger_line, daemon=True)
-        self._line_thread.start()
+    def __init__(self, fake, faults: Faults):
+        self.fake, self.faults = fake, faults
+        self.emulator: FirmwareEmulator | None = None
+        self.edges: dict[int, tuple[float, int]] = {}  # edge [ns] -> (trigger t [s], index)
 
-    def trigger(self, index: int, t: float) -> None:
-        self.trigger_times.append(t + self.real_minus_mono)
-        self.trigger_mono.append(t)
-        self.trigger_index.append(index)
-        if index not in self.faults.missed_triggers:
-            with self._line_cond:
-                if self._line_pending:
-                    self.overlapped += 1  # the camera is still busy: it misses one
-                self._line_pending = True
-                self._line_cond.notify()
+    def hook(self, index: int, t: float) -> None:
+        self.faults.on_trigger(self.emulator, index)
+        if index in self.faults.missed_triggers:
+            return  # the camera does not see this edge: no exposure, no frame id
+        edge = edge_at(t)
+        self.edges[edge] = (t, index)
+        self.fake.pulse_line(edge)
 
-    def _trigger_line(self) -> None:
-        """The wire from the board's trigger output to the camera: TriggerSoftware in a
-        thread of its own, so a slow GVCP answer never stalls the board. A wire holds no
-        queue: a trigger that comes while the previous one is still being sent is lost
-        (the camera misses it, as a camera ignores an overlapping trigger)."""
-        while True:
-            with self._line_cond:
-                self._line_cond.wait_for(lambda: self._line_pending or self._line_closed)
-                if self._line_closed:
-                    return
-                self._line_pending = False
-            t0 = time.monotonic()
-            self.cam.software_trigger()
-            self.max_trigger_call_s = max(self.max_trigger_call_s, time.monotonic() - t0)
+    def truth(self, image) -> tuple[float | None, int | None]:
+        """(trigger t, index) of the edge that exposed ``image``; (None, None) if unknown."""
+        return self.edges.get(edge_of(image), (None, None))
 
-    def _truth(self, ts_ns: int) -> tuple[float | None, int | None]:
-        start = ts_ns * 1e-9
-        k = bisect.bisect_right(self.trigger_times, start) - 1
-        if k < 0:
-            return None, None
-        if k + 1 < len(self.trigger_times) and \
-                self.trigger_times[k + 1] < start + self.exposure:
-            return None, None  # the output changed during the exposure
-        return self.trigger_mono[k], self.trigger_index[k]
 
-    def _grab(self) -> None:
-        while not self._stop.is_set():
-            f = self.cam.grab(0.05)
-            if f is None:
-                continue
-            t, index = self._truth(f.timestamp_ns)
-            if index is not None and index in self.faults.lost_frames:
-                self.dropped_lost.append(f.frame_id)  # lost in transfer: an id gap
-                continue
-            mono = f.timestamp_ns * 1e-9 - self.real_minus_mono
-            self.delivered.append(f.frame_id)
-            self._queue.put(FakeFrame(f.frame_id, f.timestamp_ns, t,
-                                      self.emulator.board_clock_us(mono)))
+class BenchRig(RigBackend):
+    """The driver's ``rig`` backend, unchanged, with two taps for the benchmark.
 
-    def poll(self) -> list[FakeFrame]:
-        out = []
-        while True:
-            try:
-                out.append(self._queue.get_nowait())
-            except queue.Empty:
-                return out
+    * Every result of its pairer (:meth:`RigBackend._take`) is copied, pixels left out,
+      into :attr:`outcome`: the pairs and drops the checks need, with their indices.
+    * Its camera's ``grab`` discards the frames exposed by the injected "lost in transfer"
+      triggers (the camera exposed them and its frame id advanced; the host never gets
+      them), as test_rig_backend.py does, and records which trigger each grabbed frame
+      came from.
+    """
 
-    def pending(self) -> int:
-        return self._queue.qsize()
+    def __init__(self, port: str, wire: LineWire, **kw):
+        super().__init__(port, **kw)
+        self.wire = wire
+        self.outcome = Outcome()
+        self.grabbed: set[int] = set()  # trigger indices of the frames the host received
+        self.lost_in_transfer: list[int] = []
+        self.not_from_an_edge = 0
+        self.frame_ids: list[int] = []  # of every frame the host received
+        grab = self.camera.grab
 
-    def close(self) -> None:
-        with self._line_cond:
-            self._line_closed = True
-            self._line_cond.notify()
-        self._line_thread.join(2.0)
-        self._stop.set()
-        self._thread.join(2.0)
+        def lossy_grab(timeout_s):
+            frame = grab(timeout_s)
+            if frame is None:
+                return None
+            self.frame_ids.append(frame.frame_id)
+            _, index = wire.truth(frame.image)
+            if index is None:
+                self.not_from_an_edge += 1
+                return frame
+            self.grabbed.add(index)
+            if index in wire.faults.lost_frames:
+                self.lost_in_transfer.append(index)
+                return None
+            return frame
+
+        self.camera.grab = lossy_grab
+
+    def _light(self, frame) -> FakeFrame:
+        t, index = self.wire.truth(frame.image)
+        board_us = self.wire.emulator.board_clock_us(t) if t is not None else math.nan
+        return FakeFrame(frame.frame_id, frame.timestamp_ns, t, index, board_us)
+
+    def _take(self, results) -> None:
+        results = list(results)
+        self.outcome.add(replace(r, frame=self._light(r.frame)) if r.frame is not None else r
+                         for r in results)
+        super()._take(results)
 
 
 def run_fake(args) -> dict:
-    from galvo_driver.fake_camera import FakeCamera
-    from galvo_driver.genicam_camera import GenICamCamera
-
+    """Scan ``--frames`` rows on the emulator through :class:`RigBackend` with the fake
+    camera hardware-triggered on ``Line0``; check every frame it delivers against the
+    emulator's record of the trigger whose edge exposed it."""
     n = args.frames
     faults = Faults.random(n, args.drop_rate, args.seed)
     codes = np.random.default_rng(args.seed).integers(1, 65536, (n, 4)).astype(np.uint16)
-    side: list[FakeCameraSide] = []
+    # The emulator runs in this process, a board does not: a full garbage collection of
+    # the heap holds the GIL and would stall its triggers (see test_rig_backend.fake).
+    gc.collect()
+    gc.freeze()
+    try:
+        return _run_fake(args, n, faults, codes)
+    finally:
+        gc.unfreeze()
 
-    def hook(index, t):
-        faults.on_trigger(emu, index)
-        side[0].trigger(index, t)
 
-    with FakeCamera(width=args.width, height=args.height) as fake:
-        cam = GenICamCamera(serial=fake.serial)
-        cam.open()
-        try:
-            cam.set('TriggerMode', 'On')
-            cam.set('TriggerSource', 'Software')
-            cam.set('ExposureTime', args.exposure * 1e6)
-            cam.start(64)
-            emu = FirmwareEmulator('pty', seed=args.seed, on_trigger=hook,
-                                   clock_drift_ppm=args.drift_ppm)
-            side.append(FakeCameraSide(cam, emu, faults, args.exposure))
-            with emu:
-                backend = TappedBackend(emu.port, exposure=args.exposure)
-                backend.open()
-                try:
-                    pairer = TriggerPairer(
-                        exposure_s=args.exposure, frame_id_wrap=65536,
-                        board_to_host=backend.board_to_host,
-                        camera_to_host=lambda ns: ns * 1e-9)  # it stamps CLOCK_REALTIME
-                    faults.arm(emu)
-                    t0 = time.monotonic()
-                    outcome = run_scan(emu, backend, side[0], pairer, codes, args.fps,
-                                       timeout=n / args.fps * 3 + 10)
-                    wall = time.monotonic() - t0
-                    stats = backend.stats
-                finally:
-                    backend.close()
-            side[0].close()
-            cam_stats = cam.statistics()
-        finally:
-            cam.stop()
-            cam.close()
+def _run_fake(args, n: int, faults: Faults, codes: np.ndarray) -> dict:
+    from galvo_driver.fake_camera import FakeCamera
+
+    exposure_us = args.exposure * 1e6
+    with FakeCamera('GSBENCH', width=args.width, height=args.height) as fake:
+        wire = LineWire(fake, faults)
+        emu = FirmwareEmulator('pty', seed=args.seed, on_trigger=wire.hook,
+                               clock_drift_ppm=args.drift_ppm)
+        wire.emulator = emu
+        with emu:
+            backend = BenchRig(emu.port, wire, camera_serial=fake.serial, camera_clock='host',
+                               features={'PixelFormat': 'Mono8', 'ExposureTime': exposure_us})
+            backend.open()
+            try:
+                backend.arm()
+                faults.arm(emu)
+                delivered = DeliveredCheck(emu, wire, args.exposure)
+                t0 = time.monotonic()
+                backend.start(p.codes_to_volts(codes), args.fps, laser_on=True)
+                deadline = t0 + n / args.fps * 3 + 10
+                while backend.running and time.monotonic() < deadline:
+                    delivered.add(backend.poll(0.02))
+                delivered.add(backend.poll(0.0))
+                wall = time.monotonic() - t0
+                timed_out = backend.running
+                stats = backend.stats
+                fault = backend.fault
+            finally:
+                backend.close()
+    delivered.finish()
+    outcome, pairer = backend.outcome, backend.pairer
     res = check(outcome, emu, lambda f: f.trigger_t, n, pairer.counters['frames_in'])
     errs = offset_errors_us(outcome, args.exposure, lambda f: f.exposure_board_us)
     injected = faults.lost_events | faults.lost_frames | faults.missed_triggers
+    # The camera stamps CLOCK_REALTIME, the emulator's board clock counts CLOCK_MONOTONIC
+    # (times 1 + drift): NTP slews both alike, so the camera clock's own rate error is 0.
     out = summary(args, n, wall, len(emu.triggers()), outcome, res, errs, injected, pairer,
-                  emu, stats)
-    out['camera_statistics'] = cam_stats
-    out['max_trigger_call_ms'] = round(side[0].max_trigger_call_s * 1e3, 2)
-    out['triggers_overlapped'] = side[0].overlapped
+                  emu, stats['board'], camera_ppm=0.0)
+    # what the driver outputs: each delivered frame against the truth of its edge
+    out['delivered'] = delivered.n
+    out['delivered_mistagged'] = delivered.mistagged
+    out['delivered_truth_unknown'] = delivered.unknown
+    # the same frames, tagged by the pairer and as the backend delivers them
+    out['mistagged'] = max(out['mistagged'], delivered.mistagged)
+    abs_stamp = np.abs(np.asarray(delivered.stamp_err_us))
+    out['stamp_error_us_p99'] = (round(float(np.percentile(abs_stamp, 99)), 2)
+                                 if len(abs_stamp) else None)
+    out['triggers_without_frame'] = causes(outcome, faults, backend)
+    out['injected'] = {'lost_events': len(faults.lost_events),
+                       'duplicated_events': len(faults.dup_events),
+                       'lost_in_transfer': len(faults.lost_frames),
+                       'missed_triggers': len(faults.missed_triggers)}
+    # frames of an injected "lost in transfer" trigger the camera did send (a camera that
+    # missed that edge made none to lose)
+    out['lost_in_transfer_discarded'] = len(backend.lost_in_transfer)
+    out['camera_frames_received'] = len(backend.frame_ids)
+    # frames the camera made (its ids, which skip 0 and wrap after 65535) that never
+    # reached the host: lost packets or no free buffer (camera_statistics says which)
+    ids = backend.frame_ids
+    out['camera_frame_id_gaps'] = sum((b - a) % 65535 - 1
+                                        for a, b in zip(ids, ids[1:], strict=False))
+    out['camera_frames_not_from_an_edge'] = backend.not_from_an_edge
+    out['camera_statistics'] = stats['camera']
+    out['mismatched_codes'] = stats['mismatched_codes']
+    out['backend_fault'] = fault
+    out['timed_out'] = timed_out
     out['hook_errors'] = emu.stats['hook_errors']
     out['hook_error'] = emu.hook_error
     out['watchdog_trips'] = len(emu.watchdog_trips)
-    out['camera_frames'] = len(side[0].delivered) + len(side[0].dropped_lost)
+    return out
+
+
+class DeliveredCheck:
+    """The frames :meth:`RigBackend.poll` delivers, each compared with the emulator's record
+    of the trigger whose edge exposed its image (seq, voltages, laser), as
+    test_rig_backend.py's ``Rig.check`` does. During the scan only what the check needs is
+    kept (not the pixels); :meth:`finish` checks after it."""
+
+    def __init__(self, emu: FirmwareEmulator, wire: LineWire, exposure_s: float):
+        self.emu, self.wire, self.exposure_s = emu, wire, exposure_s
+        self._kept: list = []
+        self.n = self.mistagged = self.unknown = 0
+        self.stamp_err_us: list[float] = []
+
+    def add(self, frames) -> None:
+        for f in frames:
+            edge = edge_of(f.image)
+            self._kept.append((edge, self.wire.edges.get(edge, (None, None))[0], f.seq,
+                               f.voltages, f.laser_on, f.stamp))
+
+    def finish(self) -> None:
+        records = {r.t: r for r in self.emu.triggers()}
+        for edge, t, seq, volts, laser_on, stamp in self._kept:
+            self.n += 1
+            rec = records.get(t)
+            if rec is None:
+                self.unknown += 1
+                continue
+            if (seq != rec.index or laser_on != rec.laser_on
+                    or not np.array_equal(volts, p.codes_to_volts(np.array(rec.codes)))):
+                self.mistagged += 1
+            # the stamp is the middle of the exposure in host time: edge + exposure / 2
+            self.stamp_err_us.append((stamp - (edge * 1e-9 + self.exposure_s / 2)) * 1e6)
+
+
+def causes(outcome: Outcome, faults: Faults, backend: BenchRig) -> dict:
+    """Why each trigger index the pairer reported without a frame has none."""
+    paired = {pair.index for pair in outcome.pairs}
+    dropped = {d.frame.index: d.kind for d in outcome.drops
+               if d.frame is not None and d.frame.index is not None}
+    out: dict[str, int] = {}
+    for d in outcome.drops:
+        if d.kind not in EVENT_SIDE or d.index in paired:
+            continue
+        i = d.index
+        if i in faults.lost_events:
+            why = 'injected_lost_event'
+        elif i in faults.missed_triggers:
+            why = 'injected_missed_trigger'
+        elif i in faults.lost_frames:
+            why = 'injected_lost_in_transfer'
+        elif i in dropped:
+            why = f'frame_dropped_{dropped[i]}'
+        elif i not in backend.grabbed:
+            why = 'camera_sent_no_frame'  # the edge came while the camera was busy, or the
+            # frame's packets were lost (camera_statistics)
+        else:
+            why = 'other'
+        out[why] = out.get(why, 0) + 1
     return out
 
 

@@ -36,7 +36,10 @@ Triggered frames are produced on a time grid: the fake camera looks for a pendin
 software trigger every ``1 / trigger_frequency_hz`` seconds, so two triggers within one
 slot give one frame (as a real camera ignores an overlapping trigger). The default slot
 is 0.25 ms (4 kHz), which leaves a 500 fps trigger stream one frame per trigger; the
-price is that the child busy-polls one CPU core while acquiring in trigger mode.
+price is that the child busy-polls one CPU core while acquiring in trigger mode. (Aravis
+0.8's streaming thread can oversleep a slot by 100 ms; a line edge wakes it, see
+``_serve``. Until the first frame of an acquisition it looks for a trigger only every
+100 ms, so the edges of the first ~100 ms after AcquisitionStart may give a single frame.)
 
 Only one fake camera can serve on the loopback interface at a time (GVCP port 3956).
 """
@@ -49,6 +52,7 @@ import os
 import select
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import tempfile
@@ -72,6 +76,11 @@ _REG_TRIGGER_SOURCE_SELECTED = 0x310
 _GVBS_USER_DEFINED_NAME = 0xE8
 _GVBS_USER_DEFINED_NAME_SIZE = 16
 _READY = "FAKE_CAMERA_READY"
+_GVCP_PORT = 3956
+# A GVCP READREG command (key 0x42, flags, command 0x0080, length 4, request id, address)
+# of the bootstrap version register: harmless, answered by any GigE Vision device.
+_GVCP_WAKE = struct.pack(">BBHHHI", 0x42, 0x01, 0x0080, 4, 1, 0x0000)
+_WAKE_PERIOD_S = 0.0005
 
 GENICAM_XML = """<?xml version="1.0" encoding="utf-8"?>
 <RegisterDescription ModelName="GalvoscanFake" VendorName="Aravis"
@@ -685,18 +694,51 @@ def _serve(args: argparse.Namespace) -> int:
         value = cam.read_register(address)  # PyGObject: (ok, value) for the out argument
         return value[-1] if isinstance(value, tuple) else value
 
+    # Aravis 0.8's fake-camera thread computes its poll timeout from an unsigned time
+    # difference: when it is even a microsecond late for its next slot (the trigger check
+    # every 1 / trigger_frequency), the difference wraps and it sleeps 100 ms in g_poll --
+    # with a trigger pending, every edge meanwhile is missed (about half of a 500 Hz
+    # trigger stream). A datagram on its GVCP socket ends that poll (a register read; the
+    # answer is drained): one is sent for each edge taken, and again every
+    # _WAKE_PERIOD_S while that trigger is still pending.
+    wake = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    wake.setblocking(False)
+
+    def wake_streaming_thread() -> None:
+        try:
+            while wake.recv(64):
+                pass
+        except OSError:
+            pass  # nothing left to drain
+        try:
+            wake.sendto(_GVCP_WAKE, ("127.0.0.1", _GVCP_PORT))
+        except OSError:
+            pass
+
     def trigger_line() -> None:  # the camera's trigger input Line0: one datagram per edge
+        pending = False  # a trigger taken and not yet acknowledged by the streaming thread
         while True:
+            line.settimeout(_WAKE_PERIOD_S if pending else None)
             try:
                 data = line.recv(16)
+            except TimeoutError:
+                data = None
             except OSError:
                 return
+            if pending:
+                pending = register(_REG_TRIGGER_SOFTWARE) != 0
+                if pending:
+                    wake_streaming_thread()
+            if data is None:
+                continue
             edge = int.from_bytes(data[:8], "little") if len(data) >= 8 else time.time_ns()
             if register(_REG_TRIGGER_MODE) != 1 or register(_REG_TRIGGER_SOURCE_SELECTED) != 0:
                 continue  # the line is not the trigger source: the edge does nothing
             if register(_REG_TRIGGER_SOFTWARE) == 0:  # else still busy: this edge is missed
                 fill.edges.append(edge)
                 cam.write_register(_REG_TRIGGER_SOFTWARE, 1)
+                wake_streaming_thread()
+                pending = True
 
     threading.Thread(target=trigger_line, daemon=True).start()
 
