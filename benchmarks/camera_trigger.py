@@ -552,7 +552,8 @@ def _run_fake(args, n: int, faults: Faults, codes: np.ndarray) -> dict:
     from galvo_driver.fake_camera import FakeCamera
 
     exposure_us = args.exposure * 1e6
-    with FakeCamera('GSBENCH', width=args.width, height=args.height) as fake:
+    with FakeCamera('GSBENCH', width=args.width, height=args.height,
+                    wake_on_edge=True) as fake:
         wire = LineWire(fake, faults)
         emu = FirmwareEmulator('pty', seed=args.seed, on_trigger=wire.hook,
                                clock_drift_ppm=args.drift_ppm)

@@ -18,6 +18,7 @@ from galvoscan_msgs.srv import GetScanProgress, StartScan
 from rclpy.node import Node
 
 from galvo_driver.serial_link.protocol import codes_to_volts, volts_to_codes
+from galvoscan_common.executor import call_service
 
 pytestmark = pytest.mark.dds
 
@@ -30,15 +31,6 @@ def _wait_line(path, timeout=20.0):
             return text.splitlines()[0].strip()
         time.sleep(0.05)
     raise AssertionError(f'no output in {path}')
-
-
-def _call(node, ex, srv_type, name, request, timeout=20.0):
-    client = node.create_client(srv_type, name)
-    assert client.wait_for_service(timeout_sec=timeout), name
-    fut = client.call_async(request)
-    ex.spin_until_future_complete(fut, timeout_sec=timeout)
-    assert fut.result() is not None, name
-    return fut.result()
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
@@ -63,14 +55,15 @@ def test_driver_scan_then_signal_leaves_board_safe(spawn, ros_env, tmp_path, sig
         volts = rng.uniform(-9.5, 9.5, size=(400, 4))
         req = StartScan.Request(pattern='custom', voltages=volts.ravel().tolist(),
                                 frame_rate=200.0, laser_on=True)
-        resp = _call(node, ex, StartScan, 'scan/start', req)
+        progress_client = node.create_client(GetScanProgress, 'scan/progress')
+        resp = call_service(ex, node.create_client(StartScan, 'scan/start'), req, timeout=20.0)
         assert resp.success, resp.message + driver.log_path.read_text()
         assert resp.frames_total == 400
         deadline = time.monotonic() + 20
         while len(states) < 100 and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.05)
         assert len(states) >= 100, driver.log_path.read_text()
-        progress = _call(node, ex, GetScanProgress, 'scan/progress', GetScanProgress.Request())
+        progress = call_service(ex, progress_client, GetScanProgress.Request(), timeout=20.0)
         assert progress.state == 'running' and progress.frames_total == 400
 
         # every received frame carries exactly the DAC-quantised voltages of its row

@@ -341,6 +341,11 @@ class FakeCamera:
         module's docstring).
     start_timeout_s : float
         How long `replug` waits for the camera to answer discovery [s].
+    wake_on_edge : bool
+        Wake Aravis' streaming thread with a GVCP register read on each line edge and while
+        its trigger is pending (see ``_serve``): the camera then makes a frame for nearly
+        every edge at 500 Hz, at the price of GVCP traffic beside the client's and more CPU
+        (``benchmarks/camera_trigger.py`` uses it). Off, it misses edges as Aravis does.
 
     Use it as a context manager: it starts on entry and is stopped on exit.
     """
@@ -353,6 +358,7 @@ class FakeCamera:
         user_id: str | None = None,
         trigger_frequency_hz: float = 4000.0,
         start_timeout_s: float = 10.0,
+        wake_on_edge: bool = False,
     ):
         for name, text in (("serial", serial), ("user_id", user_id or "")):
             if len(text.encode()) >= _GVBS_USER_DEFINED_NAME_SIZE or not text.isprintable():
@@ -373,6 +379,7 @@ class FakeCamera:
         self.height = int(height)
         self.trigger_frequency_hz = float(trigger_frequency_hz)
         self.start_timeout_s = float(start_timeout_s)
+        self.wake_on_edge = bool(wake_on_edge)
         self._proc: subprocess.Popen | None = None
         self._xml_dir: tempfile.TemporaryDirectory | None = None
         self._line_port: int | None = None
@@ -424,6 +431,8 @@ class FakeCamera:
         ]
         if self.user_id:
             cmd += ["--user-id", self.user_id]
+        if self.wake_on_edge:
+            cmd += ["--wake-on-edge"]
         self._proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
@@ -737,8 +746,9 @@ def _serve(args: argparse.Namespace) -> int:
             if register(_REG_TRIGGER_SOFTWARE) == 0:  # else still busy: this edge is missed
                 fill.edges.append(edge)
                 cam.write_register(_REG_TRIGGER_SOFTWARE, 1)
-                wake_streaming_thread()
-                pending = True
+                if args.wake_on_edge:
+                    wake_streaming_thread()
+                    pending = True
 
     threading.Thread(target=trigger_line, daemon=True).start()
 
@@ -770,6 +780,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--width", type=int, default=720)
     p.add_argument("--height", type=int, default=540)
     p.add_argument("--trigger-frequency", type=float, default=4000.0, help="[Hz]")
+    p.add_argument("--wake-on-edge", action="store_true",
+                   help="wake the streaming thread on each line edge (see FakeCamera)")
     p.add_argument("--genicam", default=None, help="GenICam XML file (default: the built-in one)")
     args = p.parse_args(argv)
     if args.genicam is None:
