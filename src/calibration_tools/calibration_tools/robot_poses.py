@@ -119,7 +119,7 @@ def pose_matrix(position, orientation_xyzw, what: str = 'pose') -> np.ndarray:
         Wrong counts, non-finite numbers, a position beyond :data:`MAX_REACH_M` or a
         quaternion that is not a unit one.
     """
-    from scipy.spatial.transform import Rotation
+    from galvoscan_common.tf_tree import transform_from_tq
 
     p = _numbers(position, 3, f'{what}: position')
     q = _numbers(orientation_xyzw, 4, f'{what}: orientation')
@@ -131,20 +131,15 @@ def pose_matrix(position, orientation_xyzw, what: str = 'pose') -> np.ndarray:
     if abs(norm - 1.0) > QUATERNION_NORM_TOL:
         raise ValueError(f'{what}: orientation is not a unit quaternion (norm {norm:.6g}); '
                          'give x, y, z, w with w last')
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_quat(q / norm).as_matrix()  # scipy: x, y, z, w
-    T[:3, 3] = p
-    return T
+    return transform_from_tq(p, q / norm)
 
 
 def pose_fields(T) -> tuple[list, list]:
     """``(position [m], quaternion x y z w)`` of a (4, 4) rigid transform, as plain floats."""
-    from scipy.spatial.transform import Rotation
+    from galvoscan_common.tf_tree import quaternion_from_matrix
 
     T = np.asarray(T, dtype=np.float64)
-    q = Rotation.from_matrix(T[:3, :3]).as_quat()
-    if q[3] < 0:
-        q = -q
+    q = quaternion_from_matrix(T)  # w >= 0
     return [float(v) for v in T[:3, 3]], [float(v) for v in q]
 
 
