@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 
 from reconstructor.model import (
     CameraIntrinsics,
+    PhysicalGeometry,
     RigModel,
     rigid_inverse,
     undistort_points,
@@ -234,8 +235,10 @@ class RefineResult:
 _INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
 
 
-def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics=()):
+def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics=(),
+                 refine_physical=()):
     names = [f"intrinsics.{n}" for n in refine_intrinsics]
+    names += [f"physical.{n}" for n in refine_physical]
     if refine_l_d:
         names += ["l", "d"]
     if refine_mirrors:
@@ -253,6 +256,8 @@ def _get_param(model, name):
     mirror, attr = name.split(".")
     if mirror == "intrinsics":
         return getattr(model.intrinsics, attr)
+    if mirror == "physical":
+        return _physical_value(model.physical or PhysicalGeometry(), attr)
     mp = getattr(model, mirror)
     if attr.startswith("poly"):
         j = int(attr[5:-1])
@@ -266,6 +271,7 @@ def _set_params(model: RigModel, names, values) -> RigModel:
     mirror_kw = {"g1_pan": {}, "g1_tilt": {}}
     polys = {key: list(mirrors[key].poly) for key in mirrors}
     intr_kw = {}
+    phys = None
     for name, value in zip(names, values, strict=True):
         if name in ("l", "d"):
             kw[name] = float(value)
@@ -273,6 +279,14 @@ def _set_params(model: RigModel, names, values) -> RigModel:
         mirror, attr = name.split(".")
         if mirror == "intrinsics":
             intr_kw[attr] = float(value)
+            continue
+        if mirror == "physical":
+            phys = phys or (model.physical or PhysicalGeometry()).to_dict()
+            field_name, j = _physical_key(attr)
+            if j is None:
+                phys[field_name] = float(value)
+            else:
+                phys[field_name][j] = float(value)
             continue
         if attr.startswith("poly"):
             j = int(attr[5:-1])
@@ -287,7 +301,23 @@ def _set_params(model: RigModel, names, values) -> RigModel:
             kw[key] = dataclasses.replace(mirrors[key], **changes)
     if intr_kw:
         kw["intrinsics"] = dataclasses.replace(model.intrinsics, **intr_kw)
+    if phys is not None:
+        kw["physical"] = PhysicalGeometry.from_dict(phys)
     return dataclasses.replace(model, **kw) if kw else model
+
+
+def _physical_key(attr: str):
+    """``'camera_rotation[2]'`` -> ('camera_rotation', 2); ``'g1_axes_angle'`` -> (.., None)."""
+    if attr.endswith("]"):
+        field_name, j = attr[:-1].split("[")
+        return field_name, int(j)
+    return attr, None
+
+
+def _physical_value(phys: PhysicalGeometry, attr: str) -> float:
+    field_name, j = _physical_key(attr)
+    value = getattr(phys, field_name)
+    return float(value if j is None else value[j])
 
 
 def _check_observations(observations, poses) -> list:
@@ -310,6 +340,8 @@ def _param_scale(names, n_pose: int) -> np.ndarray:
             scale.append(1.0)
         elif n in ("l", "d"):
             scale.append(1e-3)
+        elif n.startswith("physical."):
+            scale.append(1e-4)
         elif n.endswith(".k"):
             scale.append(1e-5)
         elif n.endswith("theta0"):
@@ -486,6 +518,7 @@ def refine(
     refine_poly: int = 0,
     refine_pose: bool = True,
     refine_intrinsics: Sequence[str] = (),
+    refine_physical: Sequence[str] = (),
     loss: str = "linear",
     f_scale_px: float = 1.0,
     ellipse_correction: bool = True,
@@ -542,7 +575,8 @@ def refine(
     if bad:
         raise ValueError(f"refine_intrinsics must name {_INTRINSIC_NAMES}, got {bad}")
     names = _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly,
-                         tuple(dict.fromkeys(refine_intrinsics)))
+                         tuple(dict.fromkeys(refine_intrinsics)),
+                         tuple(dict.fromkeys(refine_physical)))
     prob = _build_problem(model, obs, board, poses, names, refine_pose, ellipse_correction)
     sol_x, success, message, jac = _solve(prob, loss, f_scale_px, max_nfev)
     m, Ts = prob.unpack(sol_x)

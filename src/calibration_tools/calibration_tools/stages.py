@@ -233,11 +233,18 @@ def correlation(cov) -> np.ndarray:
         return c / np.outer(sd, sd)
 
 
+#: Top-level model keys a stage may add to a paper model: the switch to the physical model.
+_PHYSICAL_KEYS = ('model', 'physical')
+
+
 def _merge(base: dict, updates: dict, prefix: str = '') -> dict:
     out = dict(base)
     for key, value in updates.items():
-        if key not in base:
+        if key not in base and not (prefix == '' and key in _PHYSICAL_KEYS):
             raise ValueError(f'stage update names unknown model key {prefix}{key}')
+        if key not in base:
+            out[key] = value
+            continue
         if isinstance(value, dict):
             out[key] = _merge(base[key], value, f'{prefix}{key}.')
         else:

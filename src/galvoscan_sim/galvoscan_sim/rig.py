@@ -466,6 +466,93 @@ class Rig:
             not self.geometric_imperfection)
 
 
+    def physical_model_parameters(self, u2_pan: float = 0.0) -> dict:
+        """This rig in the terms of the reconstruction's *physical* mirror model (issue 20).
+
+        Reporting only, like :meth:`true_model_parameters`: the mirrors' actual axes, surface
+        offsets and responses re-expressed in that model's gauge (the G1 pan axis along -z
+        through the origin, the common perpendicular of the two G1 axes along y), as a dict
+        keyed like the model's ``to_dict()`` (``l``, ``d``, ``g1_pan``, ``g1_tilt``,
+        ``g2_tilt`` responses, ``physical`` deviations) plus the laser parameters of
+        :meth:`true_model_parameters`. That model reproduces this rig's ``V0_T_V`` and laser
+        planes exactly (to round-off) when DAC quantisation and jitter are left out.
+        """
+        g1 = self.g1
+        a1, p1 = g1.pan.axis_direction, g1.pan.axis_point
+        a2, p2 = g1.tilt.axis_direction, g1.tilt.axis_point
+        common = unit(np.cross(a1, a2), 'G1 axes common perpendicular')
+        s, t, _ = np.linalg.solve(np.array([a1, -a2, -common]).T, p2 - p1)
+        foot = p1 + s * a1
+        y = p2 + t * a2 - foot
+        d = float(np.linalg.norm(y))
+        z = -a1
+        y = y / d
+        R = np.array([np.cross(y, z), y, z])  # rows: the model's G axes in this rig's G
+        Gm_T_G = make_transform(R, -R @ foot)
+        a2m = R @ a2
+        beta = math.atan2(a2m[2], a2m[0])
+        a1m = np.array([0.0, 0.0, -1.0])
+        r1 = R @ g1.pan.reference_normal
+        r2 = R @ g1.tilt.reference_normal
+        perp2 = np.array([math.sin(beta), 0.0, -math.cos(beta)])
+        G_T_C = Gm_T_G @ self.G_T_C
+        rot = _M0_ROT.T @ G_T_C[:3, :3]
+        centre = G_T_C[:3, 3]
+        tp = self.true_model_parameters(u2_pan)
+        # the G2 tilt mirror at U2 = 0, in V0
+        applied = self.applied_voltages(np.array([0.0, 0.0, u2_pan, 0.0]))
+        th = self.mirror_angles(applied)
+        V0_T_G2 = invert_transform(self.G_T_V0) @ self.G_T_G2
+        m0 = V0_T_G2[:3, :3] @ self.g2.tilt.normal(th[3])
+        n = tp.n
+        u = unit(tp.pi0[:3] - float(tp.pi0[:3] @ n) * n, 'laser normal across the axis')
+        v = np.cross(n, u)
+        return {
+            'l': float(-centre[0]), 'd': d,
+            'g1_pan': _response(g1.pan_drive, _angle_about(a1m, np.array([1.0, 0.0, 0.0]), r1)),
+            'g1_tilt': _response(g1.tilt_drive, _angle_about(a2m, perp2, r2)),
+            'g2_tilt': _response(self.g2.tilt_drive, 0.0),
+            'laser_plane_v0': tp.pi0.tolist(), 'laser_axis_dir': n.tolist(),
+            'laser_axis_point': tp.P.tolist(),
+            'physical': {
+                'camera_rotation': _rotation_vector(rot).tolist(),
+                'camera_offset': [float(centre[1]), float(centre[2])],
+                'g1_axes_angle': beta,
+                'g1_pan_surface_offset': g1.pan.surface_offset,
+                'g1_pan_normal_tilt': math.asin(float(np.clip(r1 @ a1m, -1.0, 1.0))),
+                'g1_tilt_surface_offset': g1.tilt.surface_offset,
+                'g1_tilt_normal_tilt': math.asin(float(np.clip(r2 @ a2m, -1.0, 1.0))),
+                'g2_tilt_surface_offset': self.g2.tilt.surface_offset,
+                'g2_tilt_normal_tilt': math.asin(float(np.clip(m0 @ n, -1.0, 1.0))),
+                'g2_tilt_normal_angle': math.atan2(float(m0 @ v), float(m0 @ u)),
+            },
+        }
+
+
+def _response(drive: MirrorDrive, delta: float) -> dict:
+    """A drive as the model's polynomial response, its angle measured ``delta`` further on."""
+    fs = drive.full_scale
+    c2, c3 = drive.nonlinearity
+    return {'theta0': drive.theta0 + drive.zero_offset + delta,
+            'k': drive.gain * (1.0 + drive.gain_error), 'poly': [c2 / fs**2, c3 / fs**3]}
+
+
+def _angle_about(axis, a, b) -> float:
+    """Signed angle from ``a`` to ``b`` about ``axis``, both taken across the axis [rad]."""
+    a = a - float(a @ axis) * axis
+    b = b - float(b @ axis) * axis
+    return math.atan2(float(np.cross(a, b) @ axis), float(a @ b))
+
+
+def _rotation_vector(R) -> np.ndarray:
+    """The rotation vector of a rotation matrix (angle below pi)."""
+    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0)))
+    if angle < 1e-15:
+        return np.zeros(3)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * (angle / (2.0 * math.sin(angle)))
+
+
 # ====================================================================== loading
 
 def _pose(sec: Section, name: str) -> np.ndarray:

@@ -22,6 +22,7 @@ from reconstructor.geometry.galvo import (
     tilt_factor,
 )
 from reconstructor.geometry.laser import laser_plane_v, laser_plane_v0, transform_plane
+from reconstructor.geometry.physical import PhysicalGeometry
 from reconstructor.geometry.rig import JointCorrection, RigModel, nominal_example_rig, v0_T_v
 from reconstructor.geometry.triangulation import (
     DEFAULT_MIN_RAY_PLANE_ANGLE,
@@ -39,6 +40,7 @@ __all__ = [
     "CameraIntrinsics",
     "JointCorrection",
     "MirrorParams",
+    "PhysicalGeometry",
     "RigModel",
     "TriangulationResult",
     "distort_normalised",

@@ -67,6 +67,8 @@ def laser_plane_v0(model: RigModel, u2_tilt) -> np.ndarray:
     """
     u = as_float_array(u2_tilt, "u2_tilt")
     pre = model._pre
+    if pre.g2 is not None:
+        return pre.g2.plane(model.g2_tilt.angle(u) - model.g2_tilt.theta0)
     alpha = 2.0 * (model.g2_tilt.angle(u) - model.g2_tilt.theta0)
     c = np.cos(alpha)[..., None]
     s = np.sin(alpha)[..., None]
@@ -79,6 +81,9 @@ def laser_plane_v0(model: RigModel, u2_tilt) -> np.ndarray:
 def laser_plane_v0_scalar(model: RigModel, u2_tilt: float) -> tuple[float, float, float, float]:
     """``laser_plane_v0`` for one float voltage, as a tuple (fast single-frame path)."""
     pre = model._pre
+    if pre.g2 is not None:
+        return tuple(float(v) for v in pre.g2.plane(
+            model.g2_tilt.angle(float(u2_tilt)) - model.g2_tilt.theta0))
     alpha = 2.0 * (model.g2_tilt.angle(u2_tilt) - model.g2_tilt.theta0)
     c, s = math.cos(alpha), math.sin(alpha)
     w = 1.0 - c

@@ -13,6 +13,10 @@ import numpy as np
 from .camera import CameraIntrinsics
 from .checks import as_float_array, check_keys, finite_scalar, finite_vector, unit_vector
 from .galvo import MirrorParams, g_T_v, g_T_v_scalar, rigid_inverse
+from .physical import G1Geometry, G2TiltGeometry, PhysicalGeometry
+
+#: The two forms of the model: the paper's (l, d, ideal mirrors) and the physical one.
+MODEL_KINDS = ("paper", "physical")
 
 
 @runtime_checkable
@@ -53,6 +57,10 @@ class RigModel:
     correction : JointCorrection or None
         Optional joint-correction table; when set, triangulated V0 points are mapped through
         ``correction.V0c_T_V0(u1_pan, u1_tilt)``. Not serialised by :meth:`to_dict`.
+    physical : PhysicalGeometry or None
+        None: the paper's model. Set: the physical mirror model (:mod:`.physical`), whose
+        deviations from the paper's ideal mirrors these are; l, d, the mirror responses and
+        the laser parameters keep their meaning.
     """
 
     intrinsics: CameraIntrinsics
@@ -65,6 +73,12 @@ class RigModel:
     laser_axis_point: np.ndarray
     g2_tilt: MirrorParams
     correction: Any = None
+    physical: Any = None
+
+    @property
+    def kind(self) -> str:
+        """``'paper'`` or ``'physical'``."""
+        return "paper" if self.physical is None else "physical"
 
     def __post_init__(self):
         if not isinstance(self.intrinsics, CameraIntrinsics):
@@ -84,11 +98,20 @@ class RigModel:
             getattr(self.correction, "V0c_T_V0", None)
         ):
             raise ValueError("correction must be None or have a V0c_T_V0(u1_pan, u1_tilt) method")
+        if self.physical is not None and not isinstance(self.physical, PhysicalGeometry):
+            raise ValueError("physical must be None or a PhysicalGeometry")
 
     @cached_property
     def _pre(self) -> SimpleNamespace:
         """Quantities that depend on the model only (computed once, model is immutable)."""
-        g0 = g_T_v_scalar(self.g1_pan.theta0, self.g1_tilt.theta0, self.l, self.d)
+        g1 = g2 = None
+        if self.physical is not None:
+            g1 = G1Geometry.build(self.physical, self.l, self.d)
+            g2 = G2TiltGeometry.build(self.physical, self.laser_plane_v0, self.laser_axis_dir,
+                                      self.laser_axis_point)
+            g0 = g1.g_T_v_scalar(self.g1_pan.theta0, self.g1_tilt.theta0)
+        else:
+            g0 = g_T_v_scalar(self.g1_pan.theta0, self.g1_tilt.theta0, self.l, self.d)
         n0 = self.laser_plane_v0[:3]
         e0 = float(self.laser_plane_v0[3])
         n = self.laser_axis_dir
@@ -96,6 +119,8 @@ class RigModel:
         m = np.cross(n, n0)
         q = float(n @ n0) * n
         return SimpleNamespace(
+            g1=g1,
+            g2=g2,
             g0_inv=rigid_inverse(g0),
             n0=n0,
             m=m,
@@ -111,9 +136,13 @@ class RigModel:
 
     # ----------------------------------------------------------------- dict form
     def to_dict(self) -> dict:
-        """Plain floats and lists in SI units, suitable for YAML. ``correction`` is omitted."""
+        """Plain floats and lists in SI units, suitable for YAML. ``correction`` is omitted.
+
+        A physical model adds ``model: physical`` and its ``physical`` section; a paper model
+        has neither (files written before the physical model read unchanged).
+        """
         i = self.intrinsics
-        return {
+        out = {
             "intrinsics": {
                 "fx": i.fx,
                 "fy": i.fy,
@@ -132,6 +161,10 @@ class RigModel:
             "laser_axis_point": [float(v) for v in self.laser_axis_point],
             "g2_tilt": self.g2_tilt.to_dict(),
         }
+        if self.physical is not None:
+            out["model"] = "physical"
+            out["physical"] = self.physical.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, data: dict, correction=None) -> RigModel:
@@ -143,7 +176,17 @@ class RigModel:
             Naming the key (dotted path, e.g. ``intrinsics.fx``) that is missing, unknown,
             non-finite or of the wrong shape.
         """
-        check_keys(data, _TOP_KEYS, "")
+        if not isinstance(data, dict):
+            raise ValueError(f"model must be a mapping, got {type(data).__name__}")
+        kind = data.get("model", "paper")
+        if kind not in MODEL_KINDS:
+            raise ValueError(f"model.model must be one of {', '.join(MODEL_KINDS)}, "
+                             f"got {kind!r}")
+        check_keys({k: v for k, v in data.items() if k != "model"},
+                   _TOP_KEYS + (("physical",) if kind == "physical" else ()), "")
+        physical = None
+        if kind == "physical":
+            physical = _wrap_plain(lambda: PhysicalGeometry.from_dict(data["physical"]))
         intr = data["intrinsics"]
         check_keys(intr, _INTR_KEYS, "intrinsics.")
         intr_values = {key: _num(intr[key], f"intrinsics.{key}") for key in _INTR_KEYS[:4]}
@@ -160,6 +203,7 @@ class RigModel:
             laser_axis_dir=_vec(data["laser_axis_dir"], "laser_axis_dir", 3),
             laser_axis_point=_vec(data["laser_axis_point"], "laser_axis_point", 3),
             correction=correction,
+            physical=physical,
             **mirrors,
         )
 
@@ -206,6 +250,14 @@ def _mirror_from_dict(data, name) -> MirrorParams:
     return _wrap(name, lambda: MirrorParams(theta0=theta0, k=k, poly=coeffs))
 
 
+def _wrap_plain(build):
+    """Run a constructor whose ValueErrors already name their keys; others become ValueError."""
+    try:
+        return build()
+    except (TypeError, KeyError) as exc:
+        raise ValueError(f"physical: {exc}") from None
+
+
 def _wrap(prefix, build):
     """Run a constructor; prefix its ValueError with the dict section it came from."""
     try:
@@ -231,15 +283,23 @@ def v0_T_v(model: RigModel, u1_pan, u1_tilt) -> np.ndarray:
     """
     up = as_float_array(u1_pan, "u1_pan")
     ut = as_float_array(u1_tilt, "u1_tilt")
-    return model._pre.g0_inv @ g_T_v(
+    pre = model._pre
+    if pre.g1 is not None:
+        return pre.g0_inv @ pre.g1.g_T_v(model.g1_pan.angle(up), model.g1_tilt.angle(ut))
+    return pre.g0_inv @ g_T_v(
         model.g1_pan.angle(up), model.g1_tilt.angle(ut), model.l, model.d
     )
 
 
 def v0_T_v_scalar(model: RigModel, u1_pan: float, u1_tilt: float) -> np.ndarray:
     """``v0_T_v`` for float voltages (single-frame fast path), shape (4, 4)."""
-    G = g_T_v_scalar(model.g1_pan.angle(u1_pan), model.g1_tilt.angle(u1_tilt), model.l, model.d)
-    return model._pre.g0_inv @ G
+    pre = model._pre
+    if pre.g1 is not None:
+        G = pre.g1.g_T_v_scalar(model.g1_pan.angle(u1_pan), model.g1_tilt.angle(u1_tilt))
+    else:
+        G = g_T_v_scalar(model.g1_pan.angle(u1_pan), model.g1_tilt.angle(u1_tilt), model.l,
+                         model.d)
+    return pre.g0_inv @ G
 
 
 def nominal_example_rig(dist=(0.0, 0.0, 0.0, 0.0, 0.0), standoff: float = 0.65) -> RigModel:
