@@ -408,8 +408,12 @@ class _RefineProblem:
         return project_circle_centres(m.intrinsics, V_T_W[self.view_of], self.P, self.radii)
 
     def fun(self, z):
-        """Flat residual vector for the solver (non-finite residuals replaced by 1e6 px)."""
-        r = (self.predict(z) - self.uv_obs).ravel()
+        """Flat residual vector for the solver (non-finite residuals replaced by 1e6 px; a
+        trial step beyond a physical deviation's plausible size gets 1e6 px everywhere)."""
+        try:
+            r = (self.predict(z) - self.uv_obs).ravel()
+        except ValueError:
+            return np.full(self.n_residuals, 1e6)
         return np.where(np.isfinite(r), r, 1e6)
 
 

@@ -57,7 +57,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 
 from calibration_tools import robot_poses, stage_runner
-from calibration_tools.registry import plan
+from calibration_tools.registry import OVERRIDABLE, plan
 from calibration_tools.registry import stage as stage_entry
 from calibration_tools.stages import KNOWN_STAGES, apply_result
 from galvoscan_bag.writer import BagWriter
@@ -144,6 +144,9 @@ class CalibrationNode(Node):
             description='where captured bags go'))
         self.declare_parameter('quick', False, ParameterDescriptor(
             description='reduced capture plans (tests)'))
+        self.declare_parameter('model', 'physical', ParameterDescriptor(
+            description="model form the dynamic_camera stage fits: 'physical' (each mirror a "
+                        "plane on its own axis) or 'paper' (the paper's model as published)"))
         self.declare_parameter('cell_reference', '', ParameterDescriptor(
             description='cell_extrinsic: YAML of the robot-reported sphere positions in the '
                         'cell frame (calibration_tools.cell_extrinsic.read_reference)'))
@@ -393,7 +396,10 @@ class CalibrationNode(Node):
 
     def _inputs(self, stage: str) -> dict:
         """What the operator supplies for ``stage`` (node parameters named as its inputs)."""
-        return {k: self.get_parameter(k).value for k in stage_entry(stage).inputs}
+        entry = stage_entry(stage)
+        out = {k: self.get_parameter(k).value for k in entry.inputs}
+        out.update({k: self.get_parameter(k).value for k in OVERRIDABLE if k in entry.options})
+        return out
 
     # -- compute ----------------------------------------------------------------------
     def _on_compute(self, req, resp):

@@ -36,6 +36,7 @@ The building blocks live in :mod:`.circle_board`
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -62,6 +63,19 @@ from .board_identify import (
 from .board_layout import PAPER_CIRCLE_BOARD, CircleBoard
 from .circle_board import CircleDetections, detect_circles
 from .stages import CaptureView, StageResult
+
+#: The Galvanometer-1 deviations of the physical model (``reconstructor.geometry.physical``)
+#: and the mounting tolerance of each (1 sigma of a careful build; SI units). A deviation is
+#: freed only when the views pin it to better than ``OBSERVABLE_FRACTION`` of its tolerance.
+G1_PHYSICAL_TOLERANCES = {
+    "camera_rotation[0]": 2e-3, "camera_rotation[1]": 2e-3, "camera_rotation[2]": 2e-3,
+    "camera_offset[0]": 5e-4, "camera_offset[1]": 5e-4, "g1_axes_angle": 1e-3,
+    "g1_pan_surface_offset": 3e-4, "g1_pan_normal_tilt": 1e-3,
+    "g1_tilt_surface_offset": 3e-4, "g1_tilt_normal_tilt": 1e-3,
+}
+OBSERVABLE_FRACTION = 0.3
+#: The model forms a calibration can be made for (``reconstructor.geometry.rig``).
+MODEL_KINDS = ("paper", "physical")
 
 #: The paper's verification grid: -10 V to 10 V in 4 V steps on both G1 axes (36 positions).
 PAPER_GRID_VOLTAGES = np.arange(-10.0, 10.0 + 1e-9, 4.0)
@@ -341,6 +355,7 @@ def run_dynamic_camera(
     refine_theta0: bool = True,
     refine_poly: int = 0,
     refine_intrinsics: Sequence[str] = (),
+    model: str = "paper",
     min_circles: int = 2,
     dark_circles: bool = True,
     max_offset_pitch: float = 0.25,
@@ -372,6 +387,11 @@ def run_dynamic_camera(
         remove the ~0.2 mm bias of l that Zhang-sized errors cause. On the reference rig the
         freedom absorbs mechanical imperfections instead (cx moved 39 px; cx and θ0 trade,
         module docstring), and the transfer matrices got worse, hence off.
+    model : str
+        ``'paper'``: the paper's model (l, d, ideal mirrors). ``'physical'``: the physical
+        mirror model; its Galvanometer-1 deviations (:data:`G1_PHYSICAL_TOLERANCES`) are
+        refined jointly in the final fit, each only where the views determine it
+        (:func:`observable_physical_fit`); the rest stay at zero and ``extra`` says why.
     min_circles : int
         Views with fewer complete circles are rejected.
     dark_circles : bool
@@ -398,7 +418,11 @@ def run_dynamic_camera(
         raise ValueError("board must be a CircleBoard")
     if min_circles < 1:
         raise ValueError(f"min_circles must be >= 1, got {min_circles}")
+    if model not in MODEL_KINDS:
+        raise ValueError(f"model must be one of {', '.join(MODEL_KINDS)}, got {model!r}")
     model0: RigModel = calibration.model
+    if model == "paper":  # the paper's method as published: no physical deviations
+        model0 = dataclasses.replace(model0, physical=None)
     intr, input_std = model0.intrinsics, intrinsics_standard_errors(calibration)
     det = _detect_views(views, intr, min_circles, dark_circles, progress)
     dets, U, pidx = det.dets, det.U, det.pidx
@@ -418,13 +442,25 @@ def run_dynamic_camera(
     lin, lin_notes = _linear_l_d(obs, pnp, ident.model, U)
     if progress is not None:
         progress(1, 1, "final refinement")
-    fin = _final_fit(ident, lin, obs, board, refine_intrinsics=refine_intrinsics,
-                     input_std=input_std, **refine_kw)
+    fit_kw = dict(refine_intrinsics=refine_intrinsics, input_std=input_std, **refine_kw)
+    physical_fixed = {}
+    if model == "physical":
+        fin, physical_fixed = observable_physical_fit(ident, lin, obs, board, **fit_kw)
+    else:
+        fin = _final_fit(ident, lin, obs, board, **fit_kw)
     residuals, extra = _fit_figures(fin, ident, lin, lin_notes, det.keep, obs)
+    if model == "physical":
+        extra["physical_fixed"] = physical_fixed
+        extra["physical_freed"] = [n for n in G1_PHYSICAL_TOLERANCES if n not in physical_fixed]
     if refine_intrinsics:  # PnP again with the final intrinsics
         pnp = _pnp_transfers(fin.model.intrinsics, board, obs, only=pnp)
     _verify_transfers(fin.model, fin, obs, pnp, U, residuals, extra)
     updates = _stage_updates(fin.model, refine_intrinsics=refine_intrinsics, **refine_kw)
+    if model == "physical":
+        updates["model"] = "physical"
+        updates["physical"] = fin.model.physical.to_dict()
+    elif calibration.model.physical is not None:
+        updates["model"] = "paper"
     return StageResult(
         stage="dynamic_camera", residuals=residuals, rejected=det.rejected, updates=updates,
         samples_used=len(accepted), samples_rejected=len(views) - len(accepted),
@@ -600,6 +636,33 @@ def _final_fit(ident, lin, obs, board, **refine_kw):
     fin = refine(start, obs, board, poses, **refine_kw)
     alt = refine(m_id, obs, board, poses, **refine_kw) if start is not m_id else fin
     return alt if alt.rms_px < fin.rms_px - 1e-9 else fin
+
+
+def observable_physical_fit(ident, lin, obs, board, **fit_kw):
+    """The final fit with every G1 deviation of the physical model that the views determine.
+
+    All candidates are freed; those whose standard error (board poses free, the held
+    intrinsics' uncertainty propagated) exceeds ``OBSERVABLE_FRACTION`` of their mounting
+    tolerance are fixed at zero, the worst first, and the fit repeated. Returns the fit and
+    ``{name: reason}`` of the fixed ones.
+    """
+    free = list(G1_PHYSICAL_TOLERANCES)
+    fixed = {}
+    while True:
+        fin = _final_fit(ident, lin, obs, board, refine_physical=free, **fit_kw)
+        ratio = {n: fin.std.get(f"physical.{n}", math.inf) / G1_PHYSICAL_TOLERANCES[n]
+                 for n in free}
+        bad = {n: r for n, r in ratio.items() if not r <= OBSERVABLE_FRACTION}
+        if not bad:
+            return fin, fixed
+        worst = max(bad, key=lambda n: bad[n] if math.isfinite(bad[n]) else math.inf)
+        sd = fin.std.get(f"physical.{worst}", math.inf)
+        fixed[worst] = (f"not determined by these views: standard error {sd:.3g} would exceed "
+                        f"{OBSERVABLE_FRACTION:g} x its mounting tolerance "
+                        f"{G1_PHYSICAL_TOLERANCES[worst]:.3g} (SI units); held at 0")
+        free.remove(worst)
+        if not free:
+            return _final_fit(ident, lin, obs, board, **fit_kw), fixed
 
 
 def _stage_updates(m, *, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics) -> dict:

@@ -93,7 +93,8 @@ def _run_dynamic_camera(views, calibration, options, report):
                          f'capture plan (0..{len(placed) - 1})')
     priors = {p: placed[p] for p in poses}
     return run_dynamic_camera(views, calibration, options['board'], board_pose=priors,
-                              refine_poly=options['refine_poly'], progress=report)
+                              refine_poly=options['refine_poly'], model=options['model'],
+                              progress=report)
 
 
 def board_views(views: Sequence[CaptureView]) -> list[CaptureView]:
@@ -201,7 +202,8 @@ REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
     Stage('dynamic_camera',
           lambda model, quick: cp.dynamic_camera_steps(
               model, [20] if quick else [40, 12, 12, 12, 12]),
-          _run_dynamic_camera, _options(refine_poly=2), targets=_circle_board),
+          _run_dynamic_camera, _options(refine_poly=2, model='physical'),
+          targets=_circle_board),
     Stage('laser_plane',
           lambda model, quick: cp.laser_plane_steps(model, 1 if quick else 2),
           _laser_stage(_laser_plane_solver), targets=_laser_board),
@@ -243,6 +245,11 @@ def stage(name: str) -> Stage:
             from None
 
 
+#: Stage options an operator may set per run (node parameter or offline flag of that name):
+#: ``model``, the model form (``paper`` or ``physical``) the dynamic-camera stage fits.
+OVERRIDABLE = ('model',)
+
+
 def stage_inputs(name: str, inputs=None) -> dict:
     """The stage's options with the operator's ``inputs`` merged in, every required one present.
 
@@ -253,7 +260,7 @@ def stage_inputs(name: str, inputs=None) -> dict:
     """
     entry = stage(name)
     given = {k: v for k, v in dict(inputs or {}).items() if v not in (None, '')}
-    unknown = sorted(set(given) - set(entry.inputs))
+    unknown = sorted(set(given) - set(entry.inputs) - (set(OVERRIDABLE) & set(entry.options)))
     if unknown:
         raise ValueError(f"{name} takes no input {', '.join(unknown)}")
     missing = [k for k in entry.inputs if k not in given]
@@ -318,7 +325,7 @@ def run(name: str, views: Sequence[CaptureView], calibration,
         progress: Callable | None = None, inputs=None) -> StageResult:
     """Run the registered solver of stage ``name`` (``stage_runner.compute`` checks the input)."""
     entry = stage(name)
-    options = {**stage_inputs(name, inputs), **stage_options(name, calibration)}
+    options = {**stage_options(name, calibration), **stage_inputs(name, inputs)}
 
     def report(done, total, message=''):
         if progress is not None:

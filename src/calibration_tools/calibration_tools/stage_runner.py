@@ -166,6 +166,8 @@ def flatten(updates: dict, prefix: str = '') -> dict:
         elif isinstance(value, (list, tuple, np.ndarray)):
             for j, v in enumerate(np.asarray(value, dtype=np.float64).ravel()):
                 out[f'{name}[{j}]'] = float(v)
+        elif isinstance(value, str):  # the model form ('physical'): its keys say it
+            continue
         else:
             out[name] = float(value)
     return out

@@ -267,7 +267,10 @@ def apply_result(calibration, result: StageResult, sources=()):
 
     if result.stage not in KNOWN_STAGES:
         raise ValueError(f"stage: unknown '{result.stage}'")
-    model = RigModel.from_dict(_merge(calibration.model.to_dict(), result.updates))
+    merged = _merge(calibration.model.to_dict(), result.updates)
+    if merged.get('model') == 'paper':  # back to the paper's model: no physical section
+        merged.pop('physical', None)
+    model = RigModel.from_dict(merged)
     errors = _flat_errors(result.standard_errors)
     _check_errors(errors, result)
     stages = dict(calibration.stages)

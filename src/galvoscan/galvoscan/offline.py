@@ -83,6 +83,9 @@ def _parser() -> argparse.ArgumentParser:
                         'quaternion x y z w)')
     p.add_argument('--artefact', metavar='FILE',
                    help="hand_eye: the artefact's sphere layout and where it stands (YAML)")
+    p.add_argument('--model', choices=('physical', 'paper'), default=None,
+                   help="dynamic_camera: the model form to fit (default physical; paper: the "
+                        "paper's model as published)")
     return p
 
 
@@ -94,8 +97,11 @@ _INPUT_OPTIONS = {'reference': 'cell_reference', 'robot_poses': 'robot_poses',
 
 def _inputs(args) -> dict:
     """The operator's inputs for the stage, from the options given."""
-    return {name: getattr(args, option) for option, name in _INPUT_OPTIONS.items()
-            if getattr(args, option)}
+    out = {name: getattr(args, option) for option, name in _INPUT_OPTIONS.items()
+           if getattr(args, option)}
+    if getattr(args, 'model', None) and args.stage == 'dynamic_camera':
+        out['model'] = args.model
+    return out
 
 
 def _starting_calibration(args, fresh: bool):
