@@ -391,7 +391,8 @@ def run_dynamic_camera(
         ``'paper'``: the paper's model (l, d, ideal mirrors). ``'physical'``: the physical
         mirror model; its Galvanometer-1 deviations (:data:`G1_PHYSICAL_TOLERANCES`) are
         refined jointly in the final fit, each only where the views determine it
-        (:func:`observable_physical_fit`); the rest stay at zero and ``extra`` says why.
+        (:func:`fit_observable`); the rest keep their starting value (zero from the paper's
+        model) and ``extra['dynamic_camera']['physical_fixed']`` says why.
     min_circles : int
         Views with fewer complete circles are rejected.
     dark_circles : bool
@@ -639,30 +640,49 @@ def _final_fit(ident, lin, obs, board, **refine_kw):
 
 
 def observable_physical_fit(ident, lin, obs, board, **fit_kw):
-    """The final fit with every G1 deviation of the physical model that the views determine.
+    """The final fit with every G1 deviation of the physical model that the views determine
+    (:func:`fit_observable`). Returns the fit and ``{name: reason}`` of the held ones."""
+    return fit_observable(
+        lambda free: _final_fit(ident, lin, obs, board, refine_physical=free, **fit_kw),
+        lambda: _final_fit(ident, lin, obs, board, **fit_kw))
 
-    All candidates are freed; those whose standard error (board poses free, the held
-    intrinsics' uncertainty propagated) exceeds ``OBSERVABLE_FRACTION`` of their mounting
-    tolerance are fixed at zero, the worst first, and the fit repeated. Returns the fit and
-    ``{name: reason}`` of the fixed ones.
+
+def fit_observable(fit, fit_without, tolerances=None, fraction: float = OBSERVABLE_FRACTION):
+    """Free the physical deviations the data determine, hold the rest at zero.
+
+    All candidates (``tolerances``' keys, default :data:`G1_PHYSICAL_TOLERANCES`) are freed;
+    those whose standard error (board poses free, the held intrinsics' uncertainty
+    propagated) exceeds ``fraction`` of their mounting tolerance are held at their starting
+    value (zero from the paper's model), the worst first, and the fit repeated.
+
+    Parameters
+    ----------
+    fit : callable
+        ``fit(free_names) -> RefineResult`` with those physical deviations free.
+    fit_without : callable
+        ``fit_without() -> RefineResult`` with none free (when every one is held).
+
+    Returns
+    -------
+    (RefineResult, dict of str to str)
+        The fit and, per held deviation, why.
     """
-    free = list(G1_PHYSICAL_TOLERANCES)
+    tolerances = G1_PHYSICAL_TOLERANCES if tolerances is None else tolerances
+    free = list(tolerances)
     fixed = {}
-    while True:
-        fin = _final_fit(ident, lin, obs, board, refine_physical=free, **fit_kw)
-        ratio = {n: fin.std.get(f"physical.{n}", math.inf) / G1_PHYSICAL_TOLERANCES[n]
-                 for n in free}
-        bad = {n: r for n, r in ratio.items() if not r <= OBSERVABLE_FRACTION}
+    while free:
+        fin = fit(free)
+        ratio = {n: fin.std.get(f"physical.{n}", math.inf) / tolerances[n] for n in free}
+        bad = {n: r for n, r in ratio.items() if not r <= fraction}
         if not bad:
             return fin, fixed
         worst = max(bad, key=lambda n: bad[n] if math.isfinite(bad[n]) else math.inf)
         sd = fin.std.get(f"physical.{worst}", math.inf)
         fixed[worst] = (f"not determined by these views: standard error {sd:.3g} would exceed "
-                        f"{OBSERVABLE_FRACTION:g} x its mounting tolerance "
-                        f"{G1_PHYSICAL_TOLERANCES[worst]:.3g} (SI units); held at 0")
+                        f"{fraction:g} x its mounting tolerance {tolerances[worst]:.3g} "
+                        f"(SI units); held at its starting value")
         free.remove(worst)
-        if not free:
-            return _final_fit(ident, lin, obs, board, **fit_kw), fixed
+    return fit_without(), fixed
 
 
 def _stage_updates(m, *, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics) -> dict:
