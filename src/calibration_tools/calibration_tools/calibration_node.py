@@ -144,7 +144,7 @@ class CalibrationNode(Node):
             description='where captured bags go'))
         self.declare_parameter('quick', False, ParameterDescriptor(
             description='reduced capture plans (tests)'))
-        self.declare_parameter('model', 'physical', ParameterDescriptor(
+        self.declare_parameter('model', 'paper', ParameterDescriptor(
             description="model form the dynamic_camera stage fits: 'physical' (each mirror a "
                         "plane on its own axis) or 'paper' (the paper's model as published)"))
         self.declare_parameter('cell_reference', '', ParameterDescriptor(

@@ -101,3 +101,12 @@ def test_views_at_one_voltage_leave_every_deviation_held_and_say_why():
     assert set(held) == set(G1_PHYSICAL_TOLERANCES)
     assert all("not determined by these views" in why for why in held.values())
     assert fin.model.physical is None
+
+
+def test_the_model_form_is_an_operator_choice_of_the_dynamic_camera_stage_only():
+    from calibration_tools.registry import stage_inputs
+
+    assert stage_inputs("dynamic_camera", {"model": "physical"})["model"] == "physical"
+    assert stage_inputs("dynamic_camera")["model"] == "paper"
+    with pytest.raises(ValueError, match="laser_plane takes no input model"):
+        stage_inputs("laser_plane", {"model": "physical"})
