@@ -82,8 +82,7 @@ def laser_plane_v0_scalar(model: RigModel, u2_tilt: float) -> tuple[float, float
     """``laser_plane_v0`` for one float voltage, as a tuple (fast single-frame path)."""
     pre = model._pre
     if pre.g2 is not None:
-        return tuple(float(v) for v in pre.g2.plane(
-            model.g2_tilt.angle(float(u2_tilt)) - model.g2_tilt.theta0))
+        return pre.g2.plane_scalar(model.g2_tilt.angle(float(u2_tilt)) - model.g2_tilt.theta0)
     alpha = 2.0 * (model.g2_tilt.angle(u2_tilt) - model.g2_tilt.theta0)
     c, s = math.cos(alpha), math.sin(alpha)
     w = 1.0 - c

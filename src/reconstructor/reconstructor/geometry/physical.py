@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import numpy as np
 
@@ -146,6 +147,32 @@ def _turned(axis, ref, theta) -> np.ndarray:
     return c * ref + s * np.cross(axis, ref) + (1.0 - c) * float(axis @ ref) * axis
 
 
+def _turn_terms(axis, ref) -> tuple:
+    """``(ref, axis x ref, (axis . ref) axis)`` as float tuples, for :func:`_turned_scalar`."""
+    cross = np.cross(axis, ref)
+    along = float(axis @ ref) * axis
+    return tuple(float(v) for v in ref), tuple(float(v) for v in cross), \
+        tuple(float(v) for v in along)
+
+
+def _turned_scalar(terms, theta: float) -> tuple:
+    """``Rot(axis, θ) ref`` for one float angle, from :func:`_turn_terms`."""
+    ref, cross, along = terms
+    c, s = math.cos(theta), math.sin(theta)
+    w = 1.0 - c
+    return (c * ref[0] + s * cross[0] + w * along[0], c * ref[1] + s * cross[1] + w * along[1],
+            c * ref[2] + s * cross[2] + w * along[2])
+
+
+def _reflection_scalar(n, c: float) -> np.ndarray:
+    """One reflection about ``n . x = c`` (n a float triple), shape (4, 4)."""
+    a, b, e = n
+    return np.array([[1.0 - 2.0 * a * a, -2.0 * a * b, -2.0 * a * e, 2.0 * c * a],
+                     [-2.0 * a * b, 1.0 - 2.0 * b * b, -2.0 * b * e, 2.0 * c * b],
+                     [-2.0 * a * e, -2.0 * b * e, 1.0 - 2.0 * e * e, 2.0 * c * e],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
 def _reflection(n, c) -> np.ndarray:
     """Reflections about planes ``n · x = c``: n (..., 3), c (...) -> (..., 4, 4)."""
     out = np.zeros(n.shape[:-1] + (4, 4))
@@ -201,8 +228,21 @@ class G1Geometry:
         return _reflection(n2, c2) @ _reflection(n1, c1) @ self.G_T_C
 
     def g_T_v_scalar(self, theta_pan: float, theta_tilt: float) -> np.ndarray:
-        """``g_T_v`` for two float angles (single-frame path), shape (4, 4)."""
-        return self.g_T_v(np.float64(theta_pan), np.float64(theta_tilt))
+        """``g_T_v`` for two float angles (single-frame path), shape (4, 4): the same
+        formulas on plain floats (numpy's per-call cost dominates at this size)."""
+        n1 = _turned_scalar(self._t1, theta_pan)
+        n2 = _turned_scalar(self._t2, theta_tilt)
+        c2 = n2[0] * self.p2[0] + n2[1] * self.p2[1] + n2[2] * self.p2[2] - self.s2
+        H = _reflection_scalar(n2, c2) @ _reflection_scalar(n1, -self.s1)
+        return H @ self.G_T_C
+
+    @cached_property
+    def _t1(self):
+        return _turn_terms(self.a1, self.r1)
+
+    @cached_property
+    def _t2(self):
+        return _turn_terms(self.a2, self.r2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,6 +272,20 @@ class G2TiltGeometry:
         s = phys.g2_tilt_surface_offset
         plane_in = _reflect_plane(m0, float(m0 @ P) - s, np.asarray(plane0, dtype=np.float64))
         return cls(n, m0, P, s, plane_in)
+
+    @cached_property
+    def _terms(self):
+        return _turn_terms(self.n, self.m0), tuple(float(v) for v in self.P), \
+            tuple(float(v) for v in self.plane_in)
+
+    def plane_scalar(self, delta: float) -> tuple:
+        """:meth:`plane` for one float turn, as a tuple (single-frame path)."""
+        terms, P, pin = self._terms
+        m = _turned_scalar(terms, delta)
+        c = m[0] * P[0] + m[1] * P[1] + m[2] * P[2] - self.s
+        dot = m[0] * pin[0] + m[1] * pin[1] + m[2] * pin[2]
+        return (pin[0] - 2.0 * dot * m[0], pin[1] - 2.0 * dot * m[1],
+                pin[2] - 2.0 * dot * m[2], pin[3] + 2.0 * c * dot)
 
     def plane(self, delta) -> np.ndarray:
         """Laser planes for mirror turns ``Δθ`` (...) from U2 = 0: (..., 4), unit normals."""
