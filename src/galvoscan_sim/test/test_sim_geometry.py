@@ -226,7 +226,9 @@ def test_true_parameters_of_the_ideal_rig_are_the_nominal_ones():
         math.pi / 4)
     assert p.k_pan == pytest.approx(math.radians(2.0))
     assert np.allclose(p.n, [1.0, 0.0, 0.0], atol=1e-12)
-    assert np.allclose(p.P, [0.0, 0.30, 0.0], atol=1e-12)
+    # the G2 tilt axis, 100 mm behind V0's origin on the line from the 650 mm crossing
+    # at 24.8 deg (rigs/ideal.yaml)
+    assert np.allclose(p.P, [0.0, 0.30 * 0.75 / 0.65, -0.10], atol=1e-12)
     q = REFERENCE.true_model_parameters()
     assert not q.exact
     # best linear gain absorbs the gain error and the cubic term's linear part
