@@ -18,7 +18,8 @@ pytestmark = pytest.mark.dds
 KEYS = ('stair_step_error_rmse_mm', 'plate_flatness_rmse_mm',
         'plate_flatness_rmse_mm_range_scaled', 'sphere_radius_error_mm',
         'transfer_matrix_error_rmse_mm', 'joint_error_before_mm', 'joint_error_after_mm',
-        'range_x_mm', 'range_y_mm', 'runtime_s')
+        'range_x_mm', 'range_y_mm', 'range_extent_x_mm', 'range_extent_y_mm',
+        'plate_coverage_fraction', 'runtime_s')
 DISTANCES = ('100', '200', '350', '400', '650', '1000')
 BY_DISTANCE = ('200', '1000')   # a short and a long one (each its own graph and calibration)
 
@@ -49,6 +50,13 @@ def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     assert 0.0 <= metrics['cell_sphere_centre_error_mm'] < 0.5
     assert math.isfinite(metrics['cell_extrinsic_error_mm'])
     details = json.loads((out / 'details.json').read_text())
+    # the plate scanned by a raster of views in each pose (decimated with --quick); the range
+    # region's extent holds the range covered
+    for row in details['plate']:
+        assert row['views'] > 1 and row['points'] > 0 and 0.0 < row['coverage_fraction'] <= 1
+    assert metrics['range_extent_x_mm'] >= metrics['range_x_mm']
+    assert set(details['range_views']) == {'x-', 'x+', 'y-', 'y+', 'x-y-', 'x+y-', 'x-y+',
+                                           'x+y+'}
     assert details['stages']['cell_extrinsic']['positions'] == 6
     # the reference rig is set up for 544 mm from its G1 exit mirror, 650 mm deep along V0
     assert abs(metrics['working_distance_mm'] - 544.4) < 0.5
@@ -77,7 +85,8 @@ def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     cvt = metrics['calibrated_vs_true']
     assert {'fx_px', 'l_m', 'd_m', 'laser_axis_direction_error_deg'} <= set(cvt)
     for name in ('report.md', 'calibration.yaml', 'stair_working_point.ply', 'plate.ply',
-                 'sphere.ply', 'stair_error_vs_angle.png', 'stair_error_by_distance.png'):
+                 'sphere.ply', 'stair_error_vs_angle.png', 'stair_error_by_distance.png',
+                 'plate_deviation_map.png'):
         assert (out / name).stat().st_size > 0, name
     text = (out / 'report.md').read_text()
     assert 'paper' in text and 'by working distance' in text and 'Off-nominal' in text

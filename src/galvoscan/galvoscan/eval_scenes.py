@@ -17,6 +17,7 @@ The stair block is the paper's standard component and keeps its size at every di
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,12 @@ STAIR_STEP = 0.03                 # the paper's 30 mm step [m]
 STAIR_TILT = (0.12, -0.35, 0.0)   # rotation vector [rad] that shows the riser to the laser
 SPHERE_RADIUS = 0.0254            # 2 inch calibration sphere [m]
 PLATE_SIZE = 0.74                 # [m]
-PLATE_VIEW_HALF = 0.28            # plate views: aims over +-this on the plate [m]
+#: Plate raster (:func:`plate_raster`): neighbouring views of a row overlap by this
+#: fraction of a view's width.
+PLATE_VIEW_OVERLAP = 0.1
+#: Plate coverage (:func:`plate_coverage`) is counted in this many cells per side of
+#: the plate: 20 mm cells on the paper's 740 mm plate (its calibration board's pitch).
+PLATE_CELLS = 37
 REFERENCE_DEPTH = 0.65            # depth along V0 of the paper's scenes [m]
 STAIR_GRID_HALF = (0.38, 0.33)    # stair positions over +-x, +-y at the reference depth [m]
 #: G1's reach on the reference rig at the reference depth, x and y [m]: where the view axis
@@ -210,8 +216,8 @@ def plate(index: int, site: Site = PAPER_SITE, *, grow: bool = False) -> tuple[s
     plate at 650 mm: a harder test at long range, where the model's angular errors grow in
     millimetres with the distance.
 
-    Returns the scene text and ``{'W_T_O', 'size', 'view_half'}``: the plate's pose (4, 4),
-    its size (2,) [m] and the half extent [m] over which views are aimed on it.
+    Returns the scene text and ``{'W_T_O', 'size'}``: the plate's pose (4, 4) and its size
+    (2,) [m]. The evaluation scans it edge to edge (:func:`plate_raster`).
     """
     R = Rotation.from_rotvec(PLATE_POSES[index % len(PLATE_POSES)])
     t = np.asarray(site.centre_W, dtype=np.float64)
@@ -228,8 +234,88 @@ objects:
     thickness: 0.02
     albedo: 0.5
 """
-    return text, {'W_T_O': _pose(R, t), 'size': (size, size),
-                  'view_half': PLATE_VIEW_HALF * min(factor, *site.lateral)}
+    return text, {'W_T_O': _pose(R, t), 'size': (size, size)}
+
+
+def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
+                 skip: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
+    """G1 views and stripe lines that scan a square plate edge to edge, row by row.
+
+    The stripe lines (one frame each) are evenly spaced over the plate, at most
+    ``max_spacing`` apart, the outermost half a spacing from the edges; ``frames``
+    consecutive lines make one row of views, each view centred on its lines. The views of
+    a row overlap by :data:`PLATE_VIEW_OVERLAP` of their width and the outermost ones reach
+    past the plate's edges. Rows alternate in direction (a serpentine: G1 never jumps back
+    across the plate between rows).
+
+    Parameters
+    ----------
+    size : float
+        The plate's side [m].
+    view : (float, float)
+        One view's width and height on the plate [m] (image size over focal length times
+        the distance).
+    frames : int
+        Stripe lines (frames) per view, at least 1; they must fit in 90 % of its height.
+    max_spacing : float
+        Largest line spacing [m]: below :data:`PLATE_CELLS`' cell size, every cell of the
+        plate is crossed by a line.
+    skip : int
+        Keep every ``skip``-th row and column (centred): a decimated raster that no longer
+        covers the whole plate (``--quick``).
+
+    Returns
+    -------
+    centres : ndarray, shape (n, 2)
+        View centres (x, y) [m] in the plate's frame, in scan order.
+    lines : ndarray, shape (n, frames)
+        The plate y [m] of each view's stripe lines.
+    spacing : float
+        Line spacing [m].
+
+    Raises
+    ------
+    ValueError
+        Bad arguments, or the lines of a view do not fit in it.
+    """
+    w, h = (float(v) for v in view)
+    if frames < 1 or skip < 1 or not (w > 0 and h > 0 and size > 0 and max_spacing > 0):
+        raise ValueError(f'plate_raster: frames {frames}, skip {skip}, view {view}, '
+                         f'size {size}, max_spacing {max_spacing}')
+    n_rows = max(1, math.ceil(size / (frames * max_spacing) - 1e-9))
+    spacing = size / (n_rows * frames)
+    if (frames - 1) * spacing > 0.9 * h:
+        raise ValueError(f'plate_raster: {frames} lines {spacing * 1e3:.1f} mm apart do not '
+                         f'fit in a view {h * 1e3:.1f} mm high')
+    col_step = (1.0 - PLATE_VIEW_OVERLAP) * w
+    n_cols = max(1, math.ceil(max(size - w, 0.0) / col_step - 1e-9) + 1)
+
+    def kept(n):
+        idx = np.arange(0, n, skip)
+        return idx + (n - 1 - idx[-1]) // 2
+
+    rows = kept(n_rows)
+    xs = (kept(n_cols) - (n_cols - 1) / 2.0) * col_step
+    centres, lines = [], []
+    for j, r in enumerate(rows):
+        ys = -size / 2.0 + (r * frames + np.arange(frames) + 0.5) * spacing
+        for x in xs if j % 2 == 0 else xs[::-1]:
+            centres.append((x, float(ys.mean())))
+            lines.append(ys)
+    return np.array(centres, dtype=np.float64), np.array(lines, dtype=np.float64), \
+        float(spacing)
+
+
+def plate_coverage(points_O, size: float, cells: int = PLATE_CELLS) -> float:
+    """Fraction of a square plate's ``cells`` x ``cells`` cells that hold at least one of
+    ``points_O`` (n, 2 or 3) [m], given in the plate's frame (centred, x and y along its
+    sides)."""
+    p = np.asarray(points_O, dtype=np.float64)
+    if p.size == 0:
+        return 0.0
+    ij = np.floor((p[:, :2] + size / 2.0) / (size / cells)).astype(np.int64)
+    ok = np.all((ij >= 0) & (ij < cells), axis=1)
+    return float(np.unique(ij[ok, 0] * cells + ij[ok, 1]).size) / cells ** 2
 
 
 def sphere(position, radius: float = SPHERE_RADIUS) -> tuple[str, dict]:

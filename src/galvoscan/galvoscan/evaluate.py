@@ -7,9 +7,10 @@
 3. Scans the paper's test objects through the same graph and scores the clouds against the
    scene's ground truth, every object placed around the rig's working point (where its
    laser sheet crosses its optical axis; :class:`galvoscan.eval_scenes.Site`): the stair
-   block at 30 positions, the flat plate in 3 poses, the calibration sphere, the range
-   covered at that depth; and the off-nominal table: the stair block moved to each of the
-   paper's distances in front of this rig, calibrated for its own distance.
+   block at 30 positions, the flat plate in 3 poses (each scanned edge to edge by a
+   raster of G1 views), the calibration sphere, the range covered at that depth; and the
+   off-nominal table: the stair block moved to each of the paper's distances in front of
+   this rig, calibrated for its own distance.
 4. By distance, as the paper's Fig. 13: for each of 100, 200, 350, 400, 650 and 1000 mm,
    the same rig re-set for that working distance
    (:func:`galvoscan_sim.rig_family.reset_for_distance`: sheet re-aimed, focus and exposure
@@ -37,12 +38,14 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from scipy.optimize import brentq
 
 from galvoscan import eval_scenes, metrics
 from galvoscan.progress import Progress
 from galvoscan_common.executor import call_service
+from galvoscan_common.frame import VOLTAGE_LIMIT
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
-from reconstructor.model import v0_T_v
+from reconstructor.model import laser_plane_v0, v0_T_v
 from reconstructor.planning import aim_camera, view_sweep
 
 #: The paper's working distances (Fig. 13): stand-off from the G1 exit mirror [mm].
@@ -52,10 +55,25 @@ NOMINAL_TOLERANCE_MM = 0.5
 #: Stair positions at each distance: the working point, then left, right, up and down
 #: halfway out to the edge of the stair grid (indices into a 3 x 3 grid of half spread).
 BY_DISTANCE_CROSS = (4, 3, 5, 1, 7)
+#: The flat plate's raster (``eval_scenes.plate_raster``): stripe lines at most this far
+#: apart on the plate [m] (under the 20 mm coverage cells).
+PLATE_LINE_SPACING = 0.018
+#: RANSAC inlier distance of the plate's plane [m], and the subsample the RANSAC
+#: hypotheses are scored on (the plane is then refitted to every inlier of the whole cloud).
+PLATE_RANSAC_THRESHOLD = 2e-3
+PLATE_RANSAC_SAMPLE = 60000
+#: Range views: the sweep covers this fraction of the view's height (the view's full
+#: height less a margin for the stripe's width at the image edge).
+RANGE_SWEEP_FRACTION = 0.95
+#: Range views, as directions in G1 voltage: the four ends of the two axes (the range
+#: covered) and the four corners (the extent of the region covered).
+RANGE_VIEWS = {'x-': (-1, 0), 'x+': (1, 0), 'y-': (0, -1), 'y+': (0, 1),
+               'x-y-': (-1, -1), 'x+y-': (1, -1), 'x-y+': (-1, 1), 'x+y+': (1, 1)}
 PAPER = {  # the paper's figures, for comparison in the report only
     'stair_step_error_rmse_mm': 0.165, 'plate_flatness_rmse_mm': 0.281,
     'transfer_matrix_error_rmse_mm': 1.231, 'joint_error_before_mm': 4.928,
     'joint_error_after_mm': 0.197, 'range_x_mm': 1100.0, 'range_y_mm': 1300.0,
+    'range_extent_x_mm': 1100.0, 'range_extent_y_mm': 1300.0,
 }
 
 
@@ -186,11 +204,66 @@ class Evaluation:
         self.lost_frames += n - len(clouds)
         return np.concatenate(clouds) if clouds else np.zeros(0, CLOUD_DTYPE), clouds
 
-    def _aimed_sweep(self, aim_W, frames):
+    def _aimed_sweep(self, aim_W, frames, fraction=0.8):
         aim_V0 = (self.V0_T_W @ np.append(aim_W, 1.0))[:3]  # where the experimenter put it
         u1 = aim_camera(self.model, aim_V0)
         return view_sweep(self.model, *u1, distance=float(np.linalg.norm(aim_V0)),
-                          frames=frames)
+                          frames=frames, fraction=fraction)
+
+    def _plane_sweep(self, u1, plane_V0, frames, fraction):
+        """Voltages (frames, 4) sweeping the stripe over the central ``fraction`` of the
+        height of G1 view ``u1`` on a surface in the plane ``plane_V0`` (4,) (where the
+        experimenter put it), with the calibrated model.
+
+        Unlike :func:`reconstructor.planning.view_sweep`, which assumes a surface facing
+        the view at one distance, the rays through the top and bottom of the swept part of
+        the image are met with the plane itself: on a wall seen 40 deg off its normal, at
+        the ends of G1's reach, the stripe would otherwise miss most of the view.
+
+        Raises
+        ------
+        ValueError
+            The plane is behind or edge-on to the view, or the laser cannot reach an end
+            within the G2 range.
+        """
+        intr = self.model.intrinsics
+        T = v0_T_v(self.model, *u1)
+        pi = np.asarray(plane_V0, dtype=np.float64)
+        ends = []
+        for v in (intr.cy - fraction * intr.height / 2, intr.cy + fraction * intr.height / 2):
+            ray = T[:3, :3] @ np.array([0.0, (v - intr.cy) / intr.fy, 1.0])
+            denom = float(pi[:3] @ ray)
+            s = -float(pi[:3] @ T[:3, 3] + pi[3]) / denom if abs(denom) > 1e-9 else -1.0
+            if s <= 0:
+                raise ValueError(f'the plane is not in front of the view at U1 = {u1} V')
+            ends.append(T[:3, 3] + s * ray)
+        u2 = self._sweep_through(u1, ends)[:, 3]
+        out = np.zeros((frames, 4))
+        out[:, 0], out[:, 1] = u1
+        out[:, 3] = np.linspace(u2[0], u2[1], frames) if frames > 1 else u2.mean()
+        return out
+
+    def _sweep_through(self, u1, points_V0):
+        """Voltages (n, 4): G1 held at ``u1``, and for each of ``points_V0`` (n, 3) the G2
+        tilt voltage whose laser plane (calibrated model) passes through it.
+
+        Raises
+        ------
+        ValueError
+            A point the laser cannot reach within the G2 range.
+        """
+        out = np.zeros((len(points_V0), 4))
+        out[:, 0], out[:, 1] = u1
+        for i, point in enumerate(np.asarray(points_V0, dtype=np.float64)):
+            def f(u, point=point):
+                plane = laser_plane_v0(self.model, u)
+                return float(plane[:3] @ point + plane[3])
+
+            if f(-VOLTAGE_LIMIT) * f(VOLTAGE_LIMIT) > 0:
+                raise ValueError(f'the laser cannot reach {point.tolist()} within '
+                                 f'+-{VOLTAGE_LIMIT} V of G2 tilt')
+            out[i, 3] = brentq(f, -VOLTAGE_LIMIT, VOLTAGE_LIMIT, xtol=1e-12)
+        return out
 
     def stair_at(self, position, frames):
         """Three views (Plane-1, the riser, Plane-2), each swept by the stripe."""
@@ -248,37 +321,84 @@ class Evaluation:
             self.progress.advance(note=note)
         return out
 
-    def plate(self, views_per_axis, frames, grow=False):
+    def plate(self, frames, skip=1, grow=False):
         """The flat plate in each pose (``eval_scenes.plate``; ``grow``: scaled with the
-        working depth). Returns the rows, the RMSE [mm] and the clouds."""
+        working depth), scanned edge to edge by a raster of G1 views
+        (:func:`galvoscan.eval_scenes.plate_raster`: ``frames`` stripe lines per view,
+        every ``skip``-th row and column), one scan per pose.
+
+        The plane is the paper's RANSAC plane (inliers within PLATE_RANSAC_THRESHOLD); the
+        figure is the RMS distance of the inliers from it.
+
+        Returns
+        -------
+        rows : list of dict
+            Per pose: views (planned, unreachable), frames, points, inliers, coverage
+            (the fraction of the plate's 20 mm cells holding an inlier), mean, RMS and
+            largest distance [mm].
+        rmse : float
+            Over every pose's inliers [mm].
+        clouds : list of structured arrays
+        maps : list of dict
+            Per pose, for the report's deviation map: ``xy_mm`` (n, 2) inliers in the
+            plate's frame and ``d_um`` (n,) their signed distance from the fitted plane
+            (positive towards the scanner), at most 50,000 of them.
+        """
         poses = range(len(eval_scenes.PLATE_POSES))
-        self.progress.stage('flat plate' + (', scaled with the working depth' if grow else ''),
+        self.progress.stage('flat plate, scanned edge to edge'
+                            + (', scaled with the working depth' if grow else ''),
                             len(poses), 'poses')
-        rows, all_d, clouds = [], [], []
+        intr = self.model.intrinsics
+        rows, all_d, clouds, maps = [], [], [], []
         for k in poses:
             text, info = eval_scenes.plate(k, self.site, grow=grow)
             self.client.set_scene(text)
-            parts = []
-            half = info['view_half']
-            grid = np.linspace(-half, half, views_per_axis) if views_per_axis > 1 else [0.0]
-            for gx in grid:
-                for gy in grid:
-                    aim_W = (info['W_T_O'] @ np.array([gx, gy, 0.0, 1.0]))[:3]
-                    try:
-                        cloud, _ = self._scan(self._aimed_sweep(aim_W, frames))
-                    except (ValueError, RuntimeError):
-                        continue
-                    parts.append(cloud)
-            cloud = np.concatenate(parts) if parts else np.zeros(0, CLOUD_DTYPE)
-            plane, inliers = metrics.ransac_plane(xyz(cloud), threshold=2e-3)
-            d = np.abs(xyz(cloud)[inliers] @ plane[:3] + plane[3])
+            W_T_O, size = info['W_T_O'], info['size'][0]
+            depth = float(np.linalg.norm((self.V0_T_W @ W_T_O)[:3, 3]))
+            view = (intr.width / intr.fx * depth, intr.height / intr.fy * depth)
+            centres, lines, spacing = eval_scenes.plate_raster(
+                size, view, frames, PLATE_LINE_SPACING, skip)
+            V0_T_O = self.V0_T_W @ W_T_O
+            O_T_V0 = np.linalg.inv(V0_T_O)
+            sweeps = []
+            for (gx, gy), ys in zip(centres, lines, strict=True):
+                on_plate = np.column_stack([np.full_like(ys, gx), ys, np.zeros_like(ys),
+                                            np.ones_like(ys)]) @ V0_T_O.T
+                try:
+                    u1 = aim_camera(self.model, (V0_T_O @ np.array([gx, gy, 0.0, 1.0]))[:3])
+                    sweeps.append(self._sweep_through(u1, on_plate[:, :3]))
+                except ValueError:
+                    continue      # beyond G1's or the laser's reach: counted below
+            cloud = self._scan(np.vstack(sweeps))[0] if sweeps else np.zeros(0, CLOUD_DTYPE)
+            p = xyz(cloud)
+            row = {'pose': k, 'size_mm': size * 1e3, 'views': len(centres),
+                   'views_unreachable': len(centres) - len(sweeps),
+                   'frames': len(sweeps) * frames, 'line_spacing_mm': spacing * 1e3,
+                   'points': int(p.shape[0])}
+            if p.shape[0] < 3:
+                raise RuntimeError(f'flat plate, pose {k}: {p.shape[0]} points')
+            plane, inliers = _plate_plane(p)
+            # signed: positive towards the scanner (the plate's -z faces it)
+            toward = -float(np.sign(plane[:3] @ O_T_V0[2, :3])) or 1.0
+            s = toward * (p[inliers] @ plane[:3] + plane[3])
+            d = np.abs(s)
+            xy = metrics.to_frame(O_T_V0, p[inliers])[:, :2]
             all_d.append(d)
-            rows.append({'pose': k, 'points': int(cloud.shape[0]),
-                         'inliers': int(inliers.sum()), 'mean_distance_mm': float(d.mean() * 1e3),
-                         'rms_mm': metrics.rmse(d) * 1e3})
+            row.update({'inliers': int(inliers.sum()),
+                        'coverage_fraction': eval_scenes.plate_coverage(xy, size),
+                        'mean_distance_mm': float(d.mean() * 1e3),
+                        'rms_mm': metrics.rmse(d) * 1e3,
+                        'max_distance_mm': float(d.max() * 1e3)})
+            rows.append(row)
             clouds.append(cloud)
-            self.progress.advance(note=f'mean distance {d.mean() * 1e3:.3f} mm')
-        return rows, metrics.rmse(np.concatenate(all_d)) * 1e3, clouds
+            keep = np.random.default_rng(k).permutation(xy.shape[0])[:50000]
+            maps.append({'pose': k, 'size_mm': size * 1e3, 'xy_mm': xy[keep] * 1e3,
+                         'd_um': s[keep] * 1e6, 'rms_um': row['rms_mm'] * 1e3,
+                         'coverage_fraction': row['coverage_fraction']})
+            self.progress.advance(note=f"{row['points']} points, coverage "
+                                       f"{row['coverage_fraction']:.1%}, RMS "
+                                       f"{row['rms_mm']:.3f} mm")
+        return rows, metrics.rmse(np.concatenate(all_d)) * 1e3, clouds, maps
 
     def sphere(self, frames):
         self.progress.stage('calibration sphere', 1, 'scans')
@@ -293,14 +413,15 @@ class Evaluation:
                 'points': int(cloud.shape[0]), 'centre_v0_m': np.asarray(centre).tolist(),
                 'centre_true_w_m': np.asarray(info['centre_W']).tolist()}, cloud
 
-    def _extreme_view(self, axis, sign, frames, distance):
-        """The most extreme G1 voltage along ``axis`` whose view the laser can reach."""
+    def _extreme_view(self, direction, frames, wall_V0):
+        """The G1 view furthest out along ``direction`` (G1 voltage, components -1, 0 or 1)
+        that the laser can reach on the wall ``wall_V0`` (plane, 4): from 10 V inwards in
+        0.5 V steps. Returns its points (n, 3) in V0 and its voltages (None when none is
+        reachable)."""
         for volts in np.arange(10.0, 0.0, -0.5):
-            u1 = (sign * volts, 0.0) if axis == 'x' else (0.0, sign * volts)
-            T = v0_T_v(self.model, *u1)
+            u1 = (float(direction[0] * volts), float(direction[1] * volts))
             try:
-                sweep = view_sweep(self.model, *u1, distance=distance / max(T[2, 2], 1e-3),
-                                   frames=frames)
+                sweep = self._plane_sweep(u1, wall_V0, frames, RANGE_SWEEP_FRACTION)
             except ValueError:
                 continue
             cloud, _ = self._scan(sweep)
@@ -309,24 +430,59 @@ class Evaluation:
         return np.zeros((0, 3)), None
 
     def coverage(self, frames):
-        """Range covered at the working point's depth: a wall scanned at the extreme
-        reachable views."""
+        """Range at the working point's depth: a wall scanned in G1's outermost views.
+
+        G1 steers the view over a pincushion: the pan reach is smallest at tilt 0 and the
+        tilt reach smallest at pan 0. The range covered (x, y) is therefore measured in the
+        views at the ends of the two axes: every point of the centred rectangle it spans
+        can be measured. The extent (``extent_x``, ``extent_y``) is that of the whole
+        region the views reach, corners included. Each view is the outermost one the
+        laser reaches (10 V when G1, not the laser, ends the range).
+
+        Returns
+        -------
+        rng : dict
+            ``x``, ``y``, ``extent_x``, ``extent_y`` [mm] (NaN when a view is missing).
+        views : dict
+            Per view: the G1 voltages used (None: not reachable) and ``limit``: 'G1' when
+            the view is at 10 V, else 'laser'.
+        """
         distance = self.site.depth
-        self.progress.stage(f'range at {distance * 1e3:.0f} mm', 4, 'views')
+        self.progress.stage(f'range at {distance * 1e3:.0f} mm', len(RANGE_VIEWS), 'views')
         text, _ = eval_scenes.wall(distance)
         self.client.set_scene(text)
-        rng, views = {}, {}
-        for axis in ('x', 'y'):
-            col = 0 if axis == 'x' else 1
-            lo, u_lo = self._extreme_view(axis, -1, frames, distance)
-            self.progress.advance()
-            hi, u_hi = self._extreme_view(axis, 1, frames, distance)
-            self.progress.advance()
-            vals = np.concatenate([lo[:, col], hi[:, col]])
-            ok = lo.shape[0] and hi.shape[0]
-            rng[axis] = float((vals.max() - vals.min()) * 1e3) if ok else float('nan')
-            views[axis] = [u_lo, u_hi]
+        wall_V0 = self.W_T_V0.T @ np.array([0.0, 0.0, 1.0, -distance])
+        pts, views = {}, {}
+        for name, direction in RANGE_VIEWS.items():
+            pts[name], u1 = self._extreme_view(direction, frames, wall_V0)
+            limit = None if u1 is None else (
+                'G1' if max(abs(v) for v in u1) >= 10.0 else 'laser')
+            views[name] = {'u1_V': u1, 'limit': limit}
+            self.progress.advance(note=f'{name}: {u1} V, limited by {limit}')
+
+        def span(names, col):
+            if any(pts[n].shape[0] == 0 for n in names):
+                return float('nan')
+            v = np.concatenate([pts[n][:, col] for n in names])
+            return float((v.max() - v.min()) * 1e3)
+
+        rng = {'x': span(('x-', 'x+'), 0), 'y': span(('y-', 'y+'), 1),
+               'extent_x': span(tuple(RANGE_VIEWS), 0),
+               'extent_y': span(tuple(RANGE_VIEWS), 1)}
         return rng, views
+
+
+def _plate_plane(p):
+    """The RANSAC plane of plate points ``p`` (n, 3) [m] and its inliers (n,) bool:
+    hypotheses scored on a subsample, then refitted to every inlier of the whole cloud."""
+    sub = p
+    if p.shape[0] > PLATE_RANSAC_SAMPLE:
+        sub = p[np.random.default_rng(0).choice(p.shape[0], PLATE_RANSAC_SAMPLE,
+                                                replace=False)]
+    plane, _ = metrics.ransac_plane(sub, threshold=PLATE_RANSAC_THRESHOLD)
+    inliers = np.abs(p @ plane[:3] + plane[3]) < PLATE_RANSAC_THRESHOLD
+    plane, _ = metrics.fit_plane(p[inliers])
+    return plane, np.abs(p @ plane[:3] + plane[3]) < PLATE_RANSAC_THRESHOLD
 
 
 def _cell_point_error_mm(cal, sphere_res):
@@ -556,10 +712,12 @@ def _nominal(args, graph, rig, site, progress):
         f'stair block at the working point ({site.depth * 1e3:.0f} mm deep)',
         site.stair_grid(2 if q else 6, 1 if q else 5), 4 if q else 8)
     off_nominal = ev.off_nominal(4 if q else 8)
-    plate_rows, plate_rmse, plate_clouds = ev.plate(2 if q else 3, 4 if q else 6)
+    # the plate edge to edge: 3 stripe lines a view (every third row and column of views
+    # and 2 lines with --quick)
+    plate_rows, plate_rmse, plate_clouds, plate_maps = ev.plate(2 if q else 3, 3 if q else 1)
     scaled_rows, scaled_rmse = plate_rows, plate_rmse  # the same plate where scale <= 1
     if site.scale > 1.0:
-        scaled_rows, scaled_rmse, _ = ev.plate(2 if q else 3, 4 if q else 6, grow=True)
+        scaled_rows, scaled_rmse, _, _ = ev.plate(2 if q else 3, 3 if q else 1, grow=True)
     sphere_res, sphere_cloud = ev.sphere(10 if q else 40)
     rng, range_views = ev.coverage(3)
     errors = [r['error_mm'] for r in stair_rows if r['error_mm'] is not None]
@@ -579,7 +737,10 @@ def _nominal(args, graph, rig, site, progress):
         'cell_extrinsic_error_mm': cell.get('error_mm'),
         'cell_extrinsic_error_deg': cell.get('error_deg'),
         'cell_sphere_centre_error_mm': _cell_point_error_mm(cal, sphere_res),
+        'plate_coverage_fraction': min(r['coverage_fraction'] for r in plate_rows),
+        'plate_points': sum(r['points'] for r in plate_rows),
         'range_x_mm': rng['x'], 'range_y_mm': rng['y'],
+        'range_extent_x_mm': rng['extent_x'], 'range_extent_y_mm': rng['extent_y'],
         'stair_positions_used': len(errors), 'stair_positions_total': len(stair_rows),
         'frames_lost': ev.lost_frames,
         'calibration_source': cal.source,
@@ -587,9 +748,9 @@ def _nominal(args, graph, rig, site, progress):
     }
     details = {'stair': stair_rows, 'stair_off_nominal': off_nominal, 'plate': plate_rows,
                'plate_range_scaled': scaled_rows,
-               'sphere': sphere_res, 'range_views_V': range_views, 'stages': stage_info}
+               'sphere': sphere_res, 'range_views': range_views, 'stages': stage_info}
     return result, details, {'stair': stair_clouds, 'plate': plate_clouds,
-                             'sphere': sphere_cloud}
+                             'plate_maps': plate_maps, 'sphere': sphere_cloud}
 
 
 def _not_measured(exc, **extra) -> dict:

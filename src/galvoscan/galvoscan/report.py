@@ -26,8 +26,12 @@ _ROWS = [  # (metrics key, label, paper key)
      'transfer_matrix_error_rmse_mm'),
     ('joint_error_before_mm', 'joint correction: error before [mm]', 'joint_error_before_mm'),
     ('joint_error_after_mm', 'joint correction: error after [mm]', 'joint_error_after_mm'),
-    ('range_x_mm', "range covered at the working point's depth, x [mm]", 'range_x_mm'),
+    ('range_x_mm', "range covered at the working point's depth, x (every point of the "
+     'centred rectangle measurable) [mm]', 'range_x_mm'),
     ('range_y_mm', "range covered at the working point's depth, y [mm]", 'range_y_mm'),
+    ('range_extent_x_mm', 'extent of the region covered there (G1 corners included), x '
+     '[mm]', 'range_extent_x_mm'),
+    ('range_extent_y_mm', 'extent of the region covered there, y [mm]', 'range_extent_y_mm'),
 ]
 
 
@@ -206,6 +210,60 @@ def _plot_joint(details, path):
     return _save(plt, fig, path)
 
 
+def _plate_table(details) -> list:
+    """The report's per-pose rows of the flat plate scan."""
+    rows = details.get('plate') or []
+    if not rows:
+        return []
+    lines = ['', '## Flat plate, per pose', '',
+             'Each pose scanned edge to edge by a raster of G1 views, one scan through the '
+             'graph; coverage is the fraction of the plate\'s 20 mm cells (37 x 37) holding '
+             'an inlier of the RANSAC plane.', '',
+             '| pose | plate [mm] | views (unreachable) | frames | line spacing [mm] | '
+             'points | inliers | coverage | RMS [mm] | largest distance [mm] |',
+             '|---|---|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        lines.append(
+            f"| {r['pose']} | {r.get('size_mm', float('nan')):.0f} | {r.get('views', '')} "
+            f"({r.get('views_unreachable', '')}) | {r.get('frames', '')} | "
+            f"{r.get('line_spacing_mm', float('nan')):.1f} | {r['points']} | "
+            f"{r.get('inliers', '')} | {r.get('coverage_fraction', float('nan')):.1%} | "
+            f"{_fmt(r.get('rms_mm'))} | {_fmt(r.get('max_distance_mm'))} |")
+    return lines
+
+
+def _plot_plate_map(maps, path):
+    """Deviation map of the flat plate: each pose's inliers in the plate's frame, coloured
+    by their signed distance from the fitted plane [um], one colour scale for all poses."""
+    maps = [m for m in maps or [] if len(m['d_um'])]
+    if not maps:
+        return False
+    plt = _pyplot()
+    lim = float(np.percentile(np.abs(np.concatenate([m['d_um'] for m in maps])), 99.5))
+    lim = max(lim, 1.0)
+    fig, axes = plt.subplots(1, len(maps), figsize=(4.0 * len(maps) + 1.2, 4.6),
+                             squeeze=False, layout='constrained')
+    for ax, m in zip(axes[0], maps, strict=True):
+        xy, half = np.asarray(m['xy_mm']), m['size_mm'] / 2.0
+        sc = ax.scatter(xy[:, 0], xy[:, 1], c=m['d_um'], s=1.5, cmap='RdBu_r', vmin=-lim,
+                        vmax=lim, rasterized=True, linewidths=0)
+        ax.add_patch(plt.Rectangle((-half, -half), 2 * half, 2 * half, fill=False, lw=0.6,
+                                   ec='k'))
+        ax.set_xlim(-half * 1.04, half * 1.04)
+        ax.set_ylim(half * 1.04, -half * 1.04)      # y down, as the scanner sees it
+        ax.set_aspect('equal')
+        ax.set_xlabel('plate x [mm]')
+        ax.set_title(f"pose {m['pose']}: RMS {m['rms_um']:.0f} um, "
+                     f"coverage {m['coverage_fraction']:.0%}", fontsize=9)
+    axes[0][0].set_ylabel('plate y [mm]')
+    cb = fig.colorbar(sc, ax=axes[0].tolist(), shrink=0.9)
+    cb.set_label('signed distance from the fitted plane [um]')
+    fig.suptitle('Flat plate deviation map: each pose\'s RANSAC plane, + towards the scanner')
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
 def _render_cloud(cloud, path, title):
     plt = _pyplot()
     p = xyz(cloud) * 1e3
@@ -241,6 +299,7 @@ def write_report(out, result, details, paper, clouds):
         ours = result.get(key)
         ref = paper.get(pkey) if pkey else None
         lines.append(f'| {label} | {_fmt(ours)} | {_fmt(ref)} | {reproduces(ours, ref, key)} |')
+    lines += _plate_table(details)
     lines += _distance_tables(result, details)
     cell = (details.get('stages') or {}).get('cell_extrinsic')
     if cell and 'failed' in cell:
@@ -269,6 +328,8 @@ def write_report(out, result, details, paper, clouds):
     if clouds.get('stair') and _render_cloud(clouds['stair'][0], out / 'stair_cloud.png',
                                              'stair block (one position)'):
         lines += ['![stair cloud](stair_cloud.png)', '']
+    if _plot_plate_map(clouds.get('plate_maps'), out / 'plate_deviation_map.png'):
+        lines += ['![plate deviation map](plate_deviation_map.png)', '']
     if clouds.get('plate') and _render_cloud(np.concatenate(clouds['plate'][:1]),
                                              out / 'plate_cloud.png', 'flat plate (pose 0)'):
         lines += ['![plate cloud](plate_cloud.png)', '']

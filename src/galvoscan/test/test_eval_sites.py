@@ -99,3 +99,34 @@ def test_a_failed_stage_at_a_distance_is_named_not_raised():
     assert row == {'error_mm': None, 'reason': 'not measured: compute laser_plane: 0 board '
                    'poses', 'failed_stage': 'laser_plane', 'rig': 'r.yaml'}
     assert 'failed_stage' not in _not_measured(RuntimeError('graph did not come up'))
+
+
+def test_the_plate_raster_scans_the_plate_edge_to_edge():
+    view = (0.060, 0.045)                        # one view at 650 mm
+    centres, lines, spacing = eval_scenes.plate_raster(0.74, view, 3, 0.018)
+    ys = np.sort(np.unique(lines))
+    # evenly spaced lines over the whole plate, at most 18 mm apart, the outermost half a
+    # spacing from the edges: every 20 mm coverage cell row is crossed by one
+    assert spacing <= 0.018 and np.allclose(np.diff(ys), spacing)
+    assert np.isclose(ys[0], -0.37 + spacing / 2) and np.isclose(ys[-1], 0.37 - spacing / 2)
+    # each view is centred on its own lines, which fit in it
+    assert np.allclose(centres[:, 1], lines.mean(axis=1))
+    assert np.ptp(lines, axis=1).max() <= 0.9 * view[1]
+    # the views of a row overlap and the outermost reach past the edges
+    xs = np.unique(centres[:, 0])
+    assert np.diff(xs).max() < view[0] and xs[0] - view[0] / 2 <= -0.37
+    assert xs[-1] + view[0] / 2 >= 0.37
+    # serpentine: consecutive views never jump more than one step in x
+    assert np.abs(np.diff(centres[:, 0])).max() <= np.diff(xs).max() + 1e-12
+    # a plate covered by points on those lines is fully covered; half of it is half
+    x = np.linspace(-0.37, 0.37, 2000)
+    pts = np.array([(a, b) for b in ys for a in x])
+    assert eval_scenes.plate_coverage(pts, 0.74) == 1.0
+    assert eval_scenes.plate_coverage(pts[pts[:, 0] < 0], 0.74) == pytest.approx(
+        19 / 37, abs=1e-9)
+    assert eval_scenes.plate_coverage(np.zeros((0, 2)), 0.74) == 0.0
+    # decimated (--quick): fewer views, still centred on the plate
+    few, few_lines, _ = eval_scenes.plate_raster(0.74, view, 2, 0.018, skip=3)
+    assert len(few) < len(centres) / 4 and abs(few[:, 0].mean()) < 0.06
+    with pytest.raises(ValueError, match='do not fit'):
+        eval_scenes.plate_raster(0.74, (0.06, 0.01), 3, 0.018)
