@@ -59,7 +59,7 @@ def _read_json(path: Path):
         return None
 
 
-def run_rig(seed: int, folder: Path, quick: bool, timeout: float) -> dict:
+def run_rig(seed: int, folder: Path, quick: bool, timeout: float, model: str = 'paper') -> dict:
     """Draw rig ``seed`` and evaluate it; never raises (a failure is recorded)."""
     t0 = time.monotonic()
     row = {'seed': seed, 'completed': False, 'failures': []}
@@ -75,7 +75,8 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float) -> dict:
         return row
     out = folder / 'evaluation'
     argv = [sys.executable, '-m', 'galvoscan.cli', 'evaluate', '--rig', str(rig_path),
-            '--out', str(out), '--seed', str(seed)] + (['--quick'] if quick else [])
+            '--out', str(out), '--seed', str(seed), '--model', model] \
+        + (['--quick'] if quick else [])
     try:
         with open(folder / 'evaluate.log', 'w') as log:
             rc = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT, timeout=timeout,
@@ -192,20 +193,60 @@ def main(argv=None) -> int:
     p.add_argument('--out', default='out/rig_family', help='output folder')
     p.add_argument('--timeout', type=float, default=3600.0,
                    help='per-rig time limit [s] (default 3600)')
+    p.add_argument('--model', choices=('paper', 'physical', 'both'), default='paper',
+                   help="model form the calibrations fit (both: every rig with each, and the "
+                        "rigs the physical model does worse on)")
     args = p.parse_args(argv)
     if args.rigs < 1 or args.seed_start < 0 or args.timeout <= 0:
         p.error('--rigs must be >= 1, --seed-start >= 0 and --timeout > 0')
     t0 = time.monotonic()
-    rows = []
+    models = ('paper', 'physical') if args.model == 'both' else (args.model,)
+    rows = {m: [] for m in models}
     seeds = range(args.seed_start, args.seed_start + args.rigs)
     for i, seed in enumerate(seeds, 1):
-        row = run_rig(seed, Path(args.out) / f'seed_{seed:03d}', args.quick, args.timeout)
-        rows.append(row)
-        print(_line(i, args.rigs, row), flush=True)
-    summary = summarise(rows, time.monotonic() - t0, args.quick)
-    (Path(args.out) / 'rigs.json').write_text(json.dumps(rows, indent=1, default=float))
+        for m in models:
+            folder = Path(args.out) / f'seed_{seed:03d}'
+            row = run_rig(seed, folder / m if len(models) > 1 else folder, args.quick,
+                          args.timeout, m)
+            row['model'] = m
+            rows[m].append(row)
+            print(f'[{m}] ' + _line(i, args.rigs, row), flush=True)
+    wall = time.monotonic() - t0
+    summary = {}
+    for m in models:
+        if len(models) > 1:
+            print(f'\n== model {m}')
+        summary[m] = summarise(rows[m], wall, args.quick)
+    (Path(args.out) / 'rigs.json').write_text(
+        json.dumps([r for m in models for r in rows[m]], indent=1, default=float))
+    if len(models) == 1:
+        summary = summary[models[0]]
+    else:
+        summary = {**summary['physical'], 'paper': summary['paper'],
+                   **compare(rows['paper'], rows['physical'])}
+        summary['wall_s'] = wall
     print(json.dumps(summary, default=float))
     return 0
+
+
+def compare(paper_rows, physical_rows) -> dict:
+    """Per rig, the physical model's stair and plate against the paper's (same draw)."""
+    worse = {'stair_rmse_mm': [], 'plate_rmse_mm': []}
+    both = 0
+    for a, b in zip(paper_rows, physical_rows, strict=True):
+        if not (a['completed'] and b['completed']):
+            continue
+        both += 1
+        for key in worse:
+            if _finite(a.get(key)) and _finite(b.get(key)) and b[key] > a[key]:
+                worse[key].append({'seed': a['seed'], 'paper': a[key], 'physical': b[key]})
+    print(f'\nphysical against paper on {both} rigs both completed: stair worse on '
+          f"{len(worse['stair_rmse_mm'])}, plate worse on {len(worse['plate_rmse_mm'])}")
+    for key, items in worse.items():
+        for w in items:
+            print(f"  seed {w['seed']}: {key} {w['paper']:.3f} -> {w['physical']:.3f}")
+    return {'compared': both, 'physical_stair_worse': len(worse['stair_rmse_mm']),
+            'physical_plate_worse': len(worse['plate_rmse_mm']), 'worse': worse}
 
 
 if __name__ == '__main__':

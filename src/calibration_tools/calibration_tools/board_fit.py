@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.optimize._numdiff import approx_derivative, group_columns
 
 from reconstructor.model import (
     CameraIntrinsics,
@@ -232,7 +233,9 @@ class RefineResult:
     message: str
 
 
-_INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
+_INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2")
+#: Distortion coefficients by name: their index in ``CameraIntrinsics.dist``.
+_DIST_INDEX = {"k1": 0, "k2": 1}
 
 
 def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics=(),
@@ -255,6 +258,8 @@ def _get_param(model, name):
         return getattr(model, name)
     mirror, attr = name.split(".")
     if mirror == "intrinsics":
+        if attr in _DIST_INDEX:
+            return model.intrinsics.dist[_DIST_INDEX[attr]]
         return getattr(model.intrinsics, attr)
     if mirror == "physical":
         return _physical_value(model.physical or PhysicalGeometry(), attr)
@@ -300,7 +305,11 @@ def _set_params(model: RigModel, names, values) -> RigModel:
         if changes:
             kw[key] = dataclasses.replace(mirrors[key], **changes)
     if intr_kw:
-        kw["intrinsics"] = dataclasses.replace(model.intrinsics, **intr_kw)
+        dist = list(model.intrinsics.dist)
+        for name, j in _DIST_INDEX.items():
+            if name in intr_kw:
+                dist[j] = intr_kw.pop(name)
+        kw["intrinsics"] = dataclasses.replace(model.intrinsics, dist=tuple(dist), **intr_kw)
     if phys is not None:
         kw["physical"] = PhysicalGeometry.from_dict(phys)
     return dataclasses.replace(model, **kw) if kw else model
@@ -337,7 +346,7 @@ def _param_scale(names, n_pose: int) -> np.ndarray:
     scale = []
     for n in names:
         if n.startswith("intrinsics."):
-            scale.append(1.0)
+            scale.append(0.1 if n.split(".")[1] in _DIST_INDEX else 1.0)
         elif n in ("l", "d"):
             scale.append(1e-3)
         elif n.startswith("physical."):
@@ -442,6 +451,30 @@ def _build_problem(model, obs, board, poses, names, refine_pose, ellipse_correct
     )
 
 
+def _grouped_jacobian(prob: _RefineProblem):
+    """Forward-difference Jacobian that perturbs the columns of all board poses together.
+
+    A board pose moves only the circles of its own views, so the columns of different poses
+    never share a row: one evaluation serves one column of every pose (scipy's column
+    grouping), and the model's columns are dense. Returned dense, as ``least_squares``'s
+    exact trust-region solver takes it; the same steps as its own '2-point' differences.
+    """
+    n_model = prob.n_model
+    rows_pose = np.repeat(prob.pose_of_view[prob.view_of], 2)
+    n_pose = (prob.n_params - n_model) // 6
+    pattern = np.zeros((prob.n_residuals, prob.n_params), dtype=bool)
+    pattern[:, :n_model] = True
+    for j in range(n_pose):
+        pattern[rows_pose == j, n_model + 6 * j: n_model + 6 * j + 6] = True
+    groups = group_columns(pattern)
+
+    def jac(z):
+        return approx_derivative(prob.fun, z, method="2-point",
+                                 sparsity=(pattern, groups)).toarray()
+
+    return jac
+
+
 def _solve(prob: _RefineProblem, loss, f_scale_px, max_nfev):
     """Run ``least_squares`` from z = 0: (z, success, message, jacobian)."""
     z0 = np.zeros(prob.n_params)
@@ -450,8 +483,9 @@ def _solve(prob: _RefineProblem, loss, f_scale_px, max_nfev):
     if prob.n_residuals < len(z0):
         raise ValueError(f"{prob.n_residuals} residuals cannot fix {len(z0)} parameters")
     sol = least_squares(
-        prob.fun, z0, method="trf", loss=loss, f_scale=f_scale_px, x_scale=1.0,
-        max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+        prob.fun, z0, jac=_grouped_jacobian(prob), method="trf", loss=loss,
+        f_scale=f_scale_px, x_scale=1.0, max_nfev=max_nfev, xtol=1e-12, ftol=1e-12,
+        gtol=1e-12,
     )
     return sol.x, bool(sol.success), str(sol.message), sol.jac
 

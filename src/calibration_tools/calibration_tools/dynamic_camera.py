@@ -46,6 +46,7 @@ from reconstructor.model import RigModel, g_T_v, rigid_inverse, v0_T_v
 from reconstructor.planning import aim_g1
 
 from .board_fit import (
+    _DIST_INDEX,
     RefineResult,
     ViewObservation,
     _as_transform,
@@ -74,6 +75,13 @@ G1_PHYSICAL_TOLERANCES = {
     "g1_tilt_surface_offset": 3e-4, "g1_tilt_normal_tilt": 1e-3,
 }
 OBSERVABLE_FRACTION = 0.3
+#: Intrinsics the physical fit refines with the mirrors. Once the model can represent the
+#: mirrors, the board's ~60 degrees of view directions pin the pinhole far better than the
+#: intrinsics stage's 5-degree views (on the reference rig the principal point's error fell
+#: from (-1.5, 3.4) px to (1.0, 1.5) px and the transfer rotation error from 0.012 to
+#: 0.006 deg); k2 stays with the lens prior (freed it went to 26 against a true 4). The
+#: camera's pan and tilt on its mount, which the principal point stands for, are then held.
+PHYSICAL_INTRINSICS = ("fx", "fy", "cx", "cy")
 #: The model forms a calibration can be made for (``reconstructor.geometry.rig``).
 MODEL_KINDS = ("paper", "physical")
 
@@ -390,7 +398,8 @@ def run_dynamic_camera(
     model : str
         ``'paper'``: the paper's model (l, d, ideal mirrors). ``'physical'``: the physical
         mirror model; its Galvanometer-1 deviations (:data:`G1_PHYSICAL_TOLERANCES`) are
-        refined jointly in the final fit, each only where the views determine it
+        refined jointly in the final fit with the intrinsics ``refine_intrinsics`` names
+        (default :data:`PHYSICAL_INTRINSICS`), each only where the views determine it
         (:func:`fit_observable`); the rest keep their starting value (zero from the paper's
         model) and ``extra['dynamic_camera']['physical_fixed']`` says why.
     min_circles : int
@@ -424,6 +433,8 @@ def run_dynamic_camera(
     model0: RigModel = calibration.model
     if model == "paper":  # the paper's method as published: no physical deviations
         model0 = dataclasses.replace(model0, physical=None)
+    elif not refine_intrinsics:
+        refine_intrinsics = PHYSICAL_INTRINSICS
     intr, input_std = model0.intrinsics, intrinsics_standard_errors(calibration)
     det = _detect_views(views, intr, min_circles, dark_circles, progress)
     dets, U, pidx = det.dets, det.U, det.pidx
@@ -446,13 +457,17 @@ def run_dynamic_camera(
     fit_kw = dict(refine_intrinsics=refine_intrinsics, input_std=input_std, **refine_kw)
     physical_fixed = {}
     if model == "physical":
-        fin, physical_fixed = observable_physical_fit(ident, lin, obs, board, **fit_kw)
+        fin, physical_fixed, refine_intrinsics = observable_physical_fit(
+            ident, lin, obs, board, **fit_kw)
     else:
         fin = _final_fit(ident, lin, obs, board, **fit_kw)
     residuals, extra = _fit_figures(fin, ident, lin, lin_notes, det.keep, obs)
     if model == "physical":
         extra["physical_fixed"] = physical_fixed
-        extra["physical_freed"] = [n for n in G1_PHYSICAL_TOLERANCES if n not in physical_fixed]
+        extra["physical_freed"] = [n for n in G1_PHYSICAL_TOLERANCES
+                                   if f"physical.{n}" not in physical_fixed
+                                   and n not in physical_fixed] + [
+            f"intrinsics.{n}" for n in refine_intrinsics]
     if refine_intrinsics:  # PnP again with the final intrinsics
         pnp = _pnp_transfers(fin.model.intrinsics, board, obs, only=pnp)
     _verify_transfers(fin.model, fin, obs, pnp, U, residuals, extra)
@@ -496,6 +511,9 @@ def intrinsics_standard_errors(calibration) -> dict:
 
 def _stage_errors(updates: dict, std: dict) -> dict:
     """The refinement's standard errors keyed as the stage's ``updates`` (lists as lists)."""
+    std = {(f"intrinsics.dist[{_DIST_INDEX[k.split('.')[1]]}]"
+            if k.split(".")[-1] in _DIST_INDEX and k.startswith("intrinsics.") else k): v
+           for k, v in std.items()}
     out: dict = {}
     for key, value in updates.items():
         if isinstance(value, dict):
@@ -639,12 +657,47 @@ def _final_fit(ident, lin, obs, board, **refine_kw):
     return alt if alt.rms_px < fin.rms_px - 1e-9 else fin
 
 
-def observable_physical_fit(ident, lin, obs, board, **fit_kw):
+def observable_physical_fit(ident, lin, obs, board, *, refine_intrinsics=(), input_std=None,
+                            **fit_kw):
     """The final fit with every G1 deviation of the physical model that the views determine
-    (:func:`fit_observable`). Returns the fit and ``{name: reason}`` of the held ones."""
-    return fit_observable(
-        lambda free: _final_fit(ident, lin, obs, board, refine_physical=free, **fit_kw),
-        lambda: _final_fit(ident, lin, obs, board, **fit_kw))
+    (:func:`fit_observable`), started from the paper model's final fit (its l, d, responses
+    and board poses).
+
+    ``refine_intrinsics`` are freed only where these views determine them better than the
+    intrinsics stage did (standard error below the stored one, ``input_std``); the camera's
+    pan and tilt on its mount, which the principal point then stands for, are held. Returns
+    the fit and ``{name: reason}`` of every held deviation or intrinsic.
+    """
+    input_std = input_std or {}
+    paper = _final_fit(ident, lin, obs, board, input_std=input_std, **fit_kw)
+    poses = paper.board_poses
+    intr = list(refine_intrinsics)
+    held_intr: dict = {}
+    tolerances = dict(G1_PHYSICAL_TOLERANCES)
+    if intr:
+        gauge = ("camera_rotation[0]", "camera_rotation[1]")
+        trial = refine(paper.model, obs, board, poses, input_std=input_std,
+                       refine_intrinsics=intr,
+                       refine_physical=[n for n in tolerances if n not in gauge], **fit_kw)
+        for name in list(intr):
+            sd, before = trial.std.get(f"intrinsics.{name}", math.inf), input_std.get(name)
+            if before is None or not sd < before:
+                intr.remove(name)
+                held_intr[f"intrinsics.{name}"] = (
+                    f"held as the intrinsics stage left it: these views give a standard error "
+                    f"of {sd:.3g}, the stage had {before if before is not None else 'none'}")
+        if {"cx", "cy"} & set(intr):
+            for n in gauge:
+                del tolerances[n]
+                held_intr[f"physical.{n}"] = ("held: the principal point, refined here, stands "
+                                              "for the camera's pan and tilt on its mount")
+    fin, held = fit_observable(
+        lambda free: refine(paper.model, obs, board, poses, refine_physical=free,
+                            refine_intrinsics=intr, input_std=input_std, **fit_kw),
+        lambda: (refine(paper.model, obs, board, poses, refine_intrinsics=intr,
+                        input_std=input_std, **fit_kw) if intr else paper),
+        tolerances)
+    return fin, {**held_intr, **held}, intr
 
 
 def fit_observable(fit, fit_without, tolerances=None, fraction: float = OBSERVABLE_FRACTION):
@@ -689,7 +742,10 @@ def _stage_updates(m, *, refine_mirrors, refine_theta0, refine_poly, refine_intr
     """The model parameters the stage estimated, keyed as in ``RigModel.to_dict()``."""
     updates: dict = {"l": m.l, "d": m.d}
     if refine_intrinsics:
-        updates["intrinsics"] = {k: getattr(m.intrinsics, k) for k in refine_intrinsics}
+        updates["intrinsics"] = {k: getattr(m.intrinsics, k) for k in refine_intrinsics
+                                 if k not in _DIST_INDEX}
+        if any(k in _DIST_INDEX for k in refine_intrinsics):
+            updates["intrinsics"]["dist"] = list(m.intrinsics.dist)
     if refine_mirrors or refine_poly:
         updates["g1_pan"] = {"k": m.g1_pan.k}
         updates["g1_tilt"] = {"k": m.g1_tilt.k}

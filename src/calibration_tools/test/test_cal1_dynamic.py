@@ -33,6 +33,7 @@ from reconstructor import calibration_file
 from reconstructor.model import (
     CameraIntrinsics,
     MirrorParams,
+    PhysicalGeometry,
     RigModel,
     g_T_v,
     nominal_example_rig,
@@ -217,6 +218,7 @@ def ideal_run():
         V_T_O = np.linalg.inv(f.truth.W_T_V) @ scene.objects[0].W_T_O
         truths.append(project_circle_centres(intr, V_T_O, B.points(np.arange(B.n_circles)),
                                              B.radius(np.arange(B.n_circles))))
+    clean = list(views)
     # Extra frames the stage must refuse with a reason.
     views.append(CaptureView(views[0].image, views[0].voltages, laser_on=True))
     views.append(CaptureView(np.zeros((10, 10), np.uint8), np.zeros(4)))
@@ -239,7 +241,30 @@ def ideal_run():
     # Zhang-quality intrinsics, refined jointly (the refine_intrinsics option).
     zhang_cal = calibration_file.Calibration(model=nominal)
     joint = run_dynamic_camera(views, zhang_cal, refine_intrinsics=("fx", "fy", "cx", "cy"))
-    return result, truth, truths, cal, calls, joint
+    return result, truth, truths, cal, calls, joint, clean
+
+
+def test_ideal_rig_physical_model_finds_no_deviation_it_does_not_have(ideal_run):
+    """The physical fit on the simulator's images of the ideal rig (its mirrors on their
+    axes, camera square): every deviation it frees comes out within 4 standard errors of
+    the truth, 0, and it says why it held the others."""
+    _, truth, _, cal, _, _, views = ideal_run
+    res = run_dynamic_camera(views, cal, model="physical")
+    ex = res.extra["dynamic_camera"]
+    assert res.updates["model"] == "physical"
+    freed = [n for n in ex["physical_freed"] if not n.startswith("intrinsics.")]
+    assert freed, ex["physical_fixed"]
+    phys = PhysicalGeometry.from_dict(res.updates["physical"])
+    se = res.standard_errors["physical"]
+    for name in freed:
+        field_name, _, j = name.partition("[")
+        got, sd = getattr(phys, field_name), se[field_name]
+        if j:
+            got, sd = got[int(j[:-1])], sd[int(j[:-1])]
+        assert abs(got) < 4.0 * sd, (name, got, sd)
+    assert all(isinstance(why, str) and why for why in ex["physical_fixed"].values())
+    assert abs(res.updates["l"] - truth.l) < 0.1e-3 and abs(res.updates["d"] - truth.d) < 0.1e-3
+    assert res.residuals["reprojection_rms_px"] < 0.05
 
 
 def test_ideal_rig_meets_the_acceptance_tolerances(ideal_run):
@@ -295,7 +320,7 @@ def test_ideal_rig_labels_are_the_simulators_circles(ideal_run):
 
 
 def test_stage_result_reports_rejections_and_merges_into_the_calibration(ideal_run, tmp_path):
-    result, truth, _, cal, calls, _ = ideal_run
+    result, truth, _, cal, calls, _, _ = ideal_run
     assert result.stage == "dynamic_camera"
     assert any("laser on" in r for r in result.rejected)
     assert any("image shape" in r for r in result.rejected)

@@ -500,7 +500,8 @@ def _write_params(path, args, rig, cal_path, data_dir, cell_reference='', quick=
     params = {
         'calibration': {'ros__parameters': {
             'calibration_file': str(cal_path), 'quick': bool(quick),
-            'data_dir': str(data_dir), 'cell_reference': str(cell_reference)}},
+            'data_dir': str(data_dir), 'cell_reference': str(cell_reference),
+            'model': getattr(args, 'model', 'paper')}},
         'galvo_driver': {'ros__parameters': {
             'backend': 'sim', 'rig': str(rig), 'scene': 'stair_block', 'seed': args.seed}},
         'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
@@ -833,6 +834,9 @@ def build_parser():
     p.add_argument('--rig', default='reference', help='rig name or YAML (default: reference)')
     p.add_argument('--seed', type=int, default=0, help='simulator seed')
     p.add_argument('--quick', action='store_true', help='reduced run (for tests)')
+    p.add_argument('--model', choices=('paper', 'physical'), default='paper',
+                   help="model form the calibration fits: paper (the paper's model, default) "
+                        "or physical (each mirror a plane on its own axis)")
     p.add_argument('--out', default='out', help='output folder (default: out)')
     p.add_argument('--frame-rate', type=float, default=500.0, help='scan frame rate [Hz]')
     p.add_argument('--truth-calibration', action='store_true',
