@@ -21,7 +21,7 @@ import pytest
 pytestmark = pytest.mark.dds
 
 SCAN = Path(__file__).with_name('rig_dds_scan.py')
-ATTEMPTS = 4
+ATTEMPTS = 6  # a clean-clone CI beside two demos (load 4 on 2 cores) got 0 frames in 4
 
 
 def test_rig_driver_publishes_frames_tagged_with_their_triggers(ros_env, tmp_path):
