@@ -75,7 +75,7 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float, model: str = '
         return row
     out = folder / 'evaluation'
     argv = [sys.executable, '-m', 'galvoscan.cli', 'evaluate', '--rig', str(rig_path),
-            '--out', str(out), '--seed', str(seed), '--model', model] \
+            '--out', str(out), '--seed', str(seed), '--model', model, '--no-paper-method'] \
         + (['--quick'] if quick else [])
     try:
         with open(folder / 'evaluate.log', 'w') as log:

@@ -256,7 +256,8 @@ def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
         One view's width and height on the plate [m] (image size over focal length times
         the distance).
     frames : int
-        Stripe lines (frames) per view, at least 1; they must fit in 90 % of its height.
+        Stripe lines (frames) per view, at least 1; fewer where they do not fit in 90 % of
+        its height (a short-range view): ``lines`` says how many.
     max_spacing : float
         Largest line spacing [m]: below :data:`PLATE_CELLS`' cell size, every cell of the
         plate is crossed by a line.
@@ -276,17 +277,18 @@ def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
     Raises
     ------
     ValueError
-        Bad arguments, or the lines of a view do not fit in it.
+        Bad arguments.
     """
     w, h = (float(v) for v in view)
     if frames < 1 or skip < 1 or not (w > 0 and h > 0 and size > 0 and max_spacing > 0):
         raise ValueError(f'plate_raster: frames {frames}, skip {skip}, view {view}, '
                          f'size {size}, max_spacing {max_spacing}')
-    n_rows = max(1, math.ceil(size / (frames * max_spacing) - 1e-9))
-    spacing = size / (n_rows * frames)
-    if (frames - 1) * spacing > 0.9 * h:
-        raise ValueError(f'plate_raster: {frames} lines {spacing * 1e3:.1f} mm apart do not '
-                         f'fit in a view {h * 1e3:.1f} mm high')
+    while True:  # fewer lines a view where a short-range view cannot hold them all
+        n_rows = max(1, math.ceil(size / (frames * max_spacing) - 1e-9))
+        spacing = size / (n_rows * frames)
+        if frames == 1 or (frames - 1) * spacing <= 0.9 * h:
+            break
+        frames -= 1
     col_step = (1.0 - PLATE_VIEW_OVERLAP) * w
     n_cols = max(1, math.ceil(max(size - w, 0.0) / col_step - 1e-9) + 1)
 

@@ -356,8 +356,11 @@ class Evaluation:
             W_T_O, size = info['W_T_O'], info['size'][0]
             depth = float(np.linalg.norm((self.V0_T_W @ W_T_O)[:3, 3]))
             view = (intr.width / intr.fx * depth, intr.height / intr.fy * depth)
+            # lines at most 18 mm apart, and closer on a smaller plate (short range) so that
+            # every one of its cells is still crossed
             centres, lines, spacing = eval_scenes.plate_raster(
-                size, view, frames, PLATE_LINE_SPACING, skip)
+                size, view, frames,
+                min(PLATE_LINE_SPACING, 0.9 * size / eval_scenes.PLATE_CELLS), skip)
             V0_T_O = self.V0_T_W @ W_T_O
             O_T_V0 = np.linalg.inv(V0_T_O)
             sweeps = []
@@ -373,7 +376,7 @@ class Evaluation:
             p = xyz(cloud)
             row = {'pose': k, 'size_mm': size * 1e3, 'views': len(centres),
                    'views_unreachable': len(centres) - len(sweeps),
-                   'frames': len(sweeps) * frames, 'line_spacing_mm': spacing * 1e3,
+                   'frames': len(sweeps) * lines.shape[1], 'line_spacing_mm': spacing * 1e3,
                    'points': int(p.shape[0])}
             if p.shape[0] < 3:
                 raise RuntimeError(f'flat plate, pose {k}: {p.shape[0]} points')
@@ -538,6 +541,7 @@ class Graph:
         from galvoscan import bringup
 
         self.out, self.env, self.progress = Path(out), env, progress
+        self.model = getattr(args, 'model', 'paper')  # the model form the calibrations fit
         self.cal_path = self.out / 'calibration.yaml'
         if self.cal_path.exists():
             self.cal_path.unlink()
@@ -601,11 +605,7 @@ class Graph:
         RuntimeError
             A transition, a parameter or the starting calibration was refused.
         """
-        from galvoscan_msgs.srv import LoadCalibration
         from lifecycle_msgs.srv import GetState
-
-        from galvoscan.simulated_rig import nominal_calibration
-        from reconstructor import calibration_file
 
         folder = Path(folder)
         state = self.client.call(GetState, 'galvo_driver/get_state',
@@ -615,6 +615,17 @@ class Graph:
             state, ()))
         self._set_parameters('galvo_driver', rig=str(rig_path))
         self._lifecycle('configure', 'activate')
+        self.restart_calibration(rig_path, folder, quick, self.model)
+
+    def restart_calibration(self, rig_path, folder, quick, model):
+        """Start the calibration node again from the design values of ``rig_path``, fitting
+        ``model`` (``paper`` or ``physical``), writing ``folder/calibration.yaml``."""
+        from galvoscan_msgs.srv import LoadCalibration
+
+        from galvoscan.simulated_rig import nominal_calibration
+        from reconstructor import calibration_file
+
+        folder = Path(folder)
         self.cal_path = folder / 'calibration.yaml'
         self.cal_path.unlink(missing_ok=True)
         if 'calibration' not in self.nodes:
@@ -623,7 +634,8 @@ class Graph:
         start.parent.mkdir(parents=True, exist_ok=True)
         calibration_file.save(nominal_calibration(str(rig_path)), start)
         self._set_parameters('calibration', calibration_file=str(self.cal_path),
-                             quick=bool(quick), data_dir=str(folder / 'calibration_data'))
+                             quick=bool(quick), data_dir=str(folder / 'calibration_data'),
+                             model=str(model))
         resp = self.client.call(LoadCalibration, 'calibration/load',
                                 LoadCalibration.Request(path=str(start)))
         if not resp.success:
@@ -725,6 +737,7 @@ def _nominal(args, graph, rig, site, progress):
     cell = stage_info.get('cell_extrinsic', {})
     result = {
         'stair_step_error_rmse_mm': metrics.rmse(errors),
+        'stair_step_error_max_mm': max((abs(e) for e in errors), default=None),
         'stair_step_error_rmse_mm_off_nominal': {
             k: (abs(v['error_mm']) if v.get('error_mm') is not None else None)
             for k, v in off_nominal.items()},
@@ -752,6 +765,32 @@ def _nominal(args, graph, rig, site, progress):
                'sphere': sphere_res, 'range_views': range_views, 'stages': stage_info}
     return result, details, {'stair': stair_clouds, 'plate': plate_clouds,
                              'plate_maps': plate_maps, 'sphere': sphere_cloud}
+
+
+def _paper_method(args, graph, rig, site, out, progress) -> dict:
+    """The paper's own model and calibration on the same rig, graph and scenes (the
+    reproduction of the paper): the chain calibrated again from the design values with
+    ``model: paper``, then the stair block at the working point and the flat plate. Written
+    beside the main figures as ``paper_method``; its calibration is
+    ``paper_method/calibration.yaml``."""
+    from galvoscan.calibrate_client import true_transfer_error_mm
+
+    q = args.quick
+    progress.log("paper's method: the chain calibrated again with the paper's model")
+    graph.restart_calibration(args.rig, out / 'paper_method', q, 'paper')
+    cal, info = graph.calibrate(args, rig, quick=q)  # the next switch_rig fits graph.model
+    ev = Evaluation(args, graph.client, progress, cal.model, rig.W_T_V0, site)
+    rows, _ = ev.stair_series("paper's method: stair block at the working point",
+                              site.stair_grid(2 if q else 6, 1 if q else 5), 4 if q else 8)
+    _, plate_rmse, _, _ = ev.plate(2 if q else 3, 3 if q else 1)
+    errors = [r['error_mm'] for r in rows if r['error_mm'] is not None]
+    return {'stair_step_error_rmse_mm': metrics.rmse(errors),
+            'stair_step_error_max_mm': max((abs(e) for e in errors), default=None),
+            'plate_flatness_rmse_mm': plate_rmse,
+            'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model, rig),
+            'joint_error_before_mm': info.get('joint_error_before_mm'),
+            'joint_error_after_mm': info.get('joint_error_after_mm'),
+            'stair_positions_used': len(errors)}
 
 
 def _not_measured(exc, **extra) -> dict:
@@ -837,6 +876,9 @@ def build_parser():
     p.add_argument('--model', choices=('paper', 'physical'), default='paper',
                    help="model form the calibration fits: paper (the paper's model, default) "
                         "or physical (each mirror a plane on its own axis)")
+    p.add_argument('--no-paper-method', dest='paper_method', action='store_false',
+                   help="with --model physical: skip calibrating and scanning again with the "
+                        "paper's model (the paper_method figures)")
     p.add_argument('--out', default='out', help='output folder (default: out)')
     p.add_argument('--frame-rate', type=float, default=500.0, help='scan frame rate [Hz]')
     p.add_argument('--truth-calibration', action='store_true',
@@ -917,6 +959,9 @@ def main(argv=None):
         with Graph(args, args.rig, out, env, progress, quick=args.quick,
                    cell_reference=cell_ref) as graph:
             result, details, clouds = _nominal(args, graph, rig, site, progress)
+            paper_method = None
+            if args.model == 'physical' and args.paper_method:
+                paper_method = _paper_method(args, graph, rig, site, out, progress)
             by_distance = _by_distance(args, graph, description, wd * 1e3,
                                        result['stair_step_error_rmse_mm'], out, progress)
     except (RuntimeError, ValueError) as exc:
@@ -927,7 +972,9 @@ def main(argv=None):
     result = {'stair_step_error_rmse_mm': result.pop('stair_step_error_rmse_mm'),
               'stair_step_error_rmse_mm_by_distance': {
                   k: v['error_mm'] for k, v in by_distance.items()},
-              **result, 'working_distance_mm': wd * 1e3,
+              **result,
+              **({'paper_method': paper_method} if paper_method is not None else {}),
+              'model': args.model, 'working_distance_mm': wd * 1e3,
               'working_point_depth_mm': site.depth * 1e3, 'scene_scale': site.scale,
               'runtime_s': time.monotonic() - t0}
     save_cloud(np.concatenate(clouds['stair']), out / 'stair_working_point.ply')

@@ -128,5 +128,9 @@ def test_the_plate_raster_scans_the_plate_edge_to_edge():
     # decimated (--quick): fewer views, still centred on the plate
     few, few_lines, _ = eval_scenes.plate_raster(0.74, view, 2, 0.018, skip=3)
     assert len(few) < len(centres) / 4 and abs(few[:, 0].mean()) < 0.06
-    with pytest.raises(ValueError, match='do not fit'):
-        eval_scenes.plate_raster(0.74, (0.06, 0.01), 3, 0.018)
+    # a short-range view too low for 3 lines takes fewer, still at most 18 mm apart
+    short, short_lines, short_spacing = eval_scenes.plate_raster(0.74, (0.06, 0.02), 3, 0.018)
+    assert short_lines.shape[1] == 2 and short_spacing <= 0.018
+    assert np.ptp(short_lines, axis=1).max() <= 0.9 * 0.02
+    with pytest.raises(ValueError, match='plate_raster'):
+        eval_scenes.plate_raster(0.74, (0.06, 0.0), 3, 0.018)
