@@ -59,7 +59,8 @@ def _read_json(path: Path):
         return None
 
 
-def run_rig(seed: int, folder: Path, quick: bool, timeout: float, model: str = 'paper') -> dict:
+def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
+            model: str = 'physical') -> dict:
     """Draw rig ``seed`` and evaluate it; never raises (a failure is recorded)."""
     t0 = time.monotonic()
     row = {'seed': seed, 'completed': False, 'failures': []}
@@ -193,7 +194,7 @@ def main(argv=None) -> int:
     p.add_argument('--out', default='out/rig_family', help='output folder')
     p.add_argument('--timeout', type=float, default=3600.0,
                    help='per-rig time limit [s] (default 3600)')
-    p.add_argument('--model', choices=('paper', 'physical', 'both'), default='paper',
+    p.add_argument('--model', choices=('paper', 'physical', 'both'), default='physical',
                    help="model form the calibrations fit (both: every rig with each, and the "
                         "rigs the physical model does worse on)")
     args = p.parse_args(argv)

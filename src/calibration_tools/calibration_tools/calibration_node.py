@@ -144,9 +144,10 @@ class CalibrationNode(Node):
             description='where captured bags go'))
         self.declare_parameter('quick', False, ParameterDescriptor(
             description='reduced capture plans (tests)'))
-        self.declare_parameter('model', 'paper', ParameterDescriptor(
+        self.declare_parameter('model', '', ParameterDescriptor(
             description="model form the dynamic_camera stage fits: 'physical' (each mirror a "
-                        "plane on its own axis) or 'paper' (the paper's model as published)"))
+                        "plane on its own axis) or 'paper' (the paper's model as published); "
+                        "'' the stage's default (physical)"))
         self.declare_parameter('cell_reference', '', ParameterDescriptor(
             description='cell_extrinsic: YAML of the robot-reported sphere positions in the '
                         'cell frame (calibration_tools.cell_extrinsic.read_reference)'))

@@ -547,7 +547,8 @@ def _register_position(nodes, idx, ref, fits, results, table, skip, *, registrat
 
 # ----------------------------------------------------------------------------- stage
 def run_joint_correction(views, calibration, *, sphere_radius: float,
-                         extractor_config=None, **options) -> StageResult:
+                         extractor_config=None, install: bool | None = None,
+                         **options) -> StageResult:
     """The joint-correction stage: views of the sphere -> correction table.
 
     Parameters
@@ -561,6 +562,14 @@ def run_joint_correction(views, calibration, *, sphere_radius: float,
         new table replaces the old one).
     sphere_radius : float, metres
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
+    install : bool or None
+        Whether the table goes into the calibration. Default: with the paper's model yes
+        (its Algorithm 1); with the physical model no. The stage then still measures the
+        errors before and after (its residuals) and says why in ``extra``. The table is
+        measured along one row of G1 voltages (pan +-2.2 V, tilt +-0.1 V on the reference
+        rig), chained from position to position, and held at its edge beyond. On the
+        reference rig with the physical model, applying it made the whole-plate RMSE and the
+        off-nominal stair figures worse (see :data:`NOT_INSTALLED`).
     **options
         Passed to :func:`compute_joint_correction`.
 
@@ -572,6 +581,8 @@ def run_joint_correction(views, calibration, *, sphere_radius: float,
         ``error2_rms_m``, ``error3_rms_m``, ``nodes_registered``, ``nodes_skipped``,
         ``nodes_not_converged``, ``sphere_rms_max_m``, ``icp_vs_sphere_max_m``.
     """
+    if install is None:
+        install = calibration.model.physical is None
     nodes = reconstruct_nodes(views, calibration.model, extractor_config=extractor_config)
     if not nodes:
         raise ValueError('joint_correction: no laser-on view gave stripe points')
@@ -597,6 +608,15 @@ def run_joint_correction(views, calibration, *, sphere_radius: float,
                                                 if r.status == 'reference'),
         samples_rejected=counts['skipped'] + counts['not_converged'],
         rejected=rejected,
-        extra={'joint_correction': res.table.to_dict(),
+        extra={**({'joint_correction': res.table.to_dict()} if install
+                  else {'joint_correction_not_installed': NOT_INSTALLED}),
                'nodes': [r.summary() for r in res.nodes]},
     )
+
+
+#: Why the physical model's calibration keeps no joint-correction table.
+NOT_INSTALLED = (
+    'measured, not installed: the physical mirror model leaves no systematic error for a '
+    'table to take out, and the table (one row of G1 voltages, chained from position to '
+    'position, held at its edge beyond) moved points elsewhere by up to a few tenths of a '
+    'millimetre')

@@ -202,7 +202,7 @@ REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
     Stage('dynamic_camera',
           lambda model, quick: cp.dynamic_camera_steps(
               model, [20] if quick else [40, 12, 12, 12, 12]),
-          _run_dynamic_camera, _options(refine_poly=2, model='paper'),
+          _run_dynamic_camera, _options(refine_poly=2, model='physical'),
           targets=_circle_board),
     Stage('laser_plane',
           lambda model, quick: cp.laser_plane_steps(model, 1 if quick else 2),

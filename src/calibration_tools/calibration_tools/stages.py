@@ -306,6 +306,9 @@ def apply_result(calibration, result: StageResult, sources=()):
              for k, v in node.items() if k in keep} for node in result.extra['nodes']]
     if 'joint_correction' in result.extra:
         jc = result.extra['joint_correction']
+    elif 'joint_correction_not_installed' in result.extra:
+        jc = None  # measured, reported, and deliberately not applied
+        stages[result.stage]['not_installed'] = str(result.extra['joint_correction_not_installed'])
     elif result.updates:
         jc = None  # a table measured with the old model would be stale
     else:

@@ -111,3 +111,23 @@ def test_occluded_and_off_sphere_views_are_skipped_with_reasons(ideal, caplog):
     for n in nodes.values():
         if n['status'] == 'skipped':
             assert n['reason'] in caplog.text
+
+
+def test_physical_model_measures_the_table_but_does_not_install_it(ideal):
+    """With the physical mirror model the stage still measures Error1/Error2, but keeps no
+    table (and drops one a calibration had); the paper's model installs it."""
+    from reconstructor.model import PhysicalGeometry
+
+    truth, model, views, *_ = ideal
+    aim = views[len(views) // 2].voltages[:2]
+    physical = dataclasses.replace(model, physical=PhysicalGeometry())
+    res = run_joint_correction(views, cf.Calibration(model=physical), sphere_radius=RADIUS,
+                               reference_voltages=aim)
+    assert 'joint_correction' not in res.extra
+    assert 'not installed' in res.extra['joint_correction_not_installed']
+    assert res.residuals['error2_rms_m'] < res.residuals['error1_rms_m']
+    stale = run_joint_correction(views, cf.Calibration(model=model), sphere_radius=RADIUS,
+                                 reference_voltages=aim).extra['joint_correction']
+    new = apply_result(cf.Calibration(model=physical, joint_correction=stale), res)
+    assert new.joint_correction is None and new.model.correction is None
+    assert 'not installed' in new.stages['joint_correction']['not_installed']

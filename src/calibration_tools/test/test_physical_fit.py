@@ -107,6 +107,6 @@ def test_the_model_form_is_an_operator_choice_of_the_dynamic_camera_stage_only()
     from calibration_tools.registry import stage_inputs
 
     assert stage_inputs("dynamic_camera", {"model": "physical"})["model"] == "physical"
-    assert stage_inputs("dynamic_camera")["model"] == "paper"
+    assert stage_inputs("dynamic_camera")["model"] == "physical"
     with pytest.raises(ValueError, match="laser_plane takes no input model"):
         stage_inputs("laser_plane", {"model": "physical"})

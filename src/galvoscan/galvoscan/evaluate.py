@@ -504,7 +504,7 @@ def _write_params(path, args, rig, cal_path, data_dir, cell_reference='', quick=
         'calibration': {'ros__parameters': {
             'calibration_file': str(cal_path), 'quick': bool(quick),
             'data_dir': str(data_dir), 'cell_reference': str(cell_reference),
-            'model': getattr(args, 'model', 'paper')}},
+            'model': getattr(args, 'model', 'physical')}},
         'galvo_driver': {'ros__parameters': {
             'backend': 'sim', 'rig': str(rig), 'scene': 'stair_block', 'seed': args.seed}},
         'stripe_extractor': {'ros__parameters': {'line_width_px': 4.0}},
@@ -541,7 +541,7 @@ class Graph:
         from galvoscan import bringup
 
         self.out, self.env, self.progress = Path(out), env, progress
-        self.model = getattr(args, 'model', 'paper')  # the model form the calibrations fit
+        self.model = getattr(args, 'model', 'physical')  # the model form the calibrations fit
         self.cal_path = self.out / 'calibration.yaml'
         if self.cal_path.exists():
             self.cal_path.unlink()
@@ -873,9 +873,9 @@ def build_parser():
     p.add_argument('--rig', default='reference', help='rig name or YAML (default: reference)')
     p.add_argument('--seed', type=int, default=0, help='simulator seed')
     p.add_argument('--quick', action='store_true', help='reduced run (for tests)')
-    p.add_argument('--model', choices=('paper', 'physical'), default='paper',
-                   help="model form the calibration fits: paper (the paper's model, default) "
-                        "or physical (each mirror a plane on its own axis)")
+    p.add_argument('--model', choices=('paper', 'physical'), default='physical',
+                   help="model form the calibration fits: physical (each mirror a plane on its "
+                        "own axis, default) or paper (the paper's model as published)")
     p.add_argument('--no-paper-method', dest='paper_method', action='store_false',
                    help="with --model physical: skip calibrating and scanning again with the "
                         "paper's model (the paper_method figures)")

@@ -84,8 +84,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument('--artefact', metavar='FILE',
                    help="hand_eye: the artefact's sphere layout and where it stands (YAML)")
     p.add_argument('--model', choices=('physical', 'paper'), default=None,
-                   help="dynamic_camera: the model form to fit (default paper: the paper's "
-                        "model as published; physical: each mirror a plane on its own axis)")
+                   help="dynamic_camera: the model form to fit (default physical: each mirror "
+                        "a plane on its own axis; paper: the paper's model as published)")
     return p
 
 
