@@ -664,7 +664,7 @@ class Graph:
 
         stage_info = {}
         if args.truth_calibration:
-            calibration_file.save(truth_calibration(rig), self.cal_path)
+            calibration_file.save(truth_calibration(rig, kind=self.model), self.cal_path)
             self.progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a '
                               'result)')
         else:

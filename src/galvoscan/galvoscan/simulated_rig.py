@@ -24,10 +24,23 @@ from reconstructor.calibration_file import Calibration
 from reconstructor.model import CameraIntrinsics, MirrorParams, RigModel
 
 
-def truth_model(rig, u2_pan: float = 0.0) -> RigModel:
-    """The RigModel equivalent of a simulated rig (exact for a rig without imperfections)."""
+def truth_model(rig, u2_pan: float = 0.0, kind: str = 'paper') -> RigModel:
+    """The RigModel equivalent of a simulated rig.
+
+    ``kind='paper'``: the paper's model (exact for a rig without imperfections);
+    ``kind='physical'``: the physical mirror model, exact for every rig
+    (``Rig.physical_model_parameters``).
+    """
     p = rig.true_model_parameters(u2_pan)
     cam = rig.camera
+    if kind == 'physical':
+        return RigModel.from_dict({
+            'intrinsics': {'fx': p.fx, 'fy': p.fy, 'cx': p.cx, 'cy': p.cy,
+                           'dist': [float(x) for x in p.distortion], 'width': cam.width,
+                           'height': cam.height},
+            'model': 'physical', **rig.physical_model_parameters(u2_pan)})
+    if kind != 'paper':
+        raise ValueError(f"kind must be 'paper' or 'physical', got {kind!r}")
     return RigModel(
         intrinsics=CameraIntrinsics(fx=p.fx, fy=p.fy, cx=p.cx, cy=p.cy,
                                     dist=tuple(float(x) for x in p.distortion),
@@ -41,9 +54,9 @@ def truth_model(rig, u2_pan: float = 0.0) -> RigModel:
     )
 
 
-def truth_calibration(rig, u2_pan: float = 0.0) -> Calibration:
+def truth_calibration(rig, u2_pan: float = 0.0, kind: str = 'paper') -> Calibration:
     """A calibration file object holding the simulator's truth, labelled as such."""
-    return Calibration(model=truth_model(rig, u2_pan), source='simulator_truth',
+    return Calibration(model=truth_model(rig, u2_pan, kind), source='simulator_truth',
                        stages={'simulator_truth': {'rig': rig.name,
                                                    'note': 'true parameters, tests only'}})
 
