@@ -190,6 +190,15 @@ def g_T_v(theta_pan, theta_tilt, l: float, d: float) -> np.ndarray:
     ndarray, shape (..., 4, 4)
         ``G_T_V``: maps V coordinates to G coordinates.
     """
+    tp, tt = broadcast_angles(theta_pan, theta_tilt)
+    tilt = tilt_factor(tt, d)
+    pan = pan_factor(tp)
+    return tilt @ pan @ m0_factor(l)
+
+
+def broadcast_angles(theta_pan, theta_tilt) -> tuple[np.ndarray, np.ndarray]:
+    """Pan and tilt angles as float arrays broadcast to one shape (ValueError if they do not
+    broadcast)."""
     tp = _angles(theta_pan, "theta_pan")
     tt = _angles(theta_tilt, "theta_tilt")
     try:
@@ -198,9 +207,7 @@ def g_T_v(theta_pan, theta_tilt, l: float, d: float) -> np.ndarray:
         raise ValueError(
             f"theta_pan shape {tp.shape} and theta_tilt shape {tt.shape} do not broadcast"
         ) from None
-    tilt = tilt_factor(np.broadcast_to(tt, shape), d)
-    pan = pan_factor(np.broadcast_to(tp, shape))
-    return tilt @ pan @ m0_factor(l)
+    return np.broadcast_to(tp, shape), np.broadcast_to(tt, shape)
 
 
 def g_T_v_scalar(theta_pan: float, theta_tilt: float, l: float, d: float) -> np.ndarray:

@@ -42,7 +42,8 @@ from functools import cached_property
 
 import numpy as np
 
-from .checks import as_float_array, check_keys, finite_scalar, finite_vector
+from .checks import check_keys, finite_scalar, finite_vector
+from .galvo import broadcast_angles
 
 #: M0's rotation: maps camera axes (x right, y down, z forward) to G (DESIGN.md §2).
 M0_ROT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
@@ -213,17 +214,10 @@ class G1Geometry:
 
     def g_T_v(self, theta_pan, theta_tilt) -> np.ndarray:
         """``G_T_V`` for mirror angles of broadcastable shapes (...): (..., 4, 4)."""
-        tp = as_float_array(theta_pan, "theta_pan")
-        tt = as_float_array(theta_tilt, "theta_tilt")
-        try:
-            shape = np.broadcast_shapes(tp.shape, tt.shape)
-        except ValueError:
-            raise ValueError(
-                f"theta_pan shape {tp.shape} and theta_tilt shape {tt.shape} do not broadcast"
-            ) from None
-        n1 = _turned(self.a1, self.r1, np.broadcast_to(tp, shape))
-        n2 = _turned(self.a2, self.r2, np.broadcast_to(tt, shape))
-        c1 = np.full(shape, -self.s1)
+        tp, tt = broadcast_angles(theta_pan, theta_tilt)
+        n1 = _turned(self.a1, self.r1, tp)
+        n2 = _turned(self.a2, self.r2, tt)
+        c1 = np.full(tp.shape, -self.s1)
         c2 = n2 @ self.p2 - self.s2
         return _reflection(n2, c2) @ _reflection(n1, c1) @ self.G_T_C
 
