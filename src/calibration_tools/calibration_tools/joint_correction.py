@@ -584,9 +584,20 @@ def run_joint_correction(views, calibration, *, sphere_radius: float,
     if install is None:
         install = calibration.model.physical is None
     nodes = reconstruct_nodes(views, calibration.model, extractor_config=extractor_config)
-    if not nodes:
-        raise ValueError('joint_correction: no laser-on view gave stripe points')
-    res = compute_joint_correction(nodes, sphere_radius=sphere_radius, **options)
+    try:
+        if not nodes:
+            raise ValueError('joint_correction: no laser-on view gave stripe points')
+        res = compute_joint_correction(nodes, sphere_radius=sphere_radius, **options)
+    except ValueError as exc:
+        if install:
+            raise
+        # nothing to install: a diagnostic that could not be measured stops nothing
+        log.warning('joint correction not measured (the physical model installs no table): '
+                    '%s', exc)
+        return StageResult(stage='joint_correction', samples_rejected=len(views),
+                           rejected=[str(exc)],
+                           extra={'joint_correction_not_installed':
+                                  f'{NOT_INSTALLED}; not measured either: {exc}'})
     counts = {s: sum(1 for r in res.nodes if r.status == s)
               for s in ('registered', 'skipped', 'not_converged')}
     residuals = dict(res.errors)

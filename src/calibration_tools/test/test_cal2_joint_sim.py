@@ -131,3 +131,22 @@ def test_physical_model_measures_the_table_but_does_not_install_it(ideal):
     new = apply_result(cf.Calibration(model=physical, joint_correction=stale), res)
     assert new.joint_correction is None and new.model.correction is None
     assert 'not installed' in new.stages['joint_correction']['not_installed']
+
+
+def test_physical_model_reports_an_unmeasurable_correction_without_failing(ideal):
+    """Only a table that would be installed makes the stage fail: with the physical model a
+    capture where no node registers is reported, and the chain goes on."""
+    from reconstructor.model import PhysicalGeometry
+
+    truth, model, views, *_ = ideal
+    few = [views[0]]  # one node: nothing to register against
+    physical = dataclasses.replace(model, physical=PhysicalGeometry())
+    with pytest.raises(ValueError):
+        run_joint_correction(few, cf.Calibration(model=model), sphere_radius=RADIUS,
+                             reference_voltages=(9.0, 9.0))
+    res = run_joint_correction(few, cf.Calibration(model=physical), sphere_radius=RADIUS,
+                               reference_voltages=(9.0, 9.0))
+    assert 'not measured either' in res.extra['joint_correction_not_installed']
+    assert res.rejected and 'joint_correction' not in res.extra
+    new = apply_result(cf.Calibration(model=physical), res)
+    assert new.joint_correction is None
