@@ -233,9 +233,7 @@ class RefineResult:
     message: str
 
 
-_INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2")
-#: Distortion coefficients by name: their index in ``CameraIntrinsics.dist``.
-_DIST_INDEX = {"k1": 0, "k2": 1}
+_INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
 
 
 def _param_names(refine_l_d, refine_mirrors, refine_theta0, refine_poly, refine_intrinsics=(),
@@ -258,11 +256,9 @@ def _get_param(model, name):
         return getattr(model, name)
     mirror, attr = name.split(".")
     if mirror == "intrinsics":
-        if attr in _DIST_INDEX:
-            return model.intrinsics.dist[_DIST_INDEX[attr]]
         return getattr(model.intrinsics, attr)
     if mirror == "physical":
-        return _physical_value(model.physical or PhysicalGeometry(), attr)
+        return (model.physical or PhysicalGeometry()).value(attr)
     mp = getattr(model, mirror)
     if attr.startswith("poly"):
         j = int(attr[5:-1])
@@ -276,7 +272,7 @@ def _set_params(model: RigModel, names, values) -> RigModel:
     mirror_kw = {"g1_pan": {}, "g1_tilt": {}}
     polys = {key: list(mirrors[key].poly) for key in mirrors}
     intr_kw = {}
-    phys = None
+    phys = {}
     for name, value in zip(names, values, strict=True):
         if name in ("l", "d"):
             kw[name] = float(value)
@@ -286,12 +282,7 @@ def _set_params(model: RigModel, names, values) -> RigModel:
             intr_kw[attr] = float(value)
             continue
         if mirror == "physical":
-            phys = phys or (model.physical or PhysicalGeometry()).to_dict()
-            field_name, j = _physical_key(attr)
-            if j is None:
-                phys[field_name] = float(value)
-            else:
-                phys[field_name][j] = float(value)
+            phys[attr] = value
             continue
         if attr.startswith("poly"):
             j = int(attr[5:-1])
@@ -305,28 +296,10 @@ def _set_params(model: RigModel, names, values) -> RigModel:
         if changes:
             kw[key] = dataclasses.replace(mirrors[key], **changes)
     if intr_kw:
-        dist = list(model.intrinsics.dist)
-        for name, j in _DIST_INDEX.items():
-            if name in intr_kw:
-                dist[j] = intr_kw.pop(name)
-        kw["intrinsics"] = dataclasses.replace(model.intrinsics, dist=tuple(dist), **intr_kw)
-    if phys is not None:
-        kw["physical"] = PhysicalGeometry.from_dict(phys)
+        kw["intrinsics"] = dataclasses.replace(model.intrinsics, **intr_kw)
+    if phys:
+        kw["physical"] = (model.physical or PhysicalGeometry()).replaced(phys)
     return dataclasses.replace(model, **kw) if kw else model
-
-
-def _physical_key(attr: str):
-    """``'camera_rotation[2]'`` -> ('camera_rotation', 2); ``'g1_axes_angle'`` -> (.., None)."""
-    if attr.endswith("]"):
-        field_name, j = attr[:-1].split("[")
-        return field_name, int(j)
-    return attr, None
-
-
-def _physical_value(phys: PhysicalGeometry, attr: str) -> float:
-    field_name, j = _physical_key(attr)
-    value = getattr(phys, field_name)
-    return float(value if j is None else value[j])
 
 
 def _check_observations(observations, poses) -> list:
@@ -346,7 +319,7 @@ def _param_scale(names, n_pose: int) -> np.ndarray:
     scale = []
     for n in names:
         if n.startswith("intrinsics."):
-            scale.append(0.1 if n.split(".")[1] in _DIST_INDEX else 1.0)
+            scale.append(1.0)
         elif n in ("l", "d"):
             scale.append(1e-3)
         elif n.startswith("physical."):

@@ -42,11 +42,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from reconstructor.model import RigModel, g_T_v, rigid_inverse, v0_T_v
+from reconstructor.model import MODEL_KINDS, RigModel, g_T_v, rigid_inverse, v0_T_v
 from reconstructor.planning import aim_g1
 
 from .board_fit import (
-    _DIST_INDEX,
     RefineResult,
     ViewObservation,
     _as_transform,
@@ -82,8 +81,6 @@ OBSERVABLE_FRACTION = 0.3
 #: 0.006 deg); k2 stays with the lens prior (freed it went to 26 against a true 4). The
 #: camera's pan and tilt on its mount, which the principal point stands for, are then held.
 PHYSICAL_INTRINSICS = ("fx", "fy", "cx", "cy")
-#: The model forms a calibration can be made for (``reconstructor.geometry.rig``).
-MODEL_KINDS = ("paper", "physical")
 
 #: The paper's verification grid: -10 V to 10 V in 4 V steps on both G1 axes (36 positions).
 PAPER_GRID_VOLTAGES = np.arange(-10.0, 10.0 + 1e-9, 4.0)
@@ -465,8 +462,7 @@ def run_dynamic_camera(
     if model == "physical":
         extra["physical_fixed"] = physical_fixed
         extra["physical_freed"] = [n for n in G1_PHYSICAL_TOLERANCES
-                                   if f"physical.{n}" not in physical_fixed
-                                   and n not in physical_fixed] + [
+                                   if f"physical.{n}" not in physical_fixed] + [
             f"intrinsics.{n}" for n in refine_intrinsics]
     if refine_intrinsics:  # PnP again with the final intrinsics
         pnp = _pnp_transfers(fin.model.intrinsics, board, obs, only=pnp)
@@ -511,9 +507,6 @@ def intrinsics_standard_errors(calibration) -> dict:
 
 def _stage_errors(updates: dict, std: dict) -> dict:
     """The refinement's standard errors keyed as the stage's ``updates`` (lists as lists)."""
-    std = {(f"intrinsics.dist[{_DIST_INDEX[k.split('.')[1]]}]"
-            if k.split(".")[-1] in _DIST_INDEX and k.startswith("intrinsics.") else k): v
-           for k, v in std.items()}
     out: dict = {}
     for key, value in updates.items():
         if isinstance(value, dict):
@@ -697,11 +690,11 @@ def observable_physical_fit(ident, lin, obs, board, *, refine_intrinsics=(), inp
         lambda: (refine(paper.model, obs, board, poses, refine_intrinsics=intr,
                         input_std=input_std, **fit_kw) if intr else paper),
         tolerances)
-    return fin, {**held_intr, **held}, intr
+    return fin, {**held_intr, **{f"physical.{n}": why for n, why in held.items()}}, intr
 
 
 def fit_observable(fit, fit_without, tolerances=None, fraction: float = OBSERVABLE_FRACTION):
-    """Free the physical deviations the data determine, hold the rest at zero.
+    """Free the physical deviations the data determine, hold the rest where they start.
 
     All candidates (``tolerances``' keys, default :data:`G1_PHYSICAL_TOLERANCES`) are freed;
     those whose standard error (board poses free, the held intrinsics' uncertainty
@@ -742,10 +735,7 @@ def _stage_updates(m, *, refine_mirrors, refine_theta0, refine_poly, refine_intr
     """The model parameters the stage estimated, keyed as in ``RigModel.to_dict()``."""
     updates: dict = {"l": m.l, "d": m.d}
     if refine_intrinsics:
-        updates["intrinsics"] = {k: getattr(m.intrinsics, k) for k in refine_intrinsics
-                                 if k not in _DIST_INDEX}
-        if any(k in _DIST_INDEX for k in refine_intrinsics):
-            updates["intrinsics"]["dist"] = list(m.intrinsics.dist)
+        updates["intrinsics"] = {k: getattr(m.intrinsics, k) for k in refine_intrinsics}
     if refine_mirrors or refine_poly:
         updates["g1_pan"] = {"k": m.g1_pan.k}
         updates["g1_tilt"] = {"k": m.g1_tilt.k}

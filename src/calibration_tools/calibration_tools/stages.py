@@ -240,9 +240,9 @@ _PHYSICAL_KEYS = ('model', 'physical')
 def _merge(base: dict, updates: dict, prefix: str = '') -> dict:
     out = dict(base)
     for key, value in updates.items():
-        if key not in base and not (prefix == '' and key in _PHYSICAL_KEYS):
-            raise ValueError(f'stage update names unknown model key {prefix}{key}')
         if key not in base:
+            if prefix or key not in _PHYSICAL_KEYS:
+                raise ValueError(f'stage update names unknown model key {prefix}{key}')
             out[key] = value
             continue
         if isinstance(value, dict):

@@ -30,6 +30,7 @@ from .spatial import (
     reflection_transform,
     rotation_about,
     rotation_from_vector,
+    rotation_vector,
     unit,
 )
 
@@ -515,7 +516,7 @@ class Rig:
             'laser_plane_v0': tp.pi0.tolist(), 'laser_axis_dir': n.tolist(),
             'laser_axis_point': tp.P.tolist(),
             'physical': {
-                'camera_rotation': _rotation_vector(rot).tolist(),
+                'camera_rotation': rotation_vector(rot).tolist(),
                 'camera_offset': [float(centre[1]), float(centre[2])],
                 'g1_axes_angle': beta,
                 'g1_pan_surface_offset': g1.pan.surface_offset,
@@ -542,15 +543,6 @@ def _angle_about(axis, a, b) -> float:
     a = a - float(a @ axis) * axis
     b = b - float(b @ axis) * axis
     return math.atan2(float(np.cross(a, b) @ axis), float(a @ b))
-
-
-def _rotation_vector(R) -> np.ndarray:
-    """The rotation vector of a rotation matrix (angle below pi)."""
-    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0)))
-    if angle < 1e-15:
-        return np.zeros(3)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return w * (angle / (2.0 * math.sin(angle)))
 
 
 # ====================================================================== loading

@@ -63,6 +63,22 @@ def rotation_from_vector(rotvec) -> np.ndarray:
     return rotation_about(r / angle, angle)
 
 
+def rotation_vector(R) -> np.ndarray:
+    """Rotation vector (axis times angle) [rad] of a rotation matrix; the inverse of
+    :func:`rotation_from_vector` for angles below pi.
+
+    Parameters
+    ----------
+    R : array_like, shape (3, 3)
+    """
+    R = np.asarray(R, dtype=np.float64)
+    angle = math.acos(max(-1.0, min(1.0, (float(np.trace(R)) - 1.0) / 2.0)))
+    if angle < 1e-15:
+        return np.zeros(3)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * (angle / (2.0 * math.sin(angle)))
+
+
 def make_transform(rotation, translation) -> np.ndarray:
     """4x4 rigid transform from a rotation matrix and a translation [m].
 

@@ -23,7 +23,13 @@ from reconstructor.geometry.galvo import (
 )
 from reconstructor.geometry.laser import laser_plane_v, laser_plane_v0, transform_plane
 from reconstructor.geometry.physical import PhysicalGeometry
-from reconstructor.geometry.rig import JointCorrection, RigModel, nominal_example_rig, v0_T_v
+from reconstructor.geometry.rig import (
+    MODEL_KINDS,
+    JointCorrection,
+    RigModel,
+    nominal_example_rig,
+    v0_T_v,
+)
 from reconstructor.geometry.triangulation import (
     DEFAULT_MIN_RAY_PLANE_ANGLE,
     TriangulationResult,
@@ -39,6 +45,7 @@ __all__ = [
     "UNDISTORT_TARGET_ERROR",
     "CameraIntrinsics",
     "JointCorrection",
+    "MODEL_KINDS",
     "MirrorParams",
     "PhysicalGeometry",
     "RigModel",

@@ -42,6 +42,7 @@ from functools import cached_property
 
 import numpy as np
 
+from ..correction import rotvec_to_matrix
 from .checks import check_keys, finite_scalar, finite_vector
 from .galvo import broadcast_angles
 
@@ -112,12 +113,30 @@ class PhysicalGeometry:
         check_keys(data, names, "physical.")
         return cls(**{k: data[k] for k in names})
 
-    @property
-    def is_paper(self) -> bool:
-        """True when every deviation that changes the geometry is zero (ψ4 then does not
-        matter)."""
-        return not any(np.any(getattr(self, f.name)) for f in fields(self)
-                       if f.name != "g2_tilt_normal_angle")
+    def value(self, name: str) -> float:
+        """One deviation by name, a list entry as ``'camera_rotation[2]'``."""
+        field_name, j = _split(name)
+        value = getattr(self, field_name)
+        return float(value if j is None else value[j])
+
+    def replaced(self, values: dict) -> PhysicalGeometry:
+        """A copy with the named deviations (as :meth:`value` names them) set."""
+        data = self.to_dict()
+        for name, v in values.items():
+            field_name, j = _split(name)
+            if j is None:
+                data[field_name] = float(v)
+            else:
+                data[field_name][j] = float(v)
+        return PhysicalGeometry.from_dict(data)
+
+
+def _split(name: str):
+    """``'camera_rotation[2]'`` -> ('camera_rotation', 2); ``'g1_axes_angle'`` -> (.., None)."""
+    if name.endswith("]"):
+        field_name, j = name[:-1].split("[")
+        return field_name, int(j)
+    return name, None
 
 
 #: Largest plausible size of each deviation (a mounting error, not a redesign), and its unit.
@@ -128,17 +147,6 @@ _LIMITS = {
     "g2_tilt_surface_offset": 0.01, "g2_tilt_normal_tilt": 0.1,
 }
 _LIMIT_UNITS = {k: ("m" if "offset" in k else "rad") for k in _LIMITS}
-
-
-def _rodrigues_matrix(w) -> np.ndarray:
-    """exp([w]x) for a rotation vector ``w`` shape (3,)."""
-    w = np.asarray(w, dtype=np.float64)
-    angle = float(np.linalg.norm(w))
-    if angle < 1e-300:
-        return np.eye(3)
-    k = w / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
 
 
 def _turned(axis, ref, theta) -> np.ndarray:
@@ -199,7 +207,7 @@ class G1Geometry:
     @classmethod
     def build(cls, phys: PhysicalGeometry, l: float, d: float) -> G1Geometry:
         G_T_C = np.eye(4)
-        G_T_C[:3, :3] = M0_ROT @ _rodrigues_matrix(phys.camera_rotation)
+        G_T_C[:3, :3] = M0_ROT @ rotvec_to_matrix(phys.camera_rotation)
         tx, ty = phys.camera_offset
         G_T_C[:3, 3] = np.array([-l, 0.0, 0.0]) + M0_ROT @ np.array([tx, ty, 0.0])
         a1 = np.array([0.0, 0.0, -1.0])

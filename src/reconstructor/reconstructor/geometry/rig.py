@@ -186,7 +186,7 @@ class RigModel:
                    _TOP_KEYS + (("physical",) if kind == "physical" else ()), "")
         physical = None
         if kind == "physical":
-            physical = _wrap_plain(lambda: PhysicalGeometry.from_dict(data["physical"]))
+            physical = PhysicalGeometry.from_dict(data["physical"])
         intr = data["intrinsics"]
         check_keys(intr, _INTR_KEYS, "intrinsics.")
         intr_values = {key: _num(intr[key], f"intrinsics.{key}") for key in _INTR_KEYS[:4]}
@@ -248,14 +248,6 @@ def _mirror_from_dict(data, name) -> MirrorParams:
     k = _num(data["k"], f"{name}.k")
     coeffs = tuple(_num(c, f"{name}.poly[{i}]") for i, c in enumerate(poly))
     return _wrap(name, lambda: MirrorParams(theta0=theta0, k=k, poly=coeffs))
-
-
-def _wrap_plain(build):
-    """Run a constructor whose ValueErrors already name their keys; others become ValueError."""
-    try:
-        return build()
-    except (TypeError, KeyError) as exc:
-        raise ValueError(f"physical: {exc}") from None
 
 
 def _wrap(prefix, build):
