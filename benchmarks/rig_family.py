@@ -45,7 +45,13 @@ FIGURES = (  # (metrics key, short name, absolute value)
     ('plate_flatness_rmse_mm_range_scaled', 'plate_range_scaled_rmse_mm', False),
     ('sphere_radius_error_mm', 'sphere_radius_error_mm', True),
     ('transfer_matrix_error_rmse_mm', 'transfer_matrix_error_rmse_mm', False),
+    ('predicted_uncertainty_mm', 'predicted_uncertainty_mm', False),
+    ('measured_shape_error_mm', 'measured_shape_error_mm', False),
+    ('uncertainty_ratio', 'uncertainty_ratio', False),
 )
+#: The predicted uncertainty is honest on a rig when it is within this factor of the error
+#: measured against the truth (issue 20: on at least 80 % of the rigs).
+UNCERTAINTY_FACTOR = 2.0
 
 
 def _finite(v) -> bool:
@@ -147,7 +153,9 @@ def _line(i, n, row) -> str:
             f"{_f(row.get('plate_rmse_mm'))} mm (scaled with depth "
             f"{_f(row.get('plate_range_scaled_rmse_mm'))} mm), sphere "
             f"{_f(row.get('sphere_radius_error_mm'))} mm, transfer "
-            f"{_f(row.get('transfer_matrix_error_rmse_mm'))} mm, distances {finite}/6 "
+            f"{_f(row.get('transfer_matrix_error_rmse_mm'))} mm, predicted "
+            f"{_f(row.get('predicted_uncertainty_mm'))} / measured "
+            f"{_f(row.get('measured_shape_error_mm'))} mm, distances {finite}/6 "
             f"finite{' PASS' if _passes(row) else ' FAIL'} [{row['wall_s']:.0f} s]")
 
 
@@ -174,6 +182,12 @@ def summarise(rows, wall_s: float, quick: bool) -> dict:
         print(f"  stair at {mm:>4s} mm (re-set)         median {_f(s['median'])}  max "
               f"{_f(s['max'])}  (n = {s['n']})")
         summary[f'stair_rmse_mm_at_{mm}_median'] = s['median']
+    ratios = [r.get('uncertainty_ratio') for r in rows if _finite(r.get('uncertainty_ratio'))]
+    within = sum(1 / UNCERTAINTY_FACTOR <= q <= UNCERTAINTY_FACTOR for q in ratios)
+    summary['uncertainty_within_2x'] = within
+    summary['uncertainty_within_2x_fraction'] = within / len(ratios) if ratios else None
+    print(f'  predicted uncertainty within {UNCERTAINTY_FACTOR:g}x of the measured error on '
+          f'{within} of {len(ratios)} rigs')
     failures = [{'seed': r['seed'], **f} for r in rows for f in r['failures']]
     if failures:
         print('failures:')

@@ -221,6 +221,11 @@ class RefineResult:
         Refined model parameters (dotted names as in ``RigModel.to_dict()``).
     success : bool
     message : str
+    covariance : dict
+        The refined parameters' covariance record
+        (:func:`reconstructor.uncertainty.covariance_record`): from the reprojection
+        residuals alone (board poses included), and the sensitivity to the held intrinsics
+        ``input_std`` names; empty when it cannot be formed.
     """
 
     model: RigModel
@@ -231,6 +236,7 @@ class RefineResult:
     names: tuple
     success: bool
     message: str
+    covariance: dict = dataclasses.field(default_factory=dict)
 
 
 _INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
@@ -491,30 +497,58 @@ def _input_jacobian(prob: _RefineProblem, z, input_std: dict) -> tuple[np.ndarra
     return np.array(cols).reshape(len(cols), -1).T, np.array(sig)
 
 
-def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None) -> dict:
-    """1-sigma standard errors of the model parameters from the Jacobian (SI units).
+def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None,
+               held_priors: dict | None = None) -> tuple[dict, dict]:
+    """1-sigma standard errors of the model parameters from the Jacobian (SI units), and the
+    covariance record behind them (:attr:`RefineResult.covariance`).
 
     ``s2 inv(J.T J)`` of the reprojection residuals (board poses included), plus, when
     ``input_std`` gives the standard errors of intrinsics the fit holds fixed, their effect
     propagated through the solution: ``G diag(sd**2) G.T`` with ``G = -inv(J.T J) J.T J_in``
-    (the intrinsics taken as independent).
+    (the intrinsics taken as independent here; the record keeps G itself, so that their full
+    covariance can be used instead). ``held_priors`` (full names to 1-sigma tolerances) of
+    parameters the fit holds at their starting value enter the record only: their
+    sensitivity, and the tolerance as their prior.
     """
+    from reconstructor.uncertainty import covariance_record
+
     n_model = prob.n_model
     if not n_model:
-        return {}
+        return {}, {}
     try:
         cov, _ = covariance_from_jacobian(jac, res.ravel(), n_params=prob.n_params)
     except ValueError:
-        return {}
+        return {}, {}
+    scale = prob.scale[:n_model]
+    own = cov[:n_model, :n_model] * np.outer(scale, scale)
+    inputs, G_x = [], np.zeros((n_model, 0))
     if input_std:
         J_in, sd = _input_jacobian(prob, z, input_std)
         if len(sd):
             G = -np.linalg.pinv(jac.T @ jac) @ (jac.T @ J_in)
             cov = cov + (G * sd**2) @ G.T
+            G_x = G[:n_model] * scale[:, None]
+            inputs = [f"intrinsics.{n}" for n, s in input_std.items()
+                      if s > 0 and f"intrinsics.{n}" not in prob.names]
     var = np.diag(cov)[:n_model]
     sd_model = np.sqrt(np.where(np.isfinite(var), np.clip(var, 0.0, None), np.inf))
-    return {n: float(v) for n, v in zip(prob.names, sd_model * prob.scale[:n_model],
-                                         strict=True)}
+    std = {n: float(v) for n, v in zip(prob.names, sd_model * scale, strict=True)}
+    record = {}
+    held = {n: float(t) for n, t in (held_priors or {}).items()
+            if t > 0 and n not in prob.names}
+    if held:  # held parameters: their tolerance's effect, for the record only
+        cols = []
+        for name, t in held.items():
+            x0 = _get_param(prob.model, name)
+            plus = dataclasses.replace(prob, model=_set_params(prob.model, [name], [x0 + t]))
+            minus = dataclasses.replace(prob, model=_set_params(prob.model, [name], [x0 - t]))
+            cols.append((plus.fun(z) - minus.fun(z)) / (2.0 * t))
+        G = -np.linalg.pinv(jac.T @ jac) @ (jac.T @ np.array(cols).T)
+        G_x = np.hstack([G_x, G[:n_model] * scale[:, None]])
+        inputs = inputs + list(held)
+    if np.isfinite(own).all():
+        record = covariance_record(prob.names, own, inputs, G_x, priors=held)
+    return std, record
 
 
 def refine(
@@ -535,6 +569,7 @@ def refine(
     ellipse_correction: bool = True,
     max_nfev: int = 200,
     input_std: dict | None = None,
+    held_priors: dict | None = None,
 ) -> RefineResult:
     """Nonlinear least squares on the reprojection error of all identified circles.
 
@@ -571,6 +606,10 @@ def refine(
     input_std : dict of str to float, optional
         1-sigma standard errors of the intrinsics the fit holds fixed (``fx``, ``fy``,
         ``cx``, ``cy`` in px, ``dist[j]``), propagated into ``RefineResult.std``.
+    held_priors : dict of str to float, optional
+        1-sigma tolerances of model parameters the fit holds (full names, e.g.
+        ``physical.g1_pan_surface_offset``); their effect enters ``RefineResult.covariance``
+        (not ``std``).
 
     Returns
     -------
@@ -594,13 +633,15 @@ def refine(
     res = (prob.predict(sol_x) - prob.uv_obs)
     per_view = np.split(res, np.cumsum(prob.counts)[:-1])
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
+    std, record = _model_std(prob, res, jac, sol_x, input_std, held_priors)
     return RefineResult(
         model=m,
         board_poses={k: T for k, T in zip(prob.pose_keys, Ts, strict=True)},
         residuals_px=per_view,
         rms_px=rms,
-        std=_model_std(prob, res, jac, sol_x, input_std),
+        std=std,
         names=tuple(names),
         success=success,
         message=message,
+        covariance=record,
     )

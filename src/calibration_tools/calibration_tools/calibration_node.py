@@ -454,6 +454,10 @@ class CalibrationNode(Node):
                         f'rejected; ' + ', '.join(f'{k}={v:.4g}' for k, v in r.items()))
         if 'coverage' in result.extra:  # views used, voltage ranges spanned, residuals
             resp.message += '\n' + stage_runner.coverage_line(stage, result.extra['coverage'])
+        try:  # the calibration as it now stands: good, or which stage to redo and where
+            resp.message += '\nverdict: ' + stage_runner.verdict(new)
+        except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+            resp.message += f'\nverdict: not formed ({exc})'
         self.get_logger().info(resp.message)
         return resp
 

@@ -478,6 +478,7 @@ def run_dynamic_camera(
         samples_used=len(accepted), samples_rejected=len(views) - len(accepted),
         extra={"dynamic_camera": {**extra, "intrinsics_standard_errors_held": input_std}},
         standard_errors=_stage_errors(updates, fin.std),
+        covariance=fin.covariance,
     )
 
 
@@ -684,11 +685,15 @@ def observable_physical_fit(ident, lin, obs, board, *, refine_intrinsics=(), inp
                 del tolerances[n]
                 held_intr[f"physical.{n}"] = ("held: the principal point, refined here, stands "
                                               "for the camera's pan and tilt on its mount")
+    def priors(free=()):  # held deviations: their tolerance enters the covariance record
+        return {f"physical.{n}": t for n, t in G1_PHYSICAL_TOLERANCES.items() if n not in free}
+
     fin, held = fit_observable(
         lambda free: refine(paper.model, obs, board, poses, refine_physical=free,
-                            refine_intrinsics=intr, input_std=input_std, **fit_kw),
-        lambda: (refine(paper.model, obs, board, poses, refine_intrinsics=intr,
-                        input_std=input_std, **fit_kw) if intr else paper),
+                            refine_intrinsics=intr, input_std=input_std,
+                            held_priors=priors(free), **fit_kw),
+        lambda: refine(paper.model, obs, board, poses, refine_intrinsics=intr,
+                       input_std=input_std, held_priors=priors(), **fit_kw),
         tolerances)
     return fin, {**held_intr, **{f"physical.{n}": why for n, why in held.items()}}, intr
 

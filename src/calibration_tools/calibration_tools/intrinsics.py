@@ -661,4 +661,21 @@ def run_intrinsics(
             **{k: res.std[k] for k in ("fx", "fy", "cx", "cy")},
             "dist": [res.std.get(k, 0.0) for k in INTRINSIC_PARAMS[4:]],
         }},
+        covariance=intrinsics_covariance(res),
     )
+
+
+#: Model key of each intrinsic parameter (distortion in OpenCV's k1, k2, p1, p2, k3 order).
+_MODEL_KEY = {**{k: f"intrinsics.{k}" for k in ("fx", "fy", "cx", "cy")},
+              **{k: f"intrinsics.dist[{j}]" for j, k in enumerate(INTRINSIC_PARAMS[4:])}}
+
+
+def intrinsics_covariance(res: IntrinsicsResult) -> dict:
+    """The covariance record (``StageResult.covariance``) of a calibration's estimated
+    intrinsics: standard errors and correlation joined, named by model key."""
+    from reconstructor.uncertainty import covariance_record
+
+    names = list(res.std)
+    sd = np.array([res.std[k] for k in names])
+    corr = np.nan_to_num(np.asarray(res.correlation, dtype=np.float64))
+    return covariance_record([_MODEL_KEY[k] for k in names], corr * np.outer(sd, sd))

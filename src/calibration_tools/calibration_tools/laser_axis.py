@@ -336,12 +336,29 @@ def axis_standard_errors(fit: AxisFit, planes, voltages=None, *, weights=None,
         Keyed as the stage's updates: ``laser_axis_dir`` (3, unit 1), ``laser_axis_point``
         (3, metres), ``g2_tilt: {'k': rad/V, 'poly': [rad/V^2, ...]}``, as available.
     """
+    out = {}
+    for key, (_, cov) in axis_covariance_blocks(fit, planes, voltages, weights=weights,
+                                                anchor=anchor, method=method).items():
+        sd = [float(v) for v in np.sqrt(np.clip(np.diag(cov), 0.0, None))]
+        if key == 'g2_tilt':
+            out['g2_tilt'] = {'k': sd[0], 'poly': sd[1:]}
+        else:
+            out[key] = sd
+    return out
+
+
+def axis_covariance_blocks(fit: AxisFit, planes, voltages=None, *, weights=None,
+                           anchor=(0.0, 0.0, 0.0), method: str = 'paper') -> dict:
+    """The covariances behind :func:`axis_standard_errors` (same arguments), one block per
+    least squares: ``{key: (parameter names, matrix)}`` for ``laser_axis_dir``,
+    ``laser_axis_point`` and ``g2_tilt`` (k and poly), as available. The blocks are taken as
+    independent (three separate fits)."""
     pl = _unit_planes(planes)
     N, e = pl[:, :3], pl[:, 3]
     w = _plane_weights(weights, pl.shape[0])
     n = fit.direction
     t = np.linalg.svd(n[None, :])[2][1:].T  # (3, 2): unit vectors perpendicular to n
-    out = {}
+    out: dict = {}
     Jd = N @ t
     rd = N @ n
     if method == 'cone':
@@ -351,7 +368,7 @@ def axis_standard_errors(fit: AxisFit, planes, voltages=None, *, weights=None,
     cov_n = None
     if cov is not None:
         cov_n = t @ cov[:2, :2] @ t.T
-        out['laser_axis_dir'] = [float(v) for v in np.sqrt(np.diag(cov_n))]
+        out['laser_axis_dir'] = ([f'laser_axis_dir[{j}]' for j in range(3)], cov_n)
     Jp = N @ t
     if fit.offset != 0.0:
         Jp = np.column_stack([Jp, -np.ones(len(N))])
@@ -360,7 +377,7 @@ def axis_standard_errors(fit: AxisFit, planes, voltages=None, *, weights=None,
         # P slides along n when n turns (it stays the axis point nearest the anchor).
         lever = fit.point - np.asarray(anchor, dtype=np.float64)
         cov_p = t @ cov[:2, :2] @ t.T + np.outer(n, n) * float(lever @ cov_n @ lever)
-        out['laser_axis_point'] = [float(v) for v in np.sqrt(np.diag(cov_p))]
+        out['laser_axis_point'] = ([f'laser_axis_point[{j}]' for j in range(3)], cov_p)
     if fit.k is not None and voltages is not None:
         u = np.asarray(voltages, dtype=np.float64)
         V = np.column_stack([np.ones(len(u))] + [u ** (p + 1) for p in range(1 + len(fit.poly))])
@@ -368,9 +385,29 @@ def axis_standard_errors(fit: AxisFit, planes, voltages=None, *, weights=None,
                                rcond=None)[0]
         cov = _wls_cov(V, V @ coef - fit.rotation_rad, w)
         if cov is not None:
-            sd = np.sqrt(np.diag(cov)) / 2.0
-            out['g2_tilt'] = {'k': float(sd[1]), 'poly': [float(v) for v in sd[2:]]}
+            names = ['g2_tilt.k'] + [f'g2_tilt.poly[{j}]' for j in range(len(cov) - 2)]
+            out['g2_tilt'] = (names, cov[1:, 1:] / 4.0)
     return out
+
+
+def axis_covariance(blocks: dict, updated) -> dict:
+    """The stage's covariance record from :func:`axis_covariance_blocks` (block diagonal),
+    over the parameters it ``updated`` (flat keys)."""
+    from reconstructor.uncertainty import covariance_record
+
+    names, mats = [], []
+    for key, (n, cov) in blocks.items():
+        if key in updated:
+            names += n
+            mats.append(np.asarray(cov, dtype=np.float64))
+    if not names:
+        return {}
+    M = np.zeros((len(names), len(names)))
+    i = 0
+    for m in mats:
+        M[i:i + len(m), i:i + len(m)] = m
+        i += len(m)
+    return covariance_record(names, M)
 
 
 def line_distance(p1, d1, p2, d2) -> float:
@@ -435,7 +472,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     groups: dict[int, list] = {}
     for s in coll.stripes:
         groups.setdefault(int(round(s.u2_tilt / VOLTAGE_TOL)), []).append(s)
-    planes, volts, rms, weights = [], [], [], []
+    planes, volts, rms, weights, used = [], [], [], [], []
     orient = model.laser_plane_v0[:3]
     for key in sorted(groups):
         stripes = groups[key]
@@ -449,6 +486,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
             rejected.append(msg)
             continue
         planes.append(fit.plane)
+        used.append((stripes, fit.inliers))
         volts.append(u2)
         rms.append(fit.rms)
         # A plane's tilt across the stripe is known to about (pose error) / (spread of its
@@ -482,6 +520,64 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     errors = {k: v for k, v in axis_standard_errors(
         fit, np.array(planes), np.array(volts), weights=np.array(weights), anchor=anchor,
         method=method).items() if k in updates}
+    blocks = axis_covariance_blocks(fit, np.array(planes), np.array(volts),
+                                    weights=np.array(weights), anchor=anchor, method=method)
+    if 'poly' not in (updates.get('g2_tilt') or {}) and 'g2_tilt' in blocks:
+        names, cov = blocks['g2_tilt']
+        blocks['g2_tilt'] = (names[:1], cov[:1, :1])
+    record = axis_covariance(blocks, updates)
+    if record:
+        from reconstructor.uncertainty import camera_inputs
+
+        def axis_of(pl):
+            f = fit_axis(np.array(pl), np.array(volts), weights=np.array(weights),
+                         anchor=anchor, reference_dir=fit.direction, fit_offset=fit_offset,
+                         poly_degree=poly_degree, method=method)
+            return _axis_vector(f, record['names'])
+
+        record = _with_camera_sensitivity(record, model, used, camera_inputs(calibration),
+                                          axis_of, orient)
     return StageResult(stage='laser_axis', updates=updates, residuals=residuals,
                        samples_used=len(coll.stripes), samples_rejected=len(rejected),
-                       rejected=rejected, standard_errors=errors)
+                       rejected=rejected, standard_errors=errors, covariance=record)
+
+
+def _axis_vector(fit: AxisFit, names) -> np.ndarray:
+    """An axis fit's values in the order of its covariance record's ``names``."""
+    values = {**{f'laser_axis_dir[{j}]': fit.direction[j] for j in range(3)},
+              **{f'laser_axis_point[{j}]': fit.point[j] for j in range(3)},
+              'g2_tilt.k': fit.k if fit.k is not None else 0.0,
+              **{f'g2_tilt.poly[{j}]': c for j, c in enumerate(fit.poly)}}
+    return np.array([values.get(n, 0.0) for n in names], dtype=np.float64)
+
+
+def _with_camera_sensitivity(record, model, used, inputs, axis_of, orient) -> dict:
+    """The axis record with its sensitivity to the camera's calibrated parameters: every
+    plane's inlier stripe points as the moved camera would have measured them
+    (:func:`reconstructor.uncertainty.remeasured_sensitivity`), the planes (``used``: per
+    plane its stripes and inlier mask) and the axis (``axis_of(planes)``) fitted again."""
+    from reconstructor.uncertainty import covariance_record, remeasured_sensitivity
+
+    from .laser_plane import _svd_plane
+
+    if not inputs:
+        return record
+    groups, owner = [], []
+    for k, (stripes, inliers) in enumerate(used):
+        keep = np.split(inliers, np.cumsum([len(st.points_v0) for st in stripes])[:-1])
+        for st, m in zip(stripes, keep, strict=True):
+            if m.any():
+                groups.append((st.points_v0[m], *st.u1))
+                owner.append(k)
+
+    def estimate(pts):
+        planes = []
+        for k in range(len(used)):
+            pl, _ = _svd_plane(np.concatenate([p for p, o in zip(pts, owner, strict=True)
+                                               if o == k]))
+            planes.append(pl if pl[:3] @ orient > 0 else -pl)
+        return axis_of(planes)
+
+    S = remeasured_sensitivity(model, groups, inputs, estimate)
+    return covariance_record(record['names'], record['matrix'], list(inputs),
+                             S.reshape(len(record['names']), len(inputs)))

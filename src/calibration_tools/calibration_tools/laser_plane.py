@@ -363,6 +363,7 @@ class StripeOnBoard:
     pnp_rms_px: float
     line_rms: float = 0.0
     n_trimmed: int = 0
+    u1: tuple = (0.0, 0.0)
 
 
 @dataclass
@@ -552,7 +553,8 @@ def _stripe_line_in_v0(i, view, pose, p_v, model, line_k_sigma: float,
     return StripeOnBoard(view_index=i, pose_index=int(view.pose_index),
                          u2_tilt=float(volts[3]), points_v0=p_v0,
                          pnp_rms_px=pose.reprojection_rms_px, line_rms=line_rms,
-                         n_trimmed=int((~keep).sum())), ''
+                         n_trimmed=int((~keep).sum()),
+                         u1=(float(volts[0]), float(volts[1]))), ''
 
 
 def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,
@@ -599,7 +601,13 @@ def plane_from_stripes(stripes, *, k_sigma: float = 4.0, orient=None,
 
 
 def plane_standard_errors(points, plane, groups) -> np.ndarray:
-    """1-sigma standard errors of a fitted plane's (a, b, c, e), from its views' lines.
+    """1-sigma standard errors of a fitted plane's (a, b, c, e): the square roots of the
+    diagonal of :func:`plane_covariance` (same arguments), shape (4,)."""
+    return np.sqrt(np.clip(np.diag(plane_covariance(points, plane, groups)), 0.0, None))
+
+
+def plane_covariance(points, plane, groups) -> np.ndarray:
+    """Covariance of a fitted plane's (a, b, c, e), from its views' lines.
 
     The errors of one view (one board pose) are mostly one shift and tilt of its whole line,
     not independent per point. So each view is reduced to its line: the plane residual at
@@ -620,8 +628,8 @@ def plane_standard_errors(points, plane, groups) -> np.ndarray:
 
     Returns
     -------
-    ndarray, shape (4,)
-        Standard errors of a, b, c (1) and e (metres).
+    ndarray, shape (4, 4)
+        Covariance of a, b, c (1) and e (metres).
     """
     p = np.asarray(points, dtype=np.float64)
     pl = np.asarray(plane, dtype=np.float64)
@@ -655,18 +663,36 @@ def plane_standard_errors(points, plane, groups) -> np.ndarray:
     cov, _ = covariance_from_jacobian(J, r)
     M = np.zeros((4, 3))
     M[:3, 0], M[:3, 1], M[3, 2] = t1, t2, 1.0
-    return np.sqrt(np.clip(np.diag(M @ cov @ M.T), 0.0, None))
+    return M @ cov @ M.T
 
 
-def _plane_errors(stripes, fit) -> dict:
-    """``{'laser_plane_v0': [sa, sb, sc, se]}`` of a fit, or {} with fewer than 3 views."""
+def _plane_errors(stripes, fit, model, inputs) -> tuple[dict, dict]:
+    """``{'laser_plane_v0': [sa, sb, sc, se]}`` of a fit and its covariance record, or
+    ({}, {}) with fewer than 3 views. The record's sensitivity to the camera's calibrated
+    parameters (``inputs``, name to 1 sigma) is that of the inliers' plane to the points
+    as a moved camera would have measured them
+    (:func:`reconstructor.uncertainty.remeasured_sensitivity`)."""
+    from reconstructor.uncertainty import covariance_record, remeasured_sensitivity
+
     pts = np.concatenate([s.points_v0 for s in stripes])[fit.inliers]
     views = np.concatenate([np.full(len(s.points_v0), j) for j, s in enumerate(stripes)])
     try:
-        se = plane_standard_errors(pts, fit.plane, views[fit.inliers])
+        cov = plane_covariance(pts, fit.plane, views[fit.inliers])
     except ValueError:
-        return {}
-    return {'laser_plane_v0': [float(v) for v in se]}
+        return {}, {}
+    se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    counts = np.cumsum([len(s.points_v0) for s in stripes])[:-1]
+    keep = np.split(fit.inliers, counts)
+    groups = [(s.points_v0[k], *s.u1) for s, k in zip(stripes, keep, strict=True) if k.any()]
+
+    def plane(pts):
+        pl, _ = _svd_plane(np.concatenate(pts))
+        return pl if pl[:3] @ fit.plane[:3] > 0 else -pl
+
+    S = remeasured_sensitivity(model, groups, inputs, plane)
+    return ({'laser_plane_v0': [float(v) for v in se]},
+            covariance_record([f'laser_plane_v0[{j}]' for j in range(4)], cov,
+                              list(inputs), S.reshape(4, len(inputs))))
 
 
 # ----------------------------------------------------------------------------- stage
@@ -715,10 +741,14 @@ def run_laser_plane(views, calibration, *, board, extractor_config=None,
     except ValueError as exc:
         raise ValueError(f'laser_plane: {exc}; rejected: {rejected}') from None
     n_pts = fit.inliers.shape[0]
+    from reconstructor.uncertainty import camera_inputs
+
+    errors, covariance = _plane_errors(coll.stripes, fit, model, camera_inputs(calibration))
     return StageResult(
         stage='laser_plane',
         updates={'laser_plane_v0': [float(v) for v in fit.plane]},
-        standard_errors=_plane_errors(coll.stripes, fit),
+        standard_errors=errors,
+        covariance=covariance,
         residuals={
             'plane_rms_m': fit.rms,
             'plane_max_abs_m': fit.max_abs,

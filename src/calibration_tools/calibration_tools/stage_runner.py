@@ -208,6 +208,8 @@ def coverage(result: StageResult, views: Sequence[CaptureView]) -> dict:
         'used': int(result.samples_used), 'rejected': int(result.samples_rejected),
         'poses': len({int(v.pose_index) for v in views}),
         'span_V': span,
+        # where the views looked: the distinct G1 voltages (0.01 V), for coverage maps
+        'u1_V': np.unique(np.round(U[:, :2], 2), axis=0).tolist(),
         'residuals': {k: float(v) for k, v in result.residuals.items()},
         'standard_errors': flatten(dict(getattr(result, 'standard_errors', None) or {})),
     }
@@ -226,6 +228,55 @@ def coverage_line(stage: str, cov: dict) -> str:
         line += '; standard errors ' + ', '.join(
             f'{k} {v:.3g}' for k, v in list(cov['standard_errors'].items())[:8])
     return line
+
+
+# ----------------------------------------------------------------------------- verdict
+#: A calibration is good when no view of its uncertainty map predicts more than this many
+#: times the map's median error (flat over the range).
+VERDICT_FLATNESS = 4.0
+#: The chain's stages whose covariances the verdict needs.
+VERDICT_STAGES = ('intrinsics', 'dynamic_camera', 'laser_plane', 'laser_axis')
+
+
+def verdict(calibration) -> str:
+    """One line on a calibration: ``good: ...``, ``redo <stage> ...`` (which stage, and
+    near which G1 voltages), or ``incomplete: ...``.
+
+    From the predicted uncertainty map over +-8 V at the depth where the laser plane at
+    U2 = 0 crosses V0's axis (:func:`reconstructor.uncertainty.point_uncertainty_map`): good
+    when its worst view is within :data:`VERDICT_FLATNESS` x its median; else the stage
+    whose parameters carry the largest share of the worst view's variance is named, with
+    the view's voltages (capture more views there, or views that constrain it better).
+    """
+    from reconstructor.uncertainty import parameter_covariance, point_uncertainty_map
+
+    try:
+        pc = parameter_covariance(calibration)
+    except ValueError as exc:
+        return f'incomplete: {exc}'
+    have = {s.split(' ')[0] for s in pc.stage_of.values()}
+    missing = [s for s in VERDICT_STAGES if s not in have]
+    if missing:
+        return f"incomplete: no covariance yet from {', '.join(missing)}"
+    plane = np.asarray(calibration.model.laser_plane_v0, dtype=np.float64)
+    depth = -plane[3] / plane[2] if abs(plane[2]) > 1e-9 else float('nan')
+    if not (np.isfinite(depth) and 0.05 < depth < 5.0):
+        return f'incomplete: the laser plane does not cross the view axis ({depth:.3g} m)'
+    try:
+        umap = point_uncertainty_map(calibration.model, pc, depth=float(depth))
+    except ValueError as exc:
+        return f'incomplete: {exc}'
+    worst, up, ut = umap.worst()
+    median = float(np.nanmedian(umap.sigma_m))
+    head = (f'predicted 1-sigma point error {umap.rms_m * 1e3:.3f} mm RMS over +-8 V at '
+            f'{depth * 1e3:.0f} mm, worst {worst * 1e3:.3f} mm at U1 = ({up:+.1f}, {ut:+.1f}) V')
+    if not (worst > VERDICT_FLATNESS * median):
+        return f'good: {head}'
+    i = int(np.argmin(np.abs(umap.u_tilt - ut)))
+    j = int(np.argmin(np.abs(umap.u_pan - up)))
+    stage = max(umap.by_stage, key=lambda s: umap.by_stage[s][i, j])
+    return (f'redo {stage.split(" ")[0]} with views near U1 = ({up:+.1f}, {ut:+.1f}) V: '
+            f'{head}, {worst / median:.1f} x the median')
 
 
 # ----------------------------------------------------------------------------- compute

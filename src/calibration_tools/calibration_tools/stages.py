@@ -154,6 +154,13 @@ class StageResult:
         (:func:`covariance_from_jacobian`); a parameter the stage holds fixed or pins with
         a prior says so in ``extra`` and in its module's docstring. Stored in the
         calibration file as ``stages.<stage>.standard_errors`` (flat dotted keys).
+    covariance : dict
+        The full covariance behind ``standard_errors``, where the stage has it, as
+        :func:`reconstructor.uncertainty.covariance_record` makes it: ``names`` (dotted keys
+        of updated parameters, ``[j]`` for list elements), ``matrix`` from the stage's own
+        data and, for parameters of earlier stages it held fixed, ``inputs`` and
+        ``sensitivity`` (d estimate / d input). Stored as ``stages.<stage>.covariance``;
+        :func:`reconstructor.uncertainty.parameter_covariance` joins the stages' records.
     """
 
     stage: str
@@ -164,6 +171,7 @@ class StageResult:
     rejected: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
     standard_errors: dict = field(default_factory=dict)
+    covariance: dict = field(default_factory=dict)
 
 
 def covariance_from_jacobian(jac, residuals, *, n_params: int | None = None,
@@ -296,6 +304,11 @@ def apply_result(calibration, result: StageResult, sources=()):
     }
     if errors:
         stages[result.stage]['standard_errors'] = errors
+    if result.covariance:
+        stages[result.stage]['covariance'] = _checked_covariance(result, merged)
+    u1 = (result.extra.get('coverage') or {}).get('u1_V')
+    if u1:  # where the stage's views looked (G1 voltages), for coverage maps
+        stages[result.stage]['views_u1_V'] = [[float(a), float(b)] for a, b in u1]
     if mounting is not None:
         stages[result.stage].update({k: v for k, v in mounting.items() if k != 'cell_T_v0'})
     if result.extra.get('nodes'):  # per-view figures of a stage, for reports
@@ -341,6 +354,34 @@ def _check_errors(errors: dict, result: StageResult) -> None:
         if not (np.isfinite(v).all() and (v >= 0).all()):
             raise ValueError(f'{result.stage}: standard error of {key} must be finite and '
                              f'>= 0, got {value}')
+
+
+def _checked_covariance(result: StageResult, merged: dict) -> dict:
+    """The stage's covariance record, checked: it names parameters the stage updated (or
+    elements of them), and inputs the model has."""
+    from reconstructor.uncertainty import covariance_record, parameter_value
+
+    rec = result.covariance
+    try:
+        out = covariance_record(rec.get('names', ()), rec.get('matrix', ()),
+                                rec.get('inputs', ()), rec.get('sensitivity'),
+                                rec.get('priors'))
+    except (TypeError, AttributeError) as exc:
+        raise ValueError(f'{result.stage}: covariance: {exc}') from exc
+    except ValueError as exc:
+        raise ValueError(f'{result.stage}: {exc}') from exc
+    updated = set(_flat_keys(result.updates))
+    model = None
+    for name in out['names']:
+        if name.split('[')[0] not in updated:
+            raise ValueError(f'{result.stage}: covariance of {name}, which the stage does not '
+                             f'update')
+    for name in out['names'] + out.get('inputs', []):
+        from reconstructor.model import RigModel
+
+        model = model or RigModel.from_dict(merged)
+        parameter_value(model, name)  # raises, naming a parameter the model lacks
+    return out
 
 
 def _flat_keys(d, prefix=''):

@@ -735,6 +735,7 @@ def _nominal(args, graph, rig, site, progress):
     rng, range_views = ev.coverage(3)
     errors = [r['error_mm'] for r in stair_rows if r['error_mm'] is not None]
     cell = stage_info.get('cell_extrinsic', {})
+    uncertainty = predicted_uncertainty(cal, rig, site.depth)
     result = {
         'stair_step_error_rmse_mm': metrics.rmse(errors),
         'stair_step_error_max_mm': max((abs(e) for e in errors), default=None),
@@ -759,12 +760,63 @@ def _nominal(args, graph, rig, site, progress):
         'frames_lost': ev.lost_frames,
         'calibration_source': cal.source,
         'calibrated_vs_true': report.calibrated_vs_true(cal.model, rig),
+        **{k: v for k, v in uncertainty.items() if not isinstance(v, dict)},
     }
-    details = {'stair': stair_rows, 'stair_off_nominal': off_nominal, 'plate': plate_rows,
+    details = {'uncertainty': uncertainty.get('map'),
+               'stair': stair_rows, 'stair_off_nominal': off_nominal, 'plate': plate_rows,
                'plate_range_scaled': scaled_rows,
                'sphere': sphere_res, 'range_views': range_views, 'stages': stage_info}
     return result, details, {'stair': stair_clouds, 'plate': plate_clouds,
                              'plate_maps': plate_maps, 'sphere': sphere_cloud}
+
+
+#: The uncertainty map's grid: n x n G1 views within +-span V.
+UNCERTAINTY_SPAN_V = 8.0
+UNCERTAINTY_GRID = 9
+
+
+def predicted_uncertainty(cal, rig, depth: float) -> dict:
+    """The calibration's predicted 1-sigma point error over the range
+    (:func:`reconstructor.uncertainty.point_uncertainty_map`) against the error measured on
+    the simulator with its true stripe pixels, on the same grid of views and wall
+    (:func:`galvoscan.sim_scores.reconstruction_errors`, after the best rigid motion: the
+    shape, as the prediction).
+
+    Returns
+    -------
+    dict
+        ``predicted_uncertainty_mm`` (RMS over the map), ``predicted_uncertainty_max_mm``,
+        ``predicted_v0_placement_mm`` (the rigid part, not in the map),
+        ``measured_shape_error_mm``, ``uncertainty_ratio`` (predicted / measured) and
+        ``map`` (the map, and per stage the G1 voltages its views used); NaN figures and
+        ``uncertainty_failed`` when it cannot be formed.
+    """
+    from galvoscan import sim_scores
+    from reconstructor.uncertainty import parameter_covariance, point_uncertainty_map
+
+    try:
+        pc = parameter_covariance(cal)
+        if not pc.names:
+            raise ValueError('the calibration holds no covariance')
+        umap = point_uncertainty_map(cal.model, pc, depth=depth, span=UNCERTAINTY_SPAN_V,
+                                     n=UNCERTAINTY_GRID)
+        measured = sim_scores.reconstruction_errors(
+            cal.model, rig, span=UNCERTAINTY_SPAN_V, n=UNCERTAINTY_GRID, depth=depth)
+    except (ValueError, RuntimeError) as exc:
+        nan = float('nan')
+        return {'predicted_uncertainty_mm': nan, 'measured_shape_error_mm': nan,
+                'uncertainty_ratio': nan, 'uncertainty_failed': str(exc)}
+    predicted = umap.rms_m * 1e3
+    shape = measured['aligned_rms_m'] * 1e3
+    views = {stage: rec.get('views_u1_V') for stage, rec in cal.stages.items()
+             if isinstance(rec, dict) and rec.get('views_u1_V')}
+    return {'predicted_uncertainty_mm': predicted,
+            'predicted_uncertainty_max_mm': umap.worst()[0] * 1e3,
+            'predicted_v0_placement_mm': umap.absolute_rms_m * 1e3,
+            'measured_shape_error_mm': shape,
+            'uncertainty_ratio': predicted / shape if shape > 0 else float('nan'),
+            'map': {**umap.to_dict(), 'views_u1_V': views, 'notes': pc.notes,
+                    'measured_shape_error_mm': shape}}
 
 
 def _paper_method(args, graph, rig, site, out, progress) -> dict:

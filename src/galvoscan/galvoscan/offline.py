@@ -201,6 +201,7 @@ def run_stage(args, progress: Progress) -> int:
     _report(result, progress)
     progress.log(f'{args.stage}: computed in {time.monotonic() - t0:.1f} s; wrote '
                  f'{new.path}')
+    progress.log(f'verdict: {stage_runner.verdict(new)}')
     return 0
 
 

@@ -24,6 +24,11 @@ _ROWS = [  # (metrics key, label, paper key)
      "paper's plate's viewing angles; the same plate at scale <= 1), RMSE [mm]",
      'plate_flatness_rmse_mm'),
     ('sphere_radius_error_mm', 'calibration sphere, radius error [mm]', None),
+    ('predicted_uncertainty_mm', "predicted 1-sigma point error over G1's range (the "
+     "calibration's covariance; shape, RMS over the map) [mm]", None),
+    ('measured_shape_error_mm', 'measured point error there against the truth (true stripe '
+     'pixels, after the best rigid motion), RMS [mm]', None),
+    ('uncertainty_ratio', 'predicted / measured point error (1 = an honest covariance)', None),
     ('transfer_matrix_error_rmse_mm', 'dynamic camera transfer-matrix error, RMSE [mm]',
      'transfer_matrix_error_rmse_mm'),
     ('joint_error_before_mm', 'joint correction: error before [mm]', 'joint_error_before_mm'),
@@ -267,6 +272,53 @@ def _plot_plate_map(maps, path):
     return True
 
 
+_MARKERS = {'intrinsics': ('s', 'k'), 'dynamic_camera': ('o', 'w'),
+            'laser_plane': ('^', 'm'), 'laser_axis': ('v', 'c'),
+            'joint_correction': ('x', 'r')}
+
+
+def _plot_uncertainty(umap, path):
+    """The predicted 1-sigma point error over G1's range (pan x tilt) with the G1 voltages of
+    every calibration stage's views on it (the coverage map)."""
+    if not umap or not umap.get('sigma_m'):
+        return False
+    sigma = np.array([[np.nan if v is None else v for v in row] for row in umap['sigma_m']],
+                     dtype=float) * 1e6
+    if not np.isfinite(sigma).any():
+        return False
+    plt = _pyplot()
+    up, ut = np.array(umap['u_pan_V']), np.array(umap['u_tilt_V'])
+    step = (up[1] - up[0]) / 2 if len(up) > 1 else 1.0
+    fig, ax = plt.subplots(figsize=(7.4, 5.6), layout='constrained')
+    im = ax.imshow(sigma, origin='lower', cmap='viridis', interpolation='nearest',
+                   extent=(up[0] - step, up[-1] + step, ut[0] - step, ut[-1] + step))
+    for i, tv in enumerate(ut):
+        for j, pv in enumerate(up):
+            if np.isfinite(sigma[i, j]):
+                ax.text(pv, tv, f'{sigma[i, j]:.0f}', ha='center', va='center', fontsize=7,
+                        color='w' if sigma[i, j] < np.nanmax(sigma) * 0.6 else 'k')
+    for stage, pts in (umap.get('views_u1_V') or {}).items():
+        p = np.asarray(pts, dtype=float).reshape(-1, 2)
+        marker, colour = _MARKERS.get(stage, ('+', 'y'))
+        ax.scatter(p[:, 0], p[:, 1], s=14, marker=marker, facecolors=colour,
+                   edgecolors='k', linewidths=0.5, label=f'{stage} views ({len(p)})')
+    ax.set_xlim(-10.5, 10.5)
+    ax.set_ylim(-10.5, 10.5)
+    ax.set_xlabel('G1 pan voltage [V]')
+    ax.set_ylabel('G1 tilt voltage [V]')
+    if umap.get('views_u1_V'):
+        ax.legend(loc='upper center', bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=7)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label('predicted 1-sigma point error (shape) [um]')
+    ax.set_title(f"Predicted uncertainty at {umap['depth_m'] * 1e3:.0f} mm: RMS "
+                 f"{umap['rms_m'] * 1e6:.0f} um (measured against the truth: "
+                 f"{umap.get('measured_shape_error_mm', float('nan')) * 1e3:.0f} um)",
+                 fontsize=9)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
 def _render_cloud(cloud, path, title):
     plt = _pyplot()
     p = xyz(cloud) * 1e3
@@ -335,6 +387,9 @@ def write_report(out, result, details, paper, clouds):
         lines += ['![stair error](stair_error_vs_angle.png)', '']
     if _plot_by_distance(result, out / 'stair_error_by_distance.png'):
         lines += ['![stair error by distance](stair_error_by_distance.png)', '']
+    if _plot_uncertainty(details.get('uncertainty'), out / 'uncertainty_map.png'):
+        lines += ['![predicted uncertainty and calibration coverage](uncertainty_map.png)',
+                  '']
     if _plot_joint(details, out / 'joint_correction.png'):
         lines += ['![joint correction](joint_correction.png)', '']
     if clouds.get('stair') and _render_cloud(clouds['stair'][0], out / 'stair_cloud.png',
