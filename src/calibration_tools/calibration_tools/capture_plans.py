@@ -142,9 +142,16 @@ LASER_ROW = ((-1.75, 0), (-0.5833, 1), (0.5833, 0), (1.75, 1))
 #: Near and far board depths relative to where the laser plane crosses the V0 axis [1, of
 #: the working depth] (+-55 mm at 650 mm).
 LASER_DEPTHS = (-0.055 / 0.65, 0.055 / 0.65)
-#: The laser-axis rows' G2 voltages [V] at full span, and the span fractions tried when the
-#: outer rows are out of G1 reach.
-LASER_AXIS_ROWS = (([-4.0, -2.0, 0.0, 2.0, 4.0], [-3.0, -1.0, 1.0, 3.0]))
+#: The laser-axis rows (full plans): this many G2 voltages, evenly over the span of the
+#: scans (:func:`_axis_rows`), in two interleaved scenes. The span matters: G2's response is
+#: not linear, and its curvature fitted from +-4 V and extrapolated to the -7.4 V that the
+#: top of G1's range needs put 0.3-0.7 mm into the laser planes of a drawn rig.
+LASER_AXIS_ROW_COUNT = 9
+#: A laser-axis row is placed where its plane meets the view axis at the working depth
+#: within this fraction of G1's range.
+LASER_AXIS_REACH = 0.9
+#: The quick plan's rows [V] at full span, and the span fractions tried when the outer rows
+#: are out of G1 reach.
 LASER_AXIS_QUICK_ROWS = ([-2.0, 0.0, 2.0],)
 LASER_AXIS_SPAN = (1.0, 0.8, 0.6, 0.45, 0.3)
 #: Sphere positions along V0's x at the design working distance [m] (scaled with depth).
@@ -738,6 +745,38 @@ def _board_depths(steps) -> list[float]:
             for o in yaml.safe_load(s.scene_yaml)['objects']]
 
 
+def _axis_reach(model, t: Targets, u: float) -> bool:
+    """Whether the laser plane of G2 voltage ``u`` can take boards: it meets the view axis
+    at the working depth within :data:`LASER_AXIS_REACH` of G1's range, and is not too steep."""
+    from reconstructor.model import laser_plane_v0
+    from reconstructor.planning import aim_g1
+
+    pi = laser_plane_v0(model, u)
+    if abs(pi[1]) < 0.2:
+        return False
+    p = np.array([0.0, -(pi[2] * t.depth + pi[3]) / pi[1], t.depth])
+    g1 = aim_g1(model, p, max_abs_u=MAX_ABS_VOLTAGE)
+    return bool(np.all(np.abs(g1) <= LASER_AXIS_REACH * MAX_ABS_VOLTAGE))
+
+
+def _axis_rows(model, t: Targets) -> tuple[list, list, str]:
+    """The full plan's two interleaved sets of laser-axis rows [V]: :data:`LASER_AXIS_ROW_COUNT`
+    voltages evenly between the outermost reachable G2 voltages on either side of 0
+    (:func:`_axis_reach`, searched in 0.25 V steps up to 9.5 V), and a line saying so."""
+    ends = []
+    for sign in (-1.0, 1.0):
+        end = 0.0
+        for u in np.arange(0.25, 9.51, 0.25):
+            if not _axis_reach(model, t, sign * float(u)):
+                break
+            end = sign * float(u)
+        ends.append(end)
+    rows = np.linspace(ends[0], ends[1], LASER_AXIS_ROW_COUNT)
+    note = (f'laser axis: G2 rows over {ends[0]:+.2f}..{ends[1]:+.2f} V, where the laser meets '
+            f'the view axis at the working depth within {LASER_AXIS_REACH:.0%} of G1 range')
+    return [float(u) for u in rows[0::2]], [float(u) for u in rows[1::2]], note
+
+
 def _axis_span(model, t: Targets, rows) -> float:
     """The largest fraction of :data:`LASER_AXIS_SPAN` whose outer rows are reachable.
 
@@ -766,24 +805,26 @@ def _axis_span(model, t: Targets, rows) -> float:
 def laser_axis_steps(model, quick: bool, *, targets: Targets | None = None) -> Plan:
     """Boards on the laser planes of several G2 voltages (rows 2 V apart share a scene).
 
-    The rows span +-4 V (quick: +-2 V), less where the model puts the outer rows out of
-    G1 reach (:func:`_axis_span`); boards are then checked one by one.
+    The rows span the G2 voltages the scans need, as far as boards on their planes are in
+    G1 reach (:func:`_axis_rows`; quick: +-2 V, less where out of reach,
+    :func:`_axis_span`); boards are then checked one by one.
     """
     t = choose_targets(model) if targets is None else targets
     report: list[str] = []
-    row_sets = LASER_AXIS_QUICK_ROWS if quick else LASER_AXIS_ROWS
-    f = _axis_span(model, t, row_sets)
-    if f != 1.0:
-        report.append(f'laser axis: G2 rows narrowed to {f:.0%} of their span: the outer '
-                      'rows are out of G1 reach under the model')
     if quick:
-        steps = laser_row_steps(model, [u * f for u in row_sets[0]],
+        f = _axis_span(model, t, LASER_AXIS_QUICK_ROWS)
+        if f != 1.0:
+            report.append(f'laser axis: G2 rows narrowed to {f:.0%} of their span: the outer '
+                          'rows are out of G1 reach under the model')
+        steps = laser_row_steps(model, [u * f for u in LASER_AXIS_QUICK_ROWS[0]],
                                 boards=((-0.5833, 0), (0.5833, 1)), label='laser axis',
                                 targets=t, report=report)
     else:
+        *row_sets, note = _axis_rows(model, t)
+        report.append(note)
         steps = []
         for k, rows in enumerate(row_sets):
-            steps += laser_row_steps(model, [u * f for u in rows], offsets=(-0.05, 0.05),
+            steps += laser_row_steps(model, rows, offsets=(-0.05, 0.05),
                                      mirror_x=bool(k), pose_index=k, seed=10 + k,
                                      label='laser axis', targets=t, report=report)
     boards = _boards(steps)

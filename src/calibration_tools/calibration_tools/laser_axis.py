@@ -279,6 +279,11 @@ def _tilt_voltages(voltages, m: int):
     return u, ref
 
 
+#: Planes the physical model's laser-axis stage needs before it fits a cone with an offset
+#: rather than planes through one line (two parameters more; twice their count).
+CONE_MIN_PLANES = 6
+
+
 def _angle_per_volt(u, rot, sw, poly_degree: int):
     """k, poly and the fit's RMS [rad] of alpha = c + 2 (k U + p0 U^2 + ...), as supported."""
     m = u.shape[0]
@@ -425,9 +430,10 @@ def line_distance(p1, d1, p2, d2) -> float:
 # ----------------------------------------------------------------------------- stage
 def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma: float = 4.0,
                    max_pnp_rms_px: float = 0.5, min_stripe_points: int = 20,
-                   min_poses: int = 2, min_spread: float = 1e-3, fit_offset: bool = False,
-                   poly_degree: int = 1, anchor=(0.0, 0.0, 0.0),
-                   method: str = 'paper', edge_margin: float = 0.6e-3) -> StageResult:
+                   min_poses: int = 2, min_spread: float = 1e-3,
+                   fit_offset: bool | None = None, poly_degree: int | None = None,
+                   anchor=(0.0, 0.0, 0.0), method: str | None = None,
+                   edge_margin: float = 0.6e-3) -> StageResult:
     """Calibrate the G2 tilt axis (n, P) and the G2 tilt angle per volt.
 
     Parameters
@@ -443,7 +449,18 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         the sign of n (and so of k).
     board : board_layout.Checkerboard or board_layout.CircleGrid
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
-    fit_offset, poly_degree, anchor, method
+    poly_degree : int, optional
+        As :func:`fit_axis`. Default: 3 with the physical model (G2's response curves like
+        G1's: gain, square and cube, as far as the voltages support them), 1 with the
+        paper's (its linear θ4 = k2 U, as published).
+    fit_offset, method : optional
+        As :func:`fit_axis`. Default with the physical model: ``'cone'`` with the offset (the
+        planes a real G2 sweeps do not contain its axis: the fan is not square to the
+        mirror axis, the mirror surface is off the axis; on a drawn rig the paper's planes
+        through one line missed the true planes by up to 73 um, the cone by 9 um), from
+        :data:`CONE_MIN_PLANES` planes on; with the paper's, or fewer planes: ``'paper'``,
+        no offset, as published (needs only 2 planes).
+    anchor
         See :func:`fit_axis` (``method='cone', fit_offset=True`` for a laser whose fan does
         not contain the mirror axis). Planes are weighted by the squared spread of their points
         across the stripe (a plane from nearby board poses has a poorly known tilt).
@@ -465,6 +482,9 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         Fewer than 2 (3 with ``fit_offset``) usable planes; the reasons are in the message.
     """
     model = calibration.model
+    physical = model.kind == 'physical'
+    if poly_degree is None:
+        poly_degree = 3 if physical else 1
     coll = board_stripe_points(views, model, board, extractor_config=extractor_config,
                                max_pnp_rms_px=max_pnp_rms_px,
                                min_stripe_points=min_stripe_points, edge_margin=edge_margin)
@@ -492,6 +512,11 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         # A plane's tilt across the stripe is known to about (pose error) / (spread of its
         # points across the stripe): weight by the spread squared.
         weights.append(fit.singular_values[1] ** 2)
+    # the cone and its offset from as many planes as CONE_MIN_PLANES (a quick plan's three
+    # determine them exactly and leave their noise in; the line then fits better)
+    cone = physical and len(planes) >= CONE_MIN_PLANES
+    method = ('cone' if cone else 'paper') if method is None else method
+    fit_offset = cone if fit_offset is None else fit_offset
     need = 3 if fit_offset else 2
     if len(planes) < need:
         raise ValueError(f'laser_axis: {len(planes)} usable laser plane(s), at least {need} '

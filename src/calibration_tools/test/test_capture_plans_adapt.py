@@ -42,9 +42,13 @@ def test_a_board_out_of_reach_is_replaced_and_reported_instead_of_failing():
         worst = max(worst, np.inf if not np.all(np.isfinite(g1)) else np.abs(g1).max())
     assert worst > 0.85 * cp.MAX_ABS_VOLTAGE
     plan = cp.laser_axis_steps(model, quick=False)
-    assert any('narrowed' in line for line in plan.report)
+    assert any('G2 rows over' in line for line in plan.report)
     rows = {round(u, 2) for u in cp._boards(plan).values()}
     assert len(rows) >= 5 and max(abs(u) for u in rows) < 4.0
+    assert all(cp._axis_reach(model, t, u) for u in rows)
+    # the nominal rig's rows reach as far as the scans need, beyond the old +-4 V
+    full = {round(u, 2) for u in cp._boards(cp.laser_axis_steps(NOMINAL.model, False)).values()}
+    assert min(full) < -4.0 and len(full) >= 7
     for s in plan:
         assert np.abs(s.voltages[:, :2]).max() <= cp.MAX_ABS_VOLTAGE
 

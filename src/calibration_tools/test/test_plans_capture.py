@@ -149,8 +149,12 @@ def test_laser_boards_lie_on_the_models_planes_and_are_aimed_at(plans):
     _laser_checks(NOMINAL.model, plans[('laser_plane', True)], [0.0], [0.0])
     three = [-2.0, 0.0, 2.0]
     _laser_checks(NOMINAL.model, plans[('laser_axis', True)], three, three)
-    full = [round(c + o, 6) for c in range(-4, 5) for o in (-0.05, 0.05)]
-    _laser_checks(NOMINAL.model, plans[('laser_axis', False)], range(-4, 5), full)
+    # the full plan's rows: evenly over the G2 voltages whose planes boards can take
+    a, b, _ = cp._axis_rows(NOMINAL.model, cp.choose_targets(NOMINAL.model))
+    rows = [round(u, 6) for u in a + b]
+    assert len(rows) == cp.LASER_AXIS_ROW_COUNT and min(rows) < -4.0
+    full = [round(c + o, 6) for c in rows for o in (-0.05, 0.05)]
+    _laser_checks(NOMINAL.model, plans[('laser_axis', False)], rows, full)
 
 
 def test_joint_correction_positions_chain_from_the_reference_node(plans):
