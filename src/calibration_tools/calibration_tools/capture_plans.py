@@ -150,8 +150,11 @@ LASER_AXIS_ROW_COUNT = 9
 #: A laser-axis row is placed where its plane meets the view axis at the working depth
 #: within this fraction of G1's range.
 LASER_AXIS_REACH = 0.9
-#: The quick plan's rows [V] at full span, and the span fractions tried when the outer rows
-#: are out of G1 reach.
+#: The paper's model's rows [V] (its linear G2 response fitted over the scans' whole span
+#: made a drawn rig's shape error 0.14 -> 0.22 mm: a straight line through a curve) and the
+#: quick plan's, each at full span, and the span fractions tried when the outer rows are
+#: out of G1 reach.
+LASER_AXIS_PAPER_ROWS = (([-4.0, -2.0, 0.0, 2.0, 4.0], [-3.0, -1.0, 1.0, 3.0]))
 LASER_AXIS_QUICK_ROWS = ([-2.0, 0.0, 2.0],)
 LASER_AXIS_SPAN = (1.0, 0.8, 0.6, 0.45, 0.3)
 #: Sphere positions along V0's x at the design working distance [m] (scaled with depth).
@@ -805,9 +808,10 @@ def _axis_span(model, t: Targets, rows) -> float:
 def laser_axis_steps(model, quick: bool, *, targets: Targets | None = None) -> Plan:
     """Boards on the laser planes of several G2 voltages (rows 2 V apart share a scene).
 
-    The rows span the G2 voltages the scans need, as far as boards on their planes are in
-    G1 reach (:func:`_axis_rows`; quick: +-2 V, less where out of reach,
-    :func:`_axis_span`); boards are then checked one by one.
+    With the physical model the rows span the G2 voltages the scans need, as far as boards
+    on their planes are in G1 reach (:func:`_axis_rows`); with the paper's, +-4 V
+    (:data:`LASER_AXIS_PAPER_ROWS`); quick: +-2 V; both less where out of reach
+    (:func:`_axis_span`). Boards are then checked one by one.
     """
     t = choose_targets(model) if targets is None else targets
     report: list[str] = []
@@ -820,8 +824,15 @@ def laser_axis_steps(model, quick: bool, *, targets: Targets | None = None) -> P
                                 boards=((-0.5833, 0), (0.5833, 1)), label='laser axis',
                                 targets=t, report=report)
     else:
-        *row_sets, note = _axis_rows(model, t)
-        report.append(note)
+        if model.kind == 'physical':
+            *row_sets, note = _axis_rows(model, t)
+            report.append(note)
+        else:
+            f = _axis_span(model, t, LASER_AXIS_PAPER_ROWS)
+            row_sets = [[u * f for u in rows] for rows in LASER_AXIS_PAPER_ROWS]
+            if f != 1.0:
+                report.append(f'laser axis: G2 rows narrowed to {f:.0%} of their span: the '
+                              'outer rows are out of G1 reach under the model')
         steps = []
         for k, rows in enumerate(row_sets):
             steps += laser_row_steps(model, rows, offsets=(-0.05, 0.05),

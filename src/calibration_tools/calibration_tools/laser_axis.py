@@ -450,9 +450,10 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     board : board_layout.Checkerboard or board_layout.CircleGrid
     extractor_config : stripe_extractor.extractor.ExtractorConfig, optional
     poly_degree : int, optional
-        As :func:`fit_axis`. Default: 3 with the physical model (G2's response curves like
-        G1's: gain, square and cube, as far as the voltages support them), 1 with the
-        paper's (its linear θ4 = k2 U, as published).
+        As :func:`fit_axis`. Default: 2 with the physical model (G2's response curves: gain
+        and square; the cube too made the shape error worse on 3 of 7 rigs, up to 0.59 mm,
+        where the square alone improved all 7), 1 with the paper's (its linear θ4 = k2 U, as
+        published).
     fit_offset, method : optional
         As :func:`fit_axis`. Default with the physical model: ``'cone'`` with the offset (the
         planes a real G2 sweeps do not contain its axis: the fan is not square to the
@@ -484,7 +485,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
     model = calibration.model
     physical = model.kind == 'physical'
     if poly_degree is None:
-        poly_degree = 3 if physical else 1
+        poly_degree = 2 if physical else 1
     coll = board_stripe_points(views, model, board, extractor_config=extractor_config,
                                max_pnp_rms_px=max_pnp_rms_px,
                                min_stripe_points=min_stripe_points, edge_margin=edge_margin)

@@ -16,7 +16,7 @@ from galvoscan_sim import Simulator, load_scene_text
 from galvoscan_sim.config import read_yaml_file
 from galvoscan_sim.rig import RIG_DIR, rig_from_dict
 from galvoscan_sim.rig_family import draw_rig, reset_for_distance, working_distance
-from reconstructor.model import MirrorParams, laser_plane_v0
+from reconstructor.model import MirrorParams, PhysicalGeometry, laser_plane_v0
 
 NOMINAL = nominal_calibration('reference')
 
@@ -42,12 +42,17 @@ def test_a_board_out_of_reach_is_replaced_and_reported_instead_of_failing():
         worst = max(worst, np.inf if not np.all(np.isfinite(g1)) else np.abs(g1).max())
     assert worst > 0.85 * cp.MAX_ABS_VOLTAGE
     plan = cp.laser_axis_steps(model, quick=False)
-    assert any('G2 rows over' in line for line in plan.report)
+    assert any('narrowed' in line for line in plan.report)
     rows = {round(u, 2) for u in cp._boards(plan).values()}
     assert len(rows) >= 5 and max(abs(u) for u in rows) < 4.0
-    assert all(cp._axis_reach(model, t, u) for u in rows)
-    # the nominal rig's rows reach as far as the scans need, beyond the old +-4 V
-    full = {round(u, 2) for u in cp._boards(cp.laser_axis_steps(NOMINAL.model, False)).values()}
+    # the physical model's rows: searched within reach, beyond +-4 V where reachable
+    phys = dataclasses.replace(model, physical=PhysicalGeometry())
+    plan = cp.laser_axis_steps(phys, quick=False)
+    assert any('G2 rows over' in line for line in plan.report)
+    rows = {round(u, 2) for u in cp._boards(plan).values()}
+    assert len(rows) >= 5 and all(cp._axis_reach(phys, t, u) for u in rows)
+    nominal = dataclasses.replace(NOMINAL.model, physical=PhysicalGeometry())
+    full = {round(u, 2) for u in cp._boards(cp.laser_axis_steps(nominal, False)).values()}
     assert min(full) < -4.0 and len(full) >= 7
     for s in plan:
         assert np.abs(s.voltages[:, :2]).max() <= cp.MAX_ABS_VOLTAGE

@@ -19,7 +19,13 @@ from galvo_driver.sim_backend import SimBackend
 from galvoscan.simulated_rig import execute_in_process, nominal_calibration
 from galvoscan_sim import Simulator, load_rig, load_scene
 from reconstructor.calibration_file import Calibration
-from reconstructor.model import MirrorParams, laser_plane_v0, predict_pixels, project_points
+from reconstructor.model import (
+    MirrorParams,
+    PhysicalGeometry,
+    laser_plane_v0,
+    predict_pixels,
+    project_points,
+)
 
 NOMINAL = nominal_calibration('reference')
 
@@ -149,12 +155,16 @@ def test_laser_boards_lie_on_the_models_planes_and_are_aimed_at(plans):
     _laser_checks(NOMINAL.model, plans[('laser_plane', True)], [0.0], [0.0])
     three = [-2.0, 0.0, 2.0]
     _laser_checks(NOMINAL.model, plans[('laser_axis', True)], three, three)
-    # the full plan's rows: evenly over the G2 voltages whose planes boards can take
-    a, b, _ = cp._axis_rows(NOMINAL.model, cp.choose_targets(NOMINAL.model))
+    full = [round(c + o, 6) for c in range(-4, 5) for o in (-0.05, 0.05)]
+    _laser_checks(NOMINAL.model, plans[('laser_axis', False)], range(-4, 5), full)
+    # the physical model's full plan: rows evenly over the G2 voltages the scans need, as
+    # far as boards on their planes are in G1 reach
+    phys = dataclasses.replace(NOMINAL.model, physical=PhysicalGeometry())
+    a, b, _ = cp._axis_rows(phys, cp.choose_targets(phys))
     rows = [round(u, 6) for u in a + b]
     assert len(rows) == cp.LASER_AXIS_ROW_COUNT and min(rows) < -4.0
     full = [round(c + o, 6) for c in rows for o in (-0.05, 0.05)]
-    _laser_checks(NOMINAL.model, plans[('laser_axis', False)], rows, full)
+    _laser_checks(phys, cp.laser_axis_steps(phys, False), rows, full)
 
 
 def test_joint_correction_positions_chain_from_the_reference_node(plans):
