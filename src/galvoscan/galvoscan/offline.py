@@ -66,12 +66,12 @@ def _parser() -> argparse.ArgumentParser:
                    help='rosbag2 directories (or folders of them) captured for the stage')
     p.add_argument('--calibration', required=True, metavar='FILE',
                    help='calibration YAML to update (written atomically)')
-    start = p.add_mutually_exclusive_group()
-    start.add_argument('--initial', metavar='FILE',
-                       help='calibration to start from when FILE does not exist yet')
-    start.add_argument('--rig', metavar='NAME',
-                       help="simulated rig (name or YAML) whose design values start the "
-                            "calibration (default for --sim: reference)")
+    p.add_argument('--initial', metavar='FILE',
+                   help='calibration to start from when FILE does not exist yet')
+    p.add_argument('--rig', metavar='NAME',
+                   help="simulated rig (name or YAML) whose design values start the "
+                        "calibration (default for --sim: reference); with --sim and "
+                        "--initial, only the rig simulated")
     p.add_argument('--sim', action='store_true',
                    help='all: capture every stage in-process on the rig simulator')
     p.add_argument('--quick', action='store_true', help='all --sim: reduced capture plans')
@@ -306,6 +306,9 @@ def main(argv=None) -> int:
     progress = Progress(stream=sys.stdout)
     try:
         args = parser.parse_args(argv)
+        if args.initial and args.rig and not args.sim:
+            raise UsageError('--initial and --rig both name the calibration to start from; '
+                             'give one (with --sim, --rig names the simulated rig)')
         if args.stage == 'all':
             return run_all_sim(args, progress)
         if args.stage not in KNOWN_STAGES:

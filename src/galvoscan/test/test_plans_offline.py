@@ -155,6 +155,8 @@ def test_bad_input_is_refused_and_changes_nothing(captured, tmp_path, capsys):
     calibration_file.save(truth_calibration(load_rig('reference')), truth)
     fails(['laser_plane', '--bags', str(run), '--calibration', str(tmp_path / 'new.yaml'),
            '--initial', str(truth)], 'simulator_truth')
+    fails(['laser_plane', '--bags', str(run), '--calibration', str(tmp_path / 'new.yaml'),
+           '--initial', str(out), '--rig', 'reference'], '--initial and --rig both')
     assert not (tmp_path / 'new.yaml').exists()
     assert offline.main(['--help']) == 0
 
