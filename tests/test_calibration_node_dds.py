@@ -62,6 +62,12 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
         assert abs(cal.model.l - true.l) < 2e-3 and abs(cal.model.d - true.d) < 2e-3
         names = dict(zip(comp.parameter_names, comp.parameter_values, strict=True))
         assert names['l'] == pytest.approx(cal.model.l)
+        # the response carries the stage's coverage and the calibration's verdict: only the
+        # dynamic camera has a covariance yet, so it names what is missing
+        assert 'dynamic_camera coverage:' in comp.message
+        verdict = comp.message.splitlines()[-1]
+        assert verdict.startswith('verdict: incomplete') and 'laser_axis' in verdict, verdict
+        assert cal.stages['dynamic_camera']['covariance']['names']
 
         bad = tmp_path / 'bad.yaml'
         bad.write_text(cal_path.read_text().replace('format_version: 1', 'format_version: 7'))
