@@ -7,7 +7,8 @@ Run: ``.venv/bin/python benchmarks/uncertainty_check.py [--rigs 10] [--seed-star
 For each seed: ``galvoscan_sim.rig_family.draw_rig(seed)`` (``--reference``: the reference
 rig with simulator seed = seed) is calibrated by ``galvoscan calibrate all --sim`` in a
 process of its own (every stage, the physical model). Then, over a 9 x 9 grid of G1 views
-within +-8 V on a wall at the depth where the calibrated laser plane crosses V0's axis:
+within +-8 V on a wall at the depth where the calibrated laser plane crosses V0's axis
+(``capture_plans.laser_crossing_depth``):
 
 - predicted: the RMS 1-sigma point error (shape) that the calibration's joint covariance
   gives (``reconstructor.uncertainty``, as ``galvoscan evaluate`` reports it);
@@ -37,6 +38,7 @@ FACTOR = 2.0
 
 
 def run(seed: int, folder: Path, quick: bool, reference: bool) -> dict:
+    from calibration_tools.capture_plans import laser_crossing_depth
     from galvoscan.evaluate import predicted_uncertainty
     from galvoscan_sim import load_rig
     from galvoscan_sim.rig_family import draw_rig
@@ -59,8 +61,7 @@ def run(seed: int, folder: Path, quick: bool, reference: bool) -> dict:
         row['failed'] = (proc.stdout + proc.stderr).strip().splitlines()[-1:]
         return row
     cal = calibration_file.load(cal_path)
-    plane = np.asarray(cal.model.laser_plane_v0, dtype=float)
-    depth = float(-plane[3] / plane[2])
+    depth = laser_crossing_depth(cal.model)
     rig = load_rig(rig_arg)
     u = predicted_uncertainty(cal, rig, depth)
     row.update({k: v for k, v in u.items() if not isinstance(v, dict)})

@@ -548,9 +548,6 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         method=method).items() if k in updates}
     blocks = axis_covariance_blocks(fit, np.array(planes), np.array(volts),
                                     weights=np.array(weights), anchor=anchor, method=method)
-    if 'poly' not in (updates.get('g2_tilt') or {}) and 'g2_tilt' in blocks:
-        names, cov = blocks['g2_tilt']
-        blocks['g2_tilt'] = (names[:1], cov[:1, :1])
     record = axis_covariance(blocks, updates)
     if record:
         from reconstructor.uncertainty import camera_inputs
@@ -584,17 +581,15 @@ def _with_camera_sensitivity(record, model, used, inputs, axis_of, orient) -> di
     plane its stripes and inlier mask) and the axis (``axis_of(planes)``) fitted again."""
     from reconstructor.uncertainty import covariance_record, remeasured_sensitivity
 
-    from .laser_plane import _svd_plane
+    from .laser_plane import _svd_plane, inlier_groups
 
     if not inputs:
         return record
     groups, owner = [], []
     for k, (stripes, inliers) in enumerate(used):
-        keep = np.split(inliers, np.cumsum([len(st.points_v0) for st in stripes])[:-1])
-        for st, m in zip(stripes, keep, strict=True):
-            if m.any():
-                groups.append((st.points_v0[m], *st.u1))
-                owner.append(k)
+        mine = inlier_groups(stripes, inliers)
+        groups += mine
+        owner += [k] * len(mine)
 
     def estimate(pts):
         planes = []

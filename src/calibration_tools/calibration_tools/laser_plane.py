@@ -666,6 +666,14 @@ def plane_covariance(points, plane, groups) -> np.ndarray:
     return M @ cov @ M.T
 
 
+def inlier_groups(stripes, inliers) -> list:
+    """Per stripe with inliers, ``(inlier points_v0, u1_pan, u1_tilt)``: what the camera
+    measured and where it looked (``inliers``: one flag per point of all stripes, in
+    order), for :func:`reconstructor.uncertainty.remeasured_sensitivity`."""
+    keep = np.split(inliers, np.cumsum([len(s.points_v0) for s in stripes])[:-1])
+    return [(s.points_v0[k], *s.u1) for s, k in zip(stripes, keep, strict=True) if k.any()]
+
+
 def _plane_errors(stripes, fit, model, inputs) -> tuple[dict, dict]:
     """``{'laser_plane_v0': [sa, sb, sc, se]}`` of a fit and its covariance record, or
     ({}, {}) with fewer than 3 views. The record's sensitivity to the camera's calibrated
@@ -681,9 +689,7 @@ def _plane_errors(stripes, fit, model, inputs) -> tuple[dict, dict]:
     except ValueError:
         return {}, {}
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
-    counts = np.cumsum([len(s.points_v0) for s in stripes])[:-1]
-    keep = np.split(fit.inliers, counts)
-    groups = [(s.points_v0[k], *s.u1) for s, k in zip(stripes, keep, strict=True) if k.any()]
+    groups = inlier_groups(stripes, fit.inliers)
 
     def plane(pts):
         pl, _ = _svd_plane(np.concatenate(pts))

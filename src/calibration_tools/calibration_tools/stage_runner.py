@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from calibration_tools import registry
-from calibration_tools.stages import CaptureView, StageResult
+from calibration_tools.stages import STAGES, CaptureView, StageResult
 
 log = logging.getLogger('galvoscan.calibration.stage_runner')
 
@@ -234,8 +234,8 @@ def coverage_line(stage: str, cov: dict) -> str:
 #: A calibration is good when no view of its uncertainty map predicts more than this many
 #: times the map's median error (flat over the range).
 VERDICT_FLATNESS = 4.0
-#: The chain's stages whose covariances the verdict needs.
-VERDICT_STAGES = ('intrinsics', 'dynamic_camera', 'laser_plane', 'laser_axis')
+#: The chain's stages whose covariances the verdict needs (the joint correction has none).
+VERDICT_STAGES = tuple(s for s in STAGES if s != 'joint_correction')
 
 
 def verdict(calibration) -> str:
@@ -258,10 +258,9 @@ def verdict(calibration) -> str:
     missing = [s for s in VERDICT_STAGES if s not in have]
     if missing:
         return f"incomplete: no covariance yet from {', '.join(missing)}"
-    plane = np.asarray(calibration.model.laser_plane_v0, dtype=np.float64)
-    depth = -plane[3] / plane[2] if abs(plane[2]) > 1e-9 else float('nan')
-    if not (np.isfinite(depth) and 0.05 < depth < 5.0):
-        return f'incomplete: the laser plane does not cross the view axis ({depth:.3g} m)'
+    from calibration_tools.capture_plans import laser_crossing_depth
+
+    depth = laser_crossing_depth(calibration.model)
     try:
         umap = point_uncertainty_map(calibration.model, pc, depth=float(depth))
     except ValueError as exc:

@@ -359,6 +359,7 @@ def _check_errors(errors: dict, result: StageResult) -> None:
 def _checked_covariance(result: StageResult, merged: dict) -> dict:
     """The stage's covariance record, checked: it names parameters the stage updated (or
     elements of them), and inputs the model has."""
+    from reconstructor.model import RigModel
     from reconstructor.uncertainty import covariance_record, parameter_value
 
     rec = result.covariance
@@ -371,15 +372,12 @@ def _checked_covariance(result: StageResult, merged: dict) -> dict:
     except ValueError as exc:
         raise ValueError(f'{result.stage}: {exc}') from exc
     updated = set(_flat_keys(result.updates))
-    model = None
     for name in out['names']:
         if name.split('[')[0] not in updated:
             raise ValueError(f'{result.stage}: covariance of {name}, which the stage does not '
                              f'update')
+    model = RigModel.from_dict(merged)
     for name in out['names'] + out.get('inputs', []):
-        from reconstructor.model import RigModel
-
-        model = model or RigModel.from_dict(merged)
         parameter_value(model, name)  # raises, naming a parameter the model lacks
     return out
 

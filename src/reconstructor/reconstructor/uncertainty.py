@@ -383,21 +383,18 @@ def stripe_samples(model: RigModel, u_pan, u_tilt, depth: float, *, samples: int
     (uv (k, 2), points (k, 3) in V0, u2_tilt) or None where the wall or the laser is out of
     reach.
     """
-    from scipy.optimize import brentq
+    from reconstructor.planning import aim_laser
 
     T = v0_T_v(model, u_pan, u_tilt)
     ray, o = T[:3, 2], T[:3, 3]
-    if not abs(ray[2]) > 1e-9:
+    if not abs(ray[2]) > 1e-9 or not (depth - o[2]) / ray[2] > 0:
         return None
-    centre = o + (depth - o[2]) / ray[2] * ray
-
-    def f(u):
-        return float(laser_plane_v0(model, u) @ np.append(centre, 1.0))
-
-    lo, hi = -10.0, 10.0
-    if not f(lo) * f(hi) < 0:
+    distance = (depth - o[2]) / ray[2]
+    centre = o + distance * ray
+    try:
+        u2 = aim_laser(model, u_pan, u_tilt, distance)
+    except ValueError:  # beyond G2's reach
         return None
-    u2 = float(brentq(f, lo, hi, xtol=1e-12))
     plane = np.asarray(laser_plane_v0(model, u2))
     direction = np.cross(plane[:3], [0.0, 0.0, 1.0])
     if not np.linalg.norm(direction) > 1e-9:
