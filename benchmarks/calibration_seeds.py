@@ -11,6 +11,12 @@ calibration file) it prints the value and standard error per seed, the simulator
 model-equivalent truth, and ``|a - b| / sqrt(sa**2 + sb**2)`` between the first two seeds.
 Acceptance (issue 17): cx, cy, l and d within 3 of those combined sigmas.
 
+The same is printed with each parameter's sigma from the chain's joint covariance
+(``stages.<stage>.covariance`` joined by ``reconstructor.uncertainty.parameter_covariance``):
+a stage's own Jacobian sigma treats what it held fixed as exact (the dynamic camera's l and d
+move with the intrinsics' cx and fx), the chain's adds it. Both verdicts are printed; the
+chain's is the calibration's stated uncertainty of record (``acceptance_met``).
+
 Also reported, not asserted: each seed's error against the truth in units of its own stated
 sigma. The truth is read here only; the calibration never sees it. For l and d the truth is
 the best model-equivalent of a rig with mechanical imperfections the model does not have,
@@ -57,6 +63,24 @@ def stated(cal) -> dict:
                             float(v), float(s))
             else:
                 out[key] = (float(value), float(se))
+    return out
+
+
+def chain_stated(cal, stage_stated: dict) -> dict:
+    """``{parameter: (value, chain standard error)}``: the same parameters with the sigma of
+    the chain's joint covariance (``reconstructor.uncertainty.parameter_covariance``), which
+    adds what each stage held fixed (the intrinsics under the dynamic camera, both under the
+    laser stages, the held mirror deviations' tolerances) to the stage's own Jacobian sigma."""
+    from reconstructor.uncertainty import parameter_covariance
+
+    std = parameter_covariance(cal).std()
+    out = {}
+    for name, (value, _) in stage_stated.items():
+        key = name
+        if name.startswith('intrinsics.') and name.split('.')[1] in _DIST:
+            key = f'intrinsics.dist[{_DIST.index(name.split(".")[1])}]'
+        if key in std and std[key] > 0:
+            out[name] = (value, std[key])
     return out
 
 
@@ -111,27 +135,40 @@ def main(argv=None):
     logging.basicConfig(level=logging.ERROR)
     rig = load_rig(args.rig)
     t0 = time.perf_counter()
-    results, cx_err, cy_err = {}, {}, {}
+    results, chain, cx_err, cy_err = {}, {}, {}, {}
     truth = truth_values(rig)
     for seed in args.seeds:
         print(f'seed {seed}: calibrating ({"quick" if args.quick else "full"} plans)',
               flush=True)
         cal, _ = run_chain(args.rig, args.quick, seed)
         results[seed] = stated(cal)
+        chain[seed] = chain_stated(cal, results[seed])
         cx_err[seed] = cal.model.intrinsics.cx - truth['intrinsics.cx']
         cy_err[seed] = cal.model.intrinsics.cy - truth['intrinsics.cy']
     ratios, err = compare(results, truth)
+    print('stage sigma (each stage\'s own Jacobian):')
     show(results, truth, ratios, err)
-    acc = {n: ratios.get(n, math.inf) for n in ACCEPTANCE}
-    worst = max(acc.values())
-    print(f'acceptance: max |a-b|/sigma over cx, cy, l, d = {worst:.2f} (limit 3): '
-          f'{"met" if worst <= 3.0 else "NOT met"}')
+    stage_worst = max(ratios.get(n, math.inf) for n in ACCEPTANCE)
+    print(f'stage sigma: max |a-b|/sigma over cx, cy, l, d = {stage_worst:.2f} (limit 3): '
+          f'{"met" if stage_worst <= 3.0 else "NOT met"}')
+    c_ratios, c_err = compare(chain, truth)
+    print('chain sigma (joint covariance, held inputs included):')
+    show(chain, truth, c_ratios, c_err)
+    worst = max(c_ratios.get(n, math.inf) for n in ACCEPTANCE)
+    print(f'acceptance (chain sigma): max |a-b|/sigma over cx, cy, l, d = {worst:.2f} '
+          f'(limit 3): {"met" if worst <= 3.0 else "NOT met"}')
     med = {s: float(np.median(np.abs(list(e.values())))) for s, e in err.items()}
-    print('stated sigma against the truth: median |error|/sigma per seed '
-          + ', '.join(f'{s}: {v:.2f}' for s, v in med.items()))
+    c_med = {s: float(np.median(np.abs(list(e.values())))) for s, e in c_err.items()}
+    print('sigma against the truth: median |error|/sigma per seed, stage '
+          + ', '.join(f'{s}: {v:.2f}' for s, v in med.items()) + '; chain '
+          + ', '.join(f'{s}: {v:.2f}' for s, v in c_med.items()))
     out = {
         'rig': args.rig, 'seeds': args.seeds, 'quick': args.quick,
         'max_sigma_ratio': worst, 'acceptance_met': worst <= 3.0,
+        'stage_max_sigma_ratio': stage_worst, 'chain_sigma_ratios': c_ratios,
+        'chain_standard_errors': {str(s): {n: se for n, (_, se) in r.items()}
+                                  for s, r in chain.items()},
+        'chain_median_abs_error_over_sigma': {str(s): v for s, v in c_med.items()},
         'sigma_ratios': ratios,
         'values': {str(s): {n: v for n, (v, _) in r.items()} for s, r in results.items()},
         'standard_errors': {str(s): {n: se for n, (_, se) in r.items()}

@@ -82,6 +82,12 @@ CIRCLE_GRID_LAYOUTS = ((11, 8), (9, 6), (7, 5), (5, 4), (5, 3))
 #: for the distance), so the margin is scaled with the working depth
 #: (:attr:`Targets.edge_margin`, passed to the laser stages' solvers).
 LASER_EDGE_MARGIN = 0.0006
+#: Smallest RMS spread [m] of one laser plane's stripe points across their main direction
+#: at the design working distance (below it they are nearly one line, not a plane). The
+#: boards, and so their stripes and the distances between them, shrink with the view, so
+#: it is scaled with the working depth like the edge margin (:attr:`Targets.min_spread`);
+#: a fixed 1 mm refused two good 7 mm boards 34 mm apart at 200 mm.
+LASER_MIN_SPREAD = 0.001
 #: Smallest pitch a laser grid should have, in edge margins: the gaps between the circles
 #: must leave enough stripe points away from their edges (3 mm at 650 mm; 2 mm grids left
 #: too few there). A view too small for an 11 x 8 grid at this pitch gets fewer circles.
@@ -204,6 +210,9 @@ class Targets:
     edge_margin : float, metres
         How far the laser stages keep stripe points from the laser grid's circle edges
         (:data:`LASER_EDGE_MARGIN` scaled with ``depth``).
+    min_spread : float, metres
+        The laser stages' smallest accepted spread of a plane's stripe points
+        (:data:`LASER_MIN_SPREAD` scaled with ``depth``).
     """
 
     depth: float
@@ -213,6 +222,7 @@ class Targets:
     circle_board: CircleBoard
     sphere_radius: float
     edge_margin: float = LASER_EDGE_MARGIN
+    min_spread: float = LASER_MIN_SPREAD
 
 
 def total_frames(steps) -> int:
@@ -287,7 +297,8 @@ def choose_targets(model) -> Targets:
         checkerboard=Checkerboard(11, 8, sq),
         laser_board=CircleGrid(cols=gc, rows=gr, pitch=pg, diameter=round(pg * 5 / 9, 7)),
         circle_board=CircleBoard(pitch=pb, small_diameter=pb / 2, large_diameter=pb * 0.75),
-        sphere_radius=r, edge_margin=float(margin))
+        sphere_radius=r, edge_margin=float(margin),
+        min_spread=float(LASER_MIN_SPREAD * z / WORKING_DISTANCE))
 
 
 def _transform(rotvec, t) -> np.ndarray:
@@ -615,16 +626,24 @@ def _laser_candidates(tilt_y: float, depth: float, x: float):
 def _place_laser_board(model, t: Targets, pi, x, depth, tilt_y, roll, others):
     """First candidate placement of a board on laser plane ``pi`` that passes the checks.
 
-    Returns ``((p, R, g1), None)`` or ``(None, why the first candidate failed)``.
+    The plane crosses the board between its two middle rows of circles: a board with an odd
+    number of rows is moved half a pitch along its y, or the stripe would run along the
+    middle row's circle edges and leave too few points away from them.
+
+    Returns ``((p, R, g1), None)`` (``p`` the board's centre) or ``(None, why the first
+    candidate failed)``.
     """
     from calibration_tools.placement import board_rotation_on_laser
     from reconstructor.planning import aim_g1
 
+    b = t.laser_board
+    shift = 0.5 * b.pitch if b.rows % 2 else 0.0
     first = None
     for ty, dz, xx in _laser_candidates(tilt_y, depth, x):
         z = t.depth * (1.0 + dz)
         p = np.array([xx, -(pi[0] * xx + pi[2] * z + pi[3]) / pi[1], z])
         R = board_rotation_on_laser(model, p, ty, roll)
+        p = p - shift * R[:, 1]
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, p
         g1 = aim_g1(model, p, max_abs_u=MAX_ABS_VOLTAGE)

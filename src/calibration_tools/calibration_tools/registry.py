@@ -122,7 +122,8 @@ def _laser_stage(solver: Callable) -> Callable:
         boards = board_views(views)
         report(0, 1, f'{len({v.pose_index for v in boards})} board placements')
         result = solver()(boards, calibration, board=options['board'],
-                          edge_margin=options['edge_margin'])
+                          edge_margin=options['edge_margin'],
+                          min_spread=options['min_spread'])
         report(1, 1, 'done')
         return result
     return run
@@ -185,8 +186,10 @@ def _circle_board(targets, model) -> dict:
 
 
 def _laser_board(targets, model) -> dict:
-    """The laser grid the plan placed, and how far stripe points keep from its circles."""
-    return {'board': targets.laser_board, 'edge_margin': targets.edge_margin}
+    """The laser grid the plan placed, how far stripe points keep from its circles, and how
+    far a plane's stripe points must spread."""
+    return {'board': targets.laser_board, 'edge_margin': targets.edge_margin,
+            'min_spread': targets.min_spread}
 
 
 def _options(**kw) -> MappingProxyType:

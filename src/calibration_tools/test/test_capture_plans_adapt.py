@@ -98,8 +98,38 @@ def test_targets_come_from_the_kit_and_suit_the_view():
         # the solver gets what the plan placed
         opts = registry.stage_options('laser_plane', cal)
         assert opts['board'] == t.laser_board
+        # margins scale with the working depth, as the boards and their stripes do
+        k = t.depth / cp.WORKING_DISTANCE
+        assert opts['edge_margin'] == pytest.approx(cp.LASER_EDGE_MARGIN * k)
+        assert opts['min_spread'] == pytest.approx(cp.LASER_MIN_SPREAD * k)
         assert registry.stage_options('joint_correction', cal)['sphere_radius'] == \
             t.sphere_radius
+
+
+@pytest.mark.parametrize('layout', [(7, 5), (11, 8), (5, 3)])
+def test_the_laser_plane_crosses_a_grid_between_its_circle_rows(layout):
+    # A board centred on the plane with an odd number of rows put the stripe along the
+    # middle row's circle edges (13 and 17 usable points on a drawn rig at 100 mm).
+    from scipy.spatial.transform import Rotation
+
+    model = NOMINAL.model
+    t = cp.choose_targets(model)
+    pitch = t.laser_board.pitch
+    board = dataclasses.replace(t.laser_board, cols=layout[0], rows=layout[1])
+    t = dataclasses.replace(t, laser_board=board)
+    rows = (-2.0, 0.0, 2.0)
+    steps = cp.laser_row_steps(model, rows, targets=t)
+    objects = yaml.safe_load(steps[0].scene_yaml)['objects']
+    assert len(objects) == len(rows) * len(cp.LASER_ROW)
+    centres = (np.arange(layout[1]) - 0.5 * (layout[1] - 1)) * pitch
+    for k, obj in enumerate(objects):
+        pi = laser_plane_v0(model, rows[k // len(cp.LASER_ROW)])
+        c = np.array(obj['pose']['translation'])
+        R = Rotation.from_rotvec(obj['pose']['rotation_vector']).as_matrix()
+        # where the plane crosses the board's y axis, in board coordinates
+        y = -(pi[:3] @ c + pi[3]) / (pi[:3] @ R[:, 1])
+        assert np.min(np.abs(centres - y)) == pytest.approx(0.5 * pitch, abs=1e-3 * pitch)
+        assert abs(y) <= 0.5 * pitch + 1e-9
 
 
 @pytest.mark.parametrize('distance', [0.1, 1.0])
