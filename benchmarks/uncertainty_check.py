@@ -33,6 +33,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from reconstructor.uncertainty import prediction_check
+
 ROOT = Path(__file__).resolve().parents[1]
 FACTOR = 2.0
 
@@ -93,18 +95,31 @@ def main(argv=None) -> int:
         print(f"rig {i}/{args.rigs} seed {seed} ({row['depth_mm']:.0f} mm): predicted "
               f"{row['predicted_uncertainty_mm']:.4f} mm, measured "
               f"{row['measured_shape_error_mm']:.4f} mm, ratio {q:.2f}"
-              f"{'' if 1 / FACTOR <= q <= FACTOR else ' (outside 2x)'} "
+              f"{'' if 1 / FACTOR <= q <= FACTOR else ' (outside 2x)'}; "
+              f"{row.get('uncertainty_modes_effective', math.nan):.2f} effective modes, "
+              f"P(within 2x) {row.get('uncertainty_within_2x_probability', math.nan):.2f} "
               f"[{row['calibrate_s']:.0f} s]", flush=True)
     ratios = [r['uncertainty_ratio'] for r in rows
               if math.isfinite(r.get('uncertainty_ratio', math.nan))]
     within = sum(1 / FACTOR <= q <= FACTOR for q in ratios)
+    both = [r for r in rows if math.isfinite(r.get('uncertainty_ratio', math.nan))]
+    check = prediction_check([r['predicted_uncertainty_mm'] for r in both],
+                             [r['measured_shape_error_mm'] for r in both],
+                             [r.get('uncertainty_within_2x_probability', math.nan)
+                              for r in both], FACTOR)
     summary = {'rigs': len(rows), 'measured': len(ratios), 'within_2x': within,
+               'within_2x_expected': check['within_expected'],
+               'within_2x_expected_sd': check['within_expected_sd'],
+               'pooled_ratio': check['pooled_ratio'],
                'within_2x_fraction': within / len(ratios) if ratios else None,
                'ratio_median': float(np.median(ratios)) if ratios else None,
                'ratio_min': min(ratios, default=None), 'ratio_max': max(ratios, default=None),
                'reference': args.reference, 'quick': args.quick,
                'wall_s': time.monotonic() - t0}
-    print(f"\npredicted within {FACTOR:g}x of measured on {within} of {len(ratios)} rigs")
+    print(f"\npredicted within {FACTOR:g}x of measured on {within} of {len(ratios)} rigs; "
+          f"a right covariance would give {check['within_expected'] or math.nan:.1f} +- "
+          f"{check['within_expected_sd'] or math.nan:.1f} (each rig's error is one draw over "
+          f"few modes); pooled predicted / measured {check['pooled_ratio'] or math.nan:.2f}")
     print(json.dumps(summary, default=float))
     return 0
 

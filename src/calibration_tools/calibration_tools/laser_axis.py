@@ -37,6 +37,7 @@ import numpy as np
 from calibration_tools.laser_plane import (
     VOLTAGE_TOL,
     board_stripe_points,
+    plane_covariance,
     plane_from_stripes,
 )
 from calibration_tools.sphere_fit import finite_rows
@@ -550,7 +551,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
                                     weights=np.array(weights), anchor=anchor, method=method)
     record = axis_covariance(blocks, updates)
     if record:
-        from reconstructor.uncertainty import camera_inputs
+        from reconstructor.uncertainty import camera_inputs, covariance_record
 
         def axis_of(pl):
             f = fit_axis(np.array(pl), np.array(volts), weights=np.array(weights),
@@ -558,11 +559,64 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
                          poly_degree=poly_degree, method=method)
             return _axis_vector(f, record['names'])
 
+        # Jointly, from every plane's own covariance: direction, point and response come
+        # from the same planes. By blocks (axis_covariance_blocks) when a plane has fewer
+        # than 3 views to give its covariance.
+        try:
+            covs = [plane_covariance(*_plane_points(stripes, inl), pl)
+                    for (stripes, inl), pl in zip(used, planes, strict=True)]
+        except ValueError as exc:
+            log.info('laser_axis covariance by blocks: %s', exc)
+        else:
+            record = covariance_record(record['names'],
+                                       propagated_covariance(axis_of, planes, covs))
         record = _with_camera_sensitivity(record, model, used, camera_inputs(calibration),
                                           axis_of, orient)
     return StageResult(stage='laser_axis', updates=updates, residuals=residuals,
                        samples_used=len(coll.stripes), samples_rejected=len(rejected),
                        rejected=rejected, standard_errors=errors, covariance=record)
+
+
+def _plane_points(stripes, inliers) -> tuple:
+    """A plane fit's inlier points and their view (stripe) of each: ``(points, groups)``."""
+    pts = np.concatenate([s.points_v0 for s in stripes])
+    grp = np.concatenate([np.full(len(s.points_v0), k) for k, s in enumerate(stripes)])
+    return pts[inliers], grp[inliers]
+
+
+def propagated_covariance(estimate, planes, plane_covs) -> np.ndarray:
+    """Covariance of ``estimate(planes)`` (a vector) from independent planes' covariances.
+
+    Every plane is moved by +-1 sigma along each principal direction of its covariance and
+    the estimate made again: the central differences are the columns ``g`` of a square root,
+    and the covariance is ``sum g g^T``. All of the estimate's outputs keep their
+    correlations (the axis direction, its point and G2's response come from the same planes).
+
+    Parameters
+    ----------
+    estimate : callable
+        List of (4,) planes -> ndarray (p,).
+    planes : sequence of array_like, shape (4,)
+    plane_covs : sequence of ndarray, shape (4, 4)
+        Each plane's covariance, in its (a, b, c, e).
+
+    Returns
+    -------
+    ndarray, shape (p, p)
+    """
+    base = [np.asarray(pl, dtype=np.float64) for pl in planes]
+    cols = []
+    for i, C in enumerate(plane_covs):
+        lam, vec = np.linalg.eigh(np.asarray(C, dtype=np.float64))
+        for val, v in zip(lam, vec.T, strict=True):
+            if not val > 0.0:
+                continue
+            step = math.sqrt(val) * v
+            plus, minus = list(base), list(base)
+            plus[i], minus[i] = base[i] + step, base[i] - step
+            cols.append(0.5 * (np.asarray(estimate(plus)) - np.asarray(estimate(minus))))
+    G = np.array(cols)
+    return G.T @ G
 
 
 def _axis_vector(fit: AxisFit, names) -> np.ndarray:

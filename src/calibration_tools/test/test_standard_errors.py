@@ -259,3 +259,54 @@ def test_axis_standard_errors_match_the_scatter():
     # n is nearly x: its x component moves only to second order, so is not compared.
     big = np.array([False, True, True, True, True, True, True])
     assert np.all((ratio[big] > 0.7) & (ratio[big] < 1.4)), ratio
+
+
+def test_axis_covariance_propagated_from_the_planes_matches_the_joint_scatter():
+    # The physical model's fit (a cone with an offset, G2's square): direction, point and
+    # response all come from the same planes, so their errors are correlated. The covariance
+    # carried from each plane's own covariance keeps that; its diagonal and its correlations
+    # match the scatter of repeated fits.
+    from calibration_tools.laser_axis import _axis_vector, propagated_covariance
+
+    rng = np.random.default_rng(11)
+    n = np.array([0.99, 0.02, -0.0004]) / np.linalg.norm([0.99, 0.02, -0.0004])
+    P = np.array([0.0, 0.05, 0.1])
+    t1 = np.cross(n, [0.0, 0.0, 1.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(n, t1)
+    u = np.linspace(-7.0, 7.0, 9)
+    s_n, s_e = 1e-4, 1e-5
+    names = ([f"laser_axis_dir[{j}]" for j in range(3)]
+             + [f"laser_axis_point[{j}]" for j in range(3)] + ["g2_tilt.k", "g2_tilt.poly[0]"])
+    kw = dict(method="cone", fit_offset=True, poly_degree=2)
+    fits, covs = [], []
+    for trial in range(60):
+        planes, plane_covs = [], []
+        for a in 2 * (0.0349 * u + 2e-4 * u ** 2):
+            m0 = np.cos(a) * t1 + np.sin(a) * t2
+            d = rng.normal(0, s_n, 3)
+            d -= (d @ m0) * m0
+            m = m0 + d
+            m /= np.linalg.norm(m)
+            planes.append(np.append(m, -m @ P + rng.normal(0, s_e)))
+            Cn = s_n ** 2 * (np.eye(3) - np.outer(m0, m0))
+            C = np.zeros((4, 4))
+            C[:3, :3], C[:3, 3], C[3, :3] = Cn, -Cn @ P, -P @ Cn
+            C[3, 3] = P @ Cn @ P + s_e ** 2
+            plane_covs.append(C)
+        fit = fit_axis(np.array(planes), u, **kw)
+        fits.append(_axis_vector(fit, names))
+        if trial < 5:
+            def estimate(pl, ref=fit.direction):
+                return _axis_vector(fit_axis(np.array(pl), u, reference_dir=ref, **kw), names)
+            covs.append(propagated_covariance(estimate, planes, plane_covs))
+    fits, cov = np.array(fits), np.mean(covs, axis=0)
+    big = [1, 2, 3, 4, 5, 6, 7]  # n's x component moves only to second order
+    ratio = fits.std(axis=0)[big] / np.sqrt(np.diag(cov))[big]
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+    sd = np.sqrt(np.diag(cov))[big]
+    corr_pred = cov[np.ix_(big, big)] / np.outer(sd, sd)
+    corr_seen = np.corrcoef(fits[:, big].T)
+    strong = np.abs(corr_pred) > 0.5
+    assert strong.sum() > len(big)  # correlated outputs exist, off the diagonal too
+    assert np.abs(corr_pred - corr_seen)[strong].max() < 0.25

@@ -787,9 +787,12 @@ def predicted_uncertainty(cal, rig, depth: float) -> dict:
     dict
         ``predicted_uncertainty_mm`` (RMS over the map), ``predicted_uncertainty_max_mm``,
         ``predicted_v0_placement_mm`` (the rigid part, not in the map),
-        ``measured_shape_error_mm``, ``uncertainty_ratio`` (predicted / measured) and
-        ``map`` (the map, and per stage the G1 voltages its views used); NaN figures and
-        ``uncertainty_failed`` when it cannot be formed.
+        ``measured_shape_error_mm``, ``uncertainty_ratio`` (predicted / measured),
+        ``uncertainty_modes_effective`` and ``uncertainty_within_2x_probability`` (how
+        widely one calibration's error scatters about the prediction: see
+        :class:`reconstructor.uncertainty.UncertaintyMap`) and ``map`` (the map, and per
+        stage the G1 voltages its views used); NaN figures and ``uncertainty_failed`` when
+        it cannot be formed.
     """
     from galvoscan import sim_scores
     from reconstructor.uncertainty import parameter_covariance, point_uncertainty_map
@@ -815,6 +818,8 @@ def predicted_uncertainty(cal, rig, depth: float) -> dict:
             'predicted_v0_placement_mm': umap.absolute_rms_m * 1e3,
             'measured_shape_error_mm': shape,
             'uncertainty_ratio': predicted / shape if shape > 0 else float('nan'),
+            'uncertainty_modes_effective': umap.modes_effective,
+            'uncertainty_within_2x_probability': umap.within_2x_probability,
             'map': {**umap.to_dict(), 'views_u1_V': views, 'notes': pc.notes,
                     'measured_shape_error_mm': shape}}
 

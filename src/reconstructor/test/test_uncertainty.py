@@ -192,3 +192,29 @@ def test_map_arguments_are_checked():
                dict(n=1000)):
         with pytest.raises(ValueError):
             point_uncertainty_map(model, pc, **kw)
+
+
+def test_one_calibrations_error_scatters_about_the_prediction_by_its_modes():
+    from scipy.stats import norm
+
+    from reconstructor.uncertainty import error_modes, prediction_check
+
+    # one mode: the RMS error is |z| times the prediction
+    A = np.diag([1.0, 0.0, 0.0])
+    modes, p = error_modes(A, np.diag([4e-8, 1e-8, 1e-8]))
+    assert modes == pytest.approx(1.0)
+    assert p == pytest.approx(2 * (norm.cdf(2) - norm.cdf(0.5)), abs=0.01)
+    # many equal modes: the error is close to its prediction every time
+    modes, p = error_modes(np.eye(40), np.eye(40) * 1e-8)
+    assert modes == pytest.approx(40.0) and p > 0.999
+    # correlated parameters whose errors cancel in A: one mode left
+    C = np.array([[1.0, 0.999], [0.999, 1.0]]) * 1e-8
+    modes, _ = error_modes(np.eye(2), C)
+    assert 1.0 <= modes < 1.01
+    assert all(np.isnan(error_modes(np.zeros((2, 2)), C)))  # no error at all: no figure
+
+    check = prediction_check([1.0, 1.0, 1.0, 3.0], [1.0, 0.4, 2.0, 1.0], [0.6, 0.6, 0.6, 0.6])
+    assert check['within'] == 2
+    assert check['within_expected'] == pytest.approx(2.4)
+    assert check['within_expected_sd'] == pytest.approx(np.sqrt(4 * 0.24))
+    assert check['pooled_ratio'] == pytest.approx(np.sqrt(3.0 / 1.54))
