@@ -434,7 +434,7 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
                    min_poses: int = 2, min_spread: float = 1e-3,
                    fit_offset: bool | None = None, poly_degree: int | None = None,
                    anchor=(0.0, 0.0, 0.0), method: str | None = None,
-                   edge_margin: float = 0.6e-3) -> StageResult:
+                   edge_margin: float = 0.6e-3, bundle: bool | None = None) -> StageResult:
     """Calibrate the G2 tilt axis (n, P) and the G2 tilt angle per volt.
 
     Parameters
@@ -544,6 +544,15 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         residuals['angle_fit_rms_rad'] = fit.angle_fit_rms_rad
     if not math.isfinite(sum(residuals.values())):
         raise ValueError(f'laser_axis: non-finite residuals {residuals}')
+    if bundle is None:
+        bundle = physical and method == 'cone'
+    if bundle:
+        try:
+            return _bundle_result(calibration, model, updates, residuals, used, coll,
+                                  rejected)
+        except ValueError as exc:
+            log.warning('laser_axis: the laser bundle failed (%s); the staged fit stands', exc)
+            residuals['bundle_failed'] = 1.0
     errors = {k: v for k, v in axis_standard_errors(
         fit, np.array(planes), np.array(volts), weights=np.array(weights), anchor=anchor,
         method=method).items() if k in updates}
@@ -563,18 +572,106 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         # from the same planes. By blocks (axis_covariance_blocks) when a plane has fewer
         # than 3 views to give its covariance.
         try:
-            covs = [plane_covariance(*_plane_points(stripes, inl), pl)
-                    for (stripes, inl), pl in zip(used, planes, strict=True)]
+            covs = []
+            for (stripes, inl), pl in zip(used, planes, strict=True):
+                pts, views_of = _plane_points(stripes, inl)
+                covs.append(plane_covariance(pts, pl, views_of))
         except ValueError as exc:
             log.info('laser_axis covariance by blocks: %s', exc)
         else:
-            record = covariance_record(record['names'],
-                                       propagated_covariance(axis_of, planes, covs))
+            # direction and point 2 + 2, cone angle and offset, response intercept, k, poly
+            fitted = 4 + (method == 'cone') + bool(fit_offset) + 2 + len(fit.poly)
+            birge = lack_of_fit(fit, planes, volts, covs, fitted)
+            if math.isfinite(birge):
+                residuals['axis_lack_of_fit'] = birge
+            record = covariance_record(record['names'], with_marginals(
+                propagated_covariance(axis_of, planes, covs), np.diag(record['matrix'])))
         record = _with_camera_sensitivity(record, model, used, camera_inputs(calibration),
                                           axis_of, orient)
     return StageResult(stage='laser_axis', updates=updates, residuals=residuals,
                        samples_used=len(coll.stripes), samples_rejected=len(rejected),
                        rejected=rejected, standard_errors=errors, covariance=record)
+
+
+def _bundle_result(calibration, model, updates, residuals, used, coll, rejected):
+    """The stage's result from the laser bundle (:mod:`calibration_tools.laser_bundle`),
+    started from the staged fit's ``updates``, over every plane's inlier stripe points."""
+    from reconstructor.model import RigModel
+    from reconstructor.uncertainty import camera_inputs
+
+    from .laser_bundle import bundle_covariance_record, fit_laser_bundle
+
+    data = model.to_dict()
+    data.update({k: v for k, v in updates.items() if k != 'g2_tilt'})
+    if 'g2_tilt' in updates:
+        data['g2_tilt'] = {**data['g2_tilt'], **updates['g2_tilt']}
+    start = RigModel.from_dict(data, correction=model.correction)
+    stripes = []
+    for plane_stripes, inliers in used:
+        keep = np.split(inliers, np.cumsum([len(s.points_v0) for s in plane_stripes])[:-1])
+        stripes += [(s.points_v0[k], s.u2_tilt, *s.u1)
+                    for s, k in zip(plane_stripes, keep, strict=True) if k.any()]
+    b = fit_laser_bundle(start, stripes)
+    out = dict(residuals)
+    out.update({'bundle_point_rms_m': b.rms_m, 'bundle_start_rms_m': b.rms_start_m,
+                'bundle_views': float(b.views), 'bundle_points': float(b.points),
+                'bundle_poly_degree': float(b.poly_degree)})
+    record = bundle_covariance_record(b, model, camera_inputs(calibration))
+    return StageResult(stage='laser_axis', updates=b.updates, residuals=out,
+                       samples_used=len(coll.stripes), samples_rejected=len(rejected),
+                       rejected=rejected, standard_errors=b.standard_errors(),
+                       covariance=record)
+
+
+def with_marginals(cov, variances) -> np.ndarray:
+    """``cov``'s correlations with the given variances: ``D^1/2 R D^1/2``."""
+    cov = np.asarray(cov, dtype=np.float64)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    R = cov / np.outer(np.where(sd > 0, sd, 1.0), np.where(sd > 0, sd, 1.0))
+    s = np.sqrt(np.clip(np.asarray(variances, dtype=np.float64), 0.0, None))
+    return R * np.outer(s, s)
+
+
+def lack_of_fit(fit: AxisFit, planes, voltages, plane_covs, n_params: int) -> float:
+    """Reduced chi-square (Birge ratio) of the planes about the fitted axis model.
+
+    Per plane three residuals, each over its sigma from the plane's own covariance: its angle
+    to the axis off the cone's (``plane_angle_rad``), its distance to the axis
+    (``plane_distance_m``) and its rotation about the axis off G2's fitted response. Their
+    squares summed over ``3 m - n_params`` degrees of freedom. Above 1 the planes scatter
+    more than their views say: errors common to a plane's views (the G2 angle of the frame
+    that lit them: one draw of the galvo's jitter for all its boards) and what the model
+    leaves out (G2's mirror held ideal, the response's higher terms). The covariance
+    carried from the planes is scaled by it, as a least-squares fit with an unknown noise
+    level scales its own.
+
+    Returns
+    -------
+    float
+        NaN when there are no degrees of freedom.
+    """
+    n = fit.direction
+    pl = _unit_planes(planes)
+    m = len(pl)
+    dof = 3 * m - n_params
+    if dof <= 0:
+        return math.nan
+    u = np.asarray(voltages, dtype=np.float64)
+    V = np.column_stack([np.ones(m)] + [u ** (p + 1) for p in range(1 + len(fit.poly))])
+    rot_res = fit.rotation_rad - V @ np.linalg.lstsq(V, fit.rotation_rad, rcond=None)[0]
+    chi2 = 0.0
+    for i, C in enumerate(plane_covs):
+        C = np.asarray(C, dtype=np.float64)
+        ni = pl[i, :3]
+        turn = np.cross(n, ni)  # how n_i moves when the plane turns about the axis
+        turn /= max(np.linalg.norm(turn), 1e-300)
+        grads = (np.append(n, 0.0), np.append(fit.point, 1.0), np.append(turn, 0.0))
+        res = (fit.plane_angle_rad[i], fit.plane_distance_m[i], rot_res[i])
+        for g, r in zip(grads, res, strict=True):
+            var = float(g @ C @ g)
+            if var > 0.0:
+                chi2 += float(r) ** 2 / var
+    return chi2 / dof
 
 
 def _plane_points(stripes, inliers) -> tuple:

@@ -1,0 +1,111 @@
+"""The laser's bundle adjustment (calibration_tools.laser_bundle): stripe points of a known
+physical laser are fitted back within their stated uncertainty; a capture that cannot
+determine the laser is refused with a reason, not answered with numbers."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from calibration_tools.laser_bundle import fit_laser_bundle
+from reconstructor.model import MirrorParams, laser_plane_v0
+
+sim = pytest.importorskip("galvoscan.simulated_rig")
+rigs = pytest.importorskip("galvoscan_sim")
+
+ROWS = np.linspace(-7.0, 5.0, 9)
+
+
+def _truth():
+    return sim.truth_model(rigs.load_rig("reference"), kind="physical")
+
+
+def _stripes(model, rows, rng, noise=8e-6, view_shift=4e-6):
+    """Per row and offset, four board-sized segments of the model's laser plane (two depths,
+    two sides), points moved along the plane's normal by per-point and per-view noise."""
+    out = []
+    for u in rows:
+        for du in (-0.05, 0.05):
+            pl = laser_plane_v0(model, u + du)
+            n, e = pl[:3], pl[3]
+            along = np.cross(n, [0.0, 0.0, 1.0])
+            along /= np.linalg.norm(along)
+            for z in (0.6, 0.7):
+                for x in (-0.02, 0.02):
+                    p0 = np.array([x, 0.0, z])
+                    p0 = p0 - (n @ p0 + e) * n  # onto the plane
+                    s = np.linspace(-0.015, 0.015, 60)
+                    pts = p0 + s[:, None] * along
+                    shift = rng.normal(0.0, view_shift) + rng.normal(0.0, noise, len(s))
+                    out.append((pts + shift[:, None] * n, float(u + du), 0.0, 0.0))
+    return out
+
+
+def _start(truth):
+    """The staged laser: the plane, the axis and the response each a little off."""
+    pl = np.asarray(truth.laser_plane_v0) + [2e-4, -1e-4, 2e-4, 5e-5]
+    pl[:3] /= np.linalg.norm(pl[:3])
+    n = np.asarray(truth.laser_axis_dir) + [0.0, 5e-4, -3e-4]
+    n /= np.linalg.norm(n)
+    g2 = truth.g2_tilt
+    return dataclasses.replace(
+        truth, laser_plane_v0=pl, laser_axis_dir=n,
+        laser_axis_point=np.asarray(truth.laser_axis_point) + [0.0, 3e-4, -2e-4],
+        g2_tilt=MirrorParams(g2.theta0, g2.k * 1.001, (0.0,)))
+
+
+def test_the_bundle_recovers_a_known_laser_within_its_stated_uncertainty():
+    truth = _truth()
+    rng = np.random.default_rng(3)
+    b = fit_laser_bundle(_start(truth), _stripes(truth, ROWS, rng))
+    assert b.poly_degree == 3 and b.views == len(ROWS) * 2 * 4
+    sd = dict(zip(b.names, np.sqrt(np.diag(b.covariance)), strict=True))
+    got = b.updates
+    want = {"laser_plane_v0": truth.laser_plane_v0, "laser_axis_dir": truth.laser_axis_dir,
+            "g2_tilt.k": [truth.g2_tilt.k]}
+    z = []
+    for key, values in want.items():
+        fitted = [got["g2_tilt"]["k"]] if key == "g2_tilt.k" else got[key]
+        for j, (a, t) in enumerate(zip(fitted, values, strict=True)):
+            name = key if key == "g2_tilt.k" else f"{key}[{j}]"
+            if sd[name] > 1e-12:
+                z.append(abs(a - t) / sd[name])
+    assert max(z) < 4.0, z
+    # the laser planes themselves, over the rows and beyond them, against the truth
+    fitted = dataclasses.replace(
+        truth, laser_plane_v0=np.array(got["laser_plane_v0"]),
+        laser_axis_dir=np.array(got["laser_axis_dir"]),
+        laser_axis_point=np.array(got["laser_axis_point"]),
+        g2_tilt=MirrorParams(truth.g2_tilt.theta0, got["g2_tilt"]["k"],
+                             tuple(got["g2_tilt"]["poly"])))
+    for u in np.linspace(-7.0, 5.0, 13):
+        a, t = laser_plane_v0(fitted, u), laser_plane_v0(truth, u)
+        # where the true sheet draws its stripe on a wall at 650 mm: off the fitted plane by
+        x = np.array([-0.035, 0.0, 0.035])  # where the boards were
+        y = -(t[0] * x + t[2] * 0.65 + t[3]) / t[1]
+        stripe = np.column_stack([x, y, np.full(3, 0.65)])
+        gap = np.abs(stripe @ a[:3] + a[3])
+        assert gap.max() < 15e-6, (u, gap.max())  # a few views' noise (4 um each)
+    # the start was 10 times further off
+    assert b.rms_start_m > 3 * b.rms_m
+
+
+def test_views_at_one_voltage_are_refused_as_unobservable():
+    truth = _truth()
+    rng = np.random.default_rng(4)
+    stripes = _stripes(truth, [2.0] * 9, rng)
+    stripes = [(p, 2.0, a, c) for p, _, a, c in stripes]  # every view at one G2 voltage
+    with pytest.raises(ValueError, match="do not determine"):
+        fit_laser_bundle(_start(truth), stripes)
+
+
+def test_bad_input_is_refused():
+    truth = _truth()
+    rng = np.random.default_rng(5)
+    with pytest.raises(ValueError, match="at least 12"):
+        fit_laser_bundle(_start(truth), _stripes(truth, [0.0], rng)[:8])
+    paper = dataclasses.replace(truth, physical=None)
+    with pytest.raises(ValueError, match="physical"):
+        fit_laser_bundle(paper, _stripes(truth, ROWS, rng))
+    with pytest.raises(ValueError, match="poly_degree"):
+        fit_laser_bundle(_start(truth), _stripes(truth, ROWS, rng), poly_degree=0)
