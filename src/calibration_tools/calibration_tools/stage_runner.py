@@ -254,7 +254,10 @@ def verdict(calibration) -> str:
         pc = parameter_covariance(calibration)
     except ValueError as exc:
         return f'incomplete: {exc}'
-    have = {s.split(' ')[0] for s in pc.stage_of.values()}
+    # a stage counts once it stored a covariance, even when a later stage re-estimated all
+    # its parameters (the laser bundle takes the laser plane's U2 = 0 plane)
+    have = {s for s, rec in (calibration.stages or {}).items()
+            if isinstance(rec, dict) and rec.get('covariance')}
     missing = [s for s in VERDICT_STAGES if s not in have]
     if missing:
         return f"incomplete: no covariance yet from {', '.join(missing)}"

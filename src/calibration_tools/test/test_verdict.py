@@ -30,3 +30,12 @@ def test_uniform_uncertainty_is_good_and_an_edge_term_names_its_stage_and_place(
     v = verdict(_calibration(edge))
     assert v.startswith('redo dynamic_camera with views near U1 = ('), v
     assert '8.0) V' in v.split(':')[0], v
+
+
+def test_a_stage_whose_estimates_a_later_stage_replaced_still_counts():
+    # The laser bundle (laser_axis) re-estimates laser_plane's U2 = 0 plane: the chain is
+    # complete, and the verdict is read from the map.
+    stages = {'intrinsics': ('intrinsics.fx', 1.0), 'dynamic_camera': ('l', 1e-8),
+              'laser_plane': ('laser_plane_v0[3]', 1e-9),
+              'laser_axis': ('laser_plane_v0[3]', 1e-9)}
+    assert verdict(_calibration(stages)).startswith('good: predicted')
