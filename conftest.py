@@ -14,6 +14,8 @@ import time
 import pytest
 from hypothesis import settings
 
+from galvoscan_common.runtime import private_domain
+
 # The machine is shared and noisy: no per-example deadlines. Every `make test` derives its
 # examples from a fixed seed, so that a user's run is as repeatable as CI's. The random
 # exploration is a separate command, `make explore` (profile 'explore': fresh random
@@ -35,7 +37,8 @@ def _no_zombie_shm_segments():
 @pytest.fixture
 def ros_env(monkeypatch):
     """Environment for this test and its child processes: a private DDS domain on localhost."""
-    domain = str(random.Random(os.getpid() * 7919 + time.monotonic_ns()).randint(101, 230))
+    domain = str(private_domain(random.Random(os.getpid() * 7919 + time.monotonic_ns()),
+                                test=True))
     monkeypatch.setenv('ROS_DOMAIN_ID', domain)
     monkeypatch.setenv('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     monkeypatch.setenv('PYTHONUNBUFFERED', '1')

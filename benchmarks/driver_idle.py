@@ -15,12 +15,13 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from galvoscan_common.runtime import private_domain
 
 BARE_NODE = ('import rclpy, rclpy.executors; rclpy.init(); n = rclpy.create_node("bare"); '
              'print("active", flush=True); ex = rclpy.executors.SingleThreadedExecutor(); '
@@ -60,7 +61,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--seconds', type=float, default=20.0)
     args = parser.parse_args(argv)
-    env = {**os.environ, 'ROS_DOMAIN_ID': str(random.randint(101, 230)),
+    env = {**os.environ, 'ROS_DOMAIN_ID': str(private_domain()),
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     driver = measure([sys.executable, '-m', 'galvo_driver.driver_node', '--ros-args',
                       '-p', 'backend:=sim'], env, args.seconds)

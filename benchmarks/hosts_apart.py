@@ -50,7 +50,6 @@ import argparse
 import contextlib
 import json
 import os
-import random
 import shutil
 import signal
 import subprocess
@@ -60,6 +59,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from galvoscan_common.runtime import private_domain
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from pipeline import (  # noqa: E402 - benchmarks/ is no package
@@ -306,7 +307,7 @@ def run_arrangement(arrangement: str, args, tmp: Path, cal: Path) -> dict:
     # same_host: the graph beside the player, in host a (the machine's own figures)
     far, profile = (0, 'local') if arrangement == 'same_host' else (1, arrangement)
     profile = 'multihost' if arrangement == 'relay' else profile
-    domain = random.randint(101, 230)
+    domain = private_domain()
     work = tmp / arrangement
     work.mkdir()
     params = work / 'params.yaml'

@@ -41,7 +41,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import signal
 import struct
 import subprocess
@@ -52,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from galvoscan_common.runtime import child_env, freeze_startup_heap
+from galvoscan_common.runtime import child_env, freeze_startup_heap, private_domain
 
 
 def make_bag(path, n, seed=0):
@@ -228,7 +227,7 @@ def run(frames, rate, total, arrangement, cal_path, warmup=50, extraction_thread
 
     hand_off = intra_process and arrangement != 'separate'
 
-    domain = random.randint(101, 230)
+    domain = private_domain()
     os.environ['ROS_DOMAIN_ID'] = str(domain)
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     ctx = rclpy.Context()

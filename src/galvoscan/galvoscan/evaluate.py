@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import sys
 import time
 from pathlib import Path
@@ -44,6 +43,7 @@ from galvoscan import eval_scenes, metrics
 from galvoscan.progress import Progress
 from galvoscan_common.executor import call_service
 from galvoscan_common.frame import VOLTAGE_LIMIT
+from galvoscan_common.runtime import private_domain
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
 from reconstructor.model import laser_plane_v0, v0_T_v
 from reconstructor.planning import aim_camera, view_sweep
@@ -1007,7 +1007,7 @@ def main(argv=None):
     progress.log(f'rig {rig.name}: working distance {wd * 1e3:.1f} mm (stand-off from the '
                  f'G1 exit mirror), working point {site.depth * 1e3:.1f} mm deep, scene '
                  f'scale {site.scale:g}')
-    domain = os.environ.get('ROS_DOMAIN_ID') or str(random.randint(101, 230))
+    domain = os.environ.get('ROS_DOMAIN_ID') or str(private_domain())
     env = {**os.environ, 'ROS_DOMAIN_ID': domain,
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     cell_ref = out / 'cell_reference.yaml'

@@ -37,6 +37,23 @@ import re
 import signal
 from pathlib import Path
 
+#: Private DDS domains of throwaway graphs on one host (with
+#: ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``): the test suite draws from the first range,
+#: evaluations and benchmarks from the second, so a benchmark running beside ``make test``
+#: never joins a test's domain (a shared domain once made a test count the benchmark's
+#: extractor as a subscriber).
+TEST_DOMAINS = (101, 165)
+RUN_DOMAINS = (166, 230)
+
+
+def private_domain(rng=None, *, test: bool = False) -> int:
+    """A random private ROS domain id from :data:`RUN_DOMAINS` (or :data:`TEST_DOMAINS`)."""
+    import random
+
+    lo, hi = TEST_DOMAINS if test else RUN_DOMAINS
+    return (rng or random).randint(lo, hi)
+
+
 #: Blocks at least this large come from mmap [bytes]: above any image we handle.
 MMAP_THRESHOLD_BYTES = 32 * 1024 * 1024
 #: Free memory at the top of the heap kept for reuse rather than returned [bytes].

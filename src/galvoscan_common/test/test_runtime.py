@@ -170,3 +170,17 @@ def test_the_startup_heap_is_frozen_out_of_full_collections():
     before, frozen, after, late = map(int, out)
     assert before > 200_000 and frozen > 200_000
     assert after == 0 and late >= 10
+
+
+def test_tests_and_benchmarks_draw_their_dds_domains_apart():
+    import random
+
+    from galvoscan_common.runtime import RUN_DOMAINS, TEST_DOMAINS, private_domain
+
+    assert TEST_DOMAINS[1] < RUN_DOMAINS[0]
+    rng = random.Random(0)
+    runs = {private_domain(rng) for _ in range(2000)}
+    tests = {private_domain(rng, test=True) for _ in range(2000)}
+    assert not runs & tests
+    assert min(runs) == RUN_DOMAINS[0] and max(runs) == RUN_DOMAINS[1]
+    assert min(tests) == TEST_DOMAINS[0] and max(tests) == TEST_DOMAINS[1]
