@@ -231,6 +231,7 @@ class CalibrationNode(Node):
         writer.add_topic('/galvo/state', 'galvoscan_msgs/msg/GalvoState')
         cap.writer, cap.frames, cap.states = writer, 0, 0
         try:
+            self._wait_scan_ended()
             resp = self._call('scan/start', StartScan.Request(
                 pattern='custom', voltages=np.asarray(step.voltages).ravel().tolist(),
                 frame_rate=step.frame_rate, laser_on=step.laser_on))
@@ -254,6 +255,16 @@ class CalibrationNode(Node):
             cap.writer = None
             writer.close()
         return cap.frames, n
+
+    def _wait_scan_ended(self, timeout: float = 10.0) -> None:
+        """Wait while the driver still runs a scan: its last frames arrive before it marks
+        the scan done, and under load the next step's scan/start came first (refused with
+        'still running'; a drawn rig lost its 1000 mm re-set to it)."""
+        deadline = time.monotonic() + timeout
+        while self._call('scan/progress', GetScanProgress.Request()).state == 'running':
+            if time.monotonic() > deadline:
+                return  # scan/start answers with the driver's reason
+            self._cap_executor.spin_once(timeout_sec=0.05)
 
     def _on_capture(self, req, resp):
         t0 = time.monotonic()
