@@ -14,8 +14,9 @@ is held: its uncertainty enters through the sensitivity of the result to it, as 
 stage (:func:`reconstructor.uncertainty.remeasured_sensitivity`).
 
 Parameters are moved in a minimal form: two turns and a shift of the U2 = 0 plane, two turns
-of the axis, two shifts of its point across it (the point slides freely along the axis), the
-gain and the polynomial. Every view counts the same (its points weighted by one over the
+of the axis, two shifts of its point across it, the gain and the polynomial. The point is
+reported as the axis point nearest V0's origin (where along the axis it sits means nothing),
+as the staged fit reports it. Every view counts the same (its points weighted by one over the
 square root of their number): a view's error is mostly one shift of its whole line.
 
 On the reference rig (its exact camera, 8 seeds) the staged laser read 0.06-0.16 mm shape
@@ -127,9 +128,11 @@ class _Laser:
         s = float(np.linalg.norm(n0))
         n = self.n + x[3] * self.u[0] + x[4] * self.u[1]
         n = n / np.linalg.norm(n)
+        P = self.P + x[5] * self.u[0] + x[6] * self.u[1]
+        P = P - float(P @ n) * n  # the axis point nearest V0's origin, as the staged fit's
         return {'laser_plane_v0': [*(n0 / s), (self.e0 + x[2])],
                 'laser_axis_dir': list(n),
-                'laser_axis_point': list(self.P + x[5] * self.u[0] + x[6] * self.u[1]),
+                'laser_axis_point': list(P),
                 'g2_tilt': {'k': self.k + x[7], 'poly': list(self.poly + x[8:])}}
 
     def vector(self, x) -> np.ndarray:
