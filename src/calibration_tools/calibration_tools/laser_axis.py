@@ -468,6 +468,12 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         across the stripe (a plane from nearby board poses has a poorly known tilt).
     k_sigma, max_pnp_rms_px, min_stripe_points, min_poses, min_spread, edge_margin
         See :func:`laser_plane.board_stripe_points` and :func:`laser_plane.plane_from_stripes`.
+    bundle : bool, optional
+        End with the laser's bundle adjustment (:mod:`calibration_tools.laser_bundle`): the
+        U2 = 0 plane, the axis and G2's response fitted to every stripe point at once,
+        started from the staged fit. Default: with the physical model's cone fit. When the
+        views cannot determine the laser the staged fit stands (logged, and
+        ``bundle_failed`` in the residuals).
 
     Returns
     -------
@@ -476,7 +482,12 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         enough, ``g2_tilt: {'k': ..., 'poly': [...]}``. Residuals: ``axis_angle_rms_rad``,
         ``axis_angle_max_rad``, ``axis_distance_rms_m``, ``axis_distance_max_m``,
         ``axis_offset_m``, ``axis_cone_angle_rad``, ``plane_rms_max_m``, ``angle_fit_rms_rad``,
-        ``planes_used``. ``standard_errors``: see :func:`axis_standard_errors`.
+        ``planes_used``. ``standard_errors``: see :func:`axis_standard_errors`. With the
+        bundle, ``updates`` also hold ``laser_plane_v0``, the standard errors and covariance
+        are the bundle's, and the residuals add ``bundle_point_rms_m``,
+        ``bundle_start_rms_m``, ``bundle_views``, ``bundle_points`` and
+        ``bundle_poly_degree``. Without it, ``axis_lack_of_fit`` (the planes' reduced
+        chi-square about the axis model, :func:`lack_of_fit`) where every plane has 3 views.
 
     Raises
     ------
