@@ -124,6 +124,20 @@ def show(results, truth, ratios, err) -> None:
         print(f'{name + " " + unit:<22}{cols}   {tv} {ratios[name]:.2f}')
 
 
+def judge(label: str, values: dict, truth: dict):
+    """Print one kind of sigma's table and verdict. Returns the seed-to-seed ratios, the
+    errors over sigma, the worst ratio over ACCEPTANCE and the median |error|/sigma per
+    seed."""
+    ratios, err = compare(values, truth)
+    print(f'{label}:')
+    show(values, truth, ratios, err)
+    worst = max(ratios.get(n, math.inf) for n in ACCEPTANCE)
+    print(f'{label.split(" (")[0]}: max |a-b|/sigma over cx, cy, l, d = {worst:.2f} '
+          f'(limit 3): {"met" if worst <= 3.0 else "NOT met"}')
+    med = {s: float(np.median(np.abs(list(e.values())))) for s, e in err.items()}
+    return ratios, err, worst, med
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--rig', default='reference')
@@ -145,20 +159,10 @@ def main(argv=None):
         chain[seed] = chain_stated(cal, results[seed])
         cx_err[seed] = cal.model.intrinsics.cx - truth['intrinsics.cx']
         cy_err[seed] = cal.model.intrinsics.cy - truth['intrinsics.cy']
-    ratios, err = compare(results, truth)
-    print('stage sigma (each stage\'s own Jacobian):')
-    show(results, truth, ratios, err)
-    stage_worst = max(ratios.get(n, math.inf) for n in ACCEPTANCE)
-    print(f'stage sigma: max |a-b|/sigma over cx, cy, l, d = {stage_worst:.2f} (limit 3): '
-          f'{"met" if stage_worst <= 3.0 else "NOT met"}')
-    c_ratios, c_err = compare(chain, truth)
-    print('chain sigma (joint covariance, held inputs included):')
-    show(chain, truth, c_ratios, c_err)
-    worst = max(c_ratios.get(n, math.inf) for n in ACCEPTANCE)
-    print(f'acceptance (chain sigma): max |a-b|/sigma over cx, cy, l, d = {worst:.2f} '
-          f'(limit 3): {"met" if worst <= 3.0 else "NOT met"}')
-    med = {s: float(np.median(np.abs(list(e.values())))) for s, e in err.items()}
-    c_med = {s: float(np.median(np.abs(list(e.values())))) for s, e in c_err.items()}
+    ratios, err, stage_worst, med = judge(
+        "stage sigma (each stage's own Jacobian)", results, truth)
+    c_ratios, c_err, worst, c_med = judge(
+        'chain sigma (joint covariance, held inputs included; the acceptance)', chain, truth)
     print('sigma against the truth: median |error|/sigma per seed, stage '
           + ', '.join(f'{s}: {v:.2f}' for s, v in med.items()) + '; chain '
           + ', '.join(f'{s}: {v:.2f}' for s, v in c_med.items()))
