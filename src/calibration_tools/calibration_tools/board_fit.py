@@ -645,3 +645,64 @@ def refine(
         message=message,
         covariance=record,
     )
+
+
+# ------------------------------------------------------------------------------ frame noise
+#: Fewest circles a view needs to enter the frame-noise estimate (its mean shift).
+FRAME_NOISE_MIN_CIRCLES = 6
+
+
+def g1_frame_noise(result: RefineResult, observations: Sequence[ViewObservation],
+                   board: CircleBoard, *, ellipse_correction: bool = True,
+                   step_v: float = 1e-3) -> dict:
+    """G1's per-frame noise, in volts, from the views' common shifts the fit leaves.
+
+    A galvo's angle scatters from frame to frame about its response (its repeatability,
+    8 µrad on the paper's galvos): every circle of a view then moves together, as if the
+    view had been taken at slightly other voltages. Per view, the mean residual of its
+    circles is solved for that voltage offset (the 2 x 2 derivative of the circles' mean
+    pixel with respect to U1 pan and tilt, at the fitted model and board pose); the noise
+    of each view's mean (its circles' scatter over their number) is subtracted from the
+    offsets' mean square. What the fitted model cannot represent and that varies from view
+    to view counts here too: it is noise to anyone using the model.
+
+    Returns
+    -------
+    dict
+        ``frame_noise_u1_pan_V``, ``frame_noise_u1_tilt_V`` (1 sigma, volts) and
+        ``frame_noise_views``; empty when fewer than 3 views have enough circles.
+    """
+    from reconstructor.model import rigid_inverse, v0_T_v
+
+    m = result.model
+    offsets, floors = [], []
+    for o, r in zip(observations, result.residuals_px, strict=True):
+        r = np.asarray(r, dtype=np.float64)
+        if len(r) < FRAME_NOISE_MIN_CIRCLES or o.pose_index not in result.board_poses:
+            continue
+        P = board.points(o.index)
+        radii = board.radius(o.index) if ellipse_correction else np.zeros(len(o.index))
+        T = result.board_poses[o.pose_index]
+
+        def mean_px(up, ut, T=T, P=P, radii=radii):
+            V_T_W = rigid_inverse(v0_T_v(m, up, ut)) @ T
+            return project_circle_centres(m.intrinsics, V_T_W, P, radii).mean(axis=0)
+
+        up, ut = float(o.voltages[0]), float(o.voltages[1])
+        J = np.column_stack([(mean_px(up + step_v, ut) - mean_px(up - step_v, ut)),
+                             (mean_px(up, ut + step_v) - mean_px(up, ut - step_v))])
+        J /= 2.0 * step_v
+        if not np.isfinite(J).all() or abs(np.linalg.det(J)) < 1e-12:
+            continue
+        Jinv = np.linalg.inv(J)
+        offsets.append(Jinv @ r.mean(axis=0))
+        floors.append(np.diag(Jinv @ (np.cov(r.T) / len(r)) @ Jinv.T))
+    # the fit took up part of the offsets: scale by shifts over shifts less its parameters
+    n_fit = len(result.names) + 6 * len(result.board_poses)
+    if len(offsets) < 3 or 2 * len(offsets) <= 2 * n_fit:
+        return {}
+    dof = 2 * len(offsets) / (2 * len(offsets) - n_fit)
+    var = dof * np.mean(np.square(offsets), axis=0) - np.mean(floors, axis=0)
+    sd = np.sqrt(np.clip(var, 0.0, None))
+    return {'frame_noise_u1_pan_V': float(sd[0]), 'frame_noise_u1_tilt_V': float(sd[1]),
+            'frame_noise_views': len(offsets)}

@@ -51,6 +51,7 @@ from .board_fit import (
     _as_transform,
     _rotation_angle,
     _transform,
+    g1_frame_noise,
     pnp_view,
     refine,
 )
@@ -459,6 +460,7 @@ def run_dynamic_camera(
     else:
         fin = _final_fit(ident, lin, obs, board, **fit_kw)
     residuals, extra = _fit_figures(fin, ident, lin, lin_notes, det.keep, obs)
+    residuals.update(g1_frame_noise(fin, obs, board))
     if model == "physical":
         extra["physical_fixed"] = physical_fixed
         extra["physical_freed"] = [n for n in G1_PHYSICAL_TOLERANCES

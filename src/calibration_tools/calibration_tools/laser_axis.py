@@ -485,9 +485,11 @@ def run_laser_axis(views, calibration, *, board, extractor_config=None, k_sigma:
         ``planes_used``. ``standard_errors``: see :func:`axis_standard_errors`. With the
         bundle, ``updates`` also hold ``laser_plane_v0``, the standard errors and covariance
         are the bundle's, and the residuals add ``bundle_point_rms_m``,
-        ``bundle_start_rms_m``, ``bundle_views``, ``bundle_points`` and
-        ``bundle_poly_degree``. Without it, ``axis_lack_of_fit`` (the planes' reduced
-        chi-square about the axis model, :func:`lack_of_fit`) where every plane has 3 views.
+        ``bundle_start_rms_m``, ``bundle_views``, ``bundle_points``,
+        ``bundle_poly_degree`` and ``frame_noise_u2_tilt_V`` (G2's per-frame noise,
+        :func:`calibration_tools.laser_bundle._g2_frame_noise`). Without it,
+        ``axis_lack_of_fit`` (the planes' reduced chi-square about the axis model,
+        :func:`lack_of_fit`) where every plane has 3 views.
 
     Raises
     ------
@@ -608,7 +610,7 @@ def _bundle_result(calibration, model, updates, residuals, used, coll, rejected)
     """The stage's result from the laser bundle (:mod:`calibration_tools.laser_bundle`),
     started from the staged fit's ``updates``, over every plane's inlier stripe points."""
     from reconstructor.model import RigModel
-    from reconstructor.uncertainty import camera_inputs
+    from reconstructor.uncertainty import camera_inputs, frame_noise
 
     from .laser_bundle import bundle_covariance_record, fit_laser_bundle
 
@@ -622,11 +624,13 @@ def _bundle_result(calibration, model, updates, residuals, used, coll, rejected)
         keep = np.split(inliers, np.cumsum([len(s.points_v0) for s in plane_stripes])[:-1])
         stripes += [(s.points_v0[k], s.u2_tilt, *s.u1)
                     for s, k in zip(plane_stripes, keep, strict=True) if k.any()]
-    b = fit_laser_bundle(start, stripes)
+    b = fit_laser_bundle(start, stripes, g1_frame_noise_v=frame_noise(calibration))
     out = dict(residuals)
     out.update({'bundle_point_rms_m': b.rms_m, 'bundle_start_rms_m': b.rms_start_m,
                 'bundle_views': float(b.views), 'bundle_points': float(b.points),
                 'bundle_poly_degree': float(b.poly_degree)})
+    if np.isfinite(b.frame_noise_u2_V):
+        out['frame_noise_u2_tilt_V'] = b.frame_noise_u2_V
     record = bundle_covariance_record(b, model, camera_inputs(calibration))
     return StageResult(stage='laser_axis', updates=b.updates, residuals=out,
                        samples_used=len(coll.stripes), samples_rejected=len(rejected),

@@ -70,6 +70,9 @@ class LaserBundle:
     points, views : int
     poly_degree : int
         Of G2's response as fitted (1 gain, 2 square, 3 cube).
+    frame_noise_u2_V : float
+        G2's per-frame noise [V, 1 sigma] (:func:`_g2_frame_noise`); NaN when too few views
+        tell.
     """
 
     updates: dict
@@ -82,6 +85,7 @@ class LaserBundle:
     points: int
     views: int
     poly_degree: int
+    frame_noise_u2_V: float = float('nan')
 
     def standard_errors(self) -> dict:
         sd = np.sqrt(np.clip(np.diag(self.covariance), 0.0, None))
@@ -157,7 +161,8 @@ class _Laser:
         return self.RigModel.from_dict(data, correction=self.model.correction)
 
 
-def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE) -> LaserBundle:
+def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE,
+                     g1_frame_noise_v: dict | None = None) -> LaserBundle:
     """Fit the physical model's laser to stripe points on boards (module docstring).
 
     Parameters
@@ -170,6 +175,10 @@ def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE) -
     poly_degree : int
         Of G2's response (1: gain only). Lowered while the views cannot determine the highest
         term (:data:`MAX_CONDITION`).
+    g1_frame_noise_v : dict, optional
+        G1's per-frame noise ``{'u1_pan': V, 'u1_tilt': V}`` as the dynamic camera measured
+        it (:func:`reconstructor.uncertainty.frame_noise`): its share of the views' offsets
+        is taken out of G2's (:func:`_g2_frame_noise`).
 
     Returns
     -------
@@ -243,12 +252,71 @@ def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE) -
 
     raw = r / w
     raw0 = r0 / w
+    noise = _g2_frame_noise(laser.model_at(sol.x), groups, u2, raw, inlier, laser.size,
+                            g1_frame_noise_v)
     return LaserBundle(
         updates=laser.values(sol.x), names=laser.names(), covariance=cov,
         sensitivity_of=sensitivity_of, groups=groups,
         rms_m=float(np.sqrt(np.mean(raw[inlier] ** 2))),
         rms_start_m=float(np.sqrt(np.mean(raw0 ** 2))),
-        points=int(len(P)), views=len(groups), poly_degree=poly_degree)
+        points=int(len(P)), views=len(groups), poly_degree=poly_degree,
+        frame_noise_u2_V=noise)
+
+
+def _g2_frame_noise(model, groups, u2, raw, inlier, n_params: int,
+                    g1_noise_v: dict | None = None, step_v: float = 1e-3) -> float:
+    """G2's per-frame noise [V, 1 sigma] from the views' common offsets the bundle leaves.
+
+    A galvo's angle scatters from frame to frame about its response (its repeatability):
+    the whole sheet of one frame then lies where a slightly other voltage would put it, and
+    every stripe point of the view sits off the fitted plane by about the same distance.
+    Per view, the mean distance of its inlying points over the distance's derivative with
+    respect to U2 is that voltage offset; the noise of the mean (the points' scatter over
+    their number) is subtracted and the fit's share (its parameters over the views) put
+    back. The offsets hold G1's frame noise too (the points were measured through G1):
+    with ``g1_noise_v`` its share is taken out, to first order as if the view had moved
+    with its points (the points as the view at U1 +- 1 sigma would have measured them);
+    without it the estimate is G2's and G1's together, an upper bound.
+    """
+    from reconstructor.model import laser_plane_v0, v0_T_v
+
+    counts = [len(g[0]) for g in groups]
+    offsets, floors = [], []
+    start = 0
+    for (p, a, b), u, n in zip(groups, u2, counts, strict=True):
+        sel = slice(start, start + n)
+        start += n
+        keep = inlier[sel]
+        if keep.sum() < 5:
+            continue
+        q = p[keep]
+        d = raw[sel][keep]
+        plus, minus = laser_plane_v0(model, np.array([u + step_v, u - step_v]))
+        slope = float(np.mean((q @ plus[:3] + plus[3]) - (q @ minus[:3] + minus[3]))) / (
+            2.0 * step_v)
+        if not abs(slope) > 0:
+            continue
+        offsets.append(float(np.mean(d)) / slope)
+        share = 0.0
+        pl = laser_plane_v0(model, np.array([u]))[0]
+        for k, sd in enumerate(((g1_noise_v or {}).get('u1_pan', 0.0),
+                                (g1_noise_v or {}).get('u1_tilt', 0.0))):
+            if not sd > 0:
+                continue
+            base = np.linalg.inv(v0_T_v(model, a, b))
+            moved = []
+            for sign in (1.0, -1.0):
+                v = [a, b]
+                v[k] += sign * sd
+                M = v0_T_v(model, v[0], v[1]) @ base
+                moved.append(float(np.mean((q @ M[:3, :3].T + M[:3, 3]) @ pl[:3] + pl[3])))
+            share += ((moved[0] - moved[1]) / 2.0 / slope) ** 2
+        floors.append(float(np.var(d)) / len(d) / slope ** 2 + share)
+    if len(offsets) <= n_params or len(offsets) < 3:
+        return float('nan')
+    dof = len(offsets) / (len(offsets) - n_params)
+    var = dof * float(np.mean(np.square(offsets))) - float(np.mean(floors))
+    return float(np.sqrt(max(var, 0.0)))
 
 
 def _jacobian(f, x, scale) -> np.ndarray:

@@ -248,7 +248,7 @@ def verdict(calibration) -> str:
     whose parameters carry the largest share of the worst view's variance is named, with
     the view's voltages (capture more views there, or views that constrain it better).
     """
-    from reconstructor.uncertainty import parameter_covariance, point_uncertainty_map
+    from reconstructor.uncertainty import frame_noise, parameter_covariance, point_uncertainty_map
 
     try:
         pc = parameter_covariance(calibration)
@@ -265,13 +265,17 @@ def verdict(calibration) -> str:
 
     depth = laser_crossing_depth(calibration.model)
     try:
-        umap = point_uncertainty_map(calibration.model, pc, depth=float(depth))
+        umap = point_uncertainty_map(calibration.model, pc, depth=float(depth),
+                                     frame_noise_v=frame_noise(calibration))
     except ValueError as exc:
         return f'incomplete: {exc}'
     worst, up, ut = umap.worst()
     median = float(np.nanmedian(umap.sigma_m))
     head = (f'predicted 1-sigma point error {umap.rms_m * 1e3:.3f} mm RMS over +-8 V at '
             f'{depth * 1e3:.0f} mm, worst {worst * 1e3:.3f} mm at U1 = ({up:+.1f}, {ut:+.1f}) V')
+    if umap.frame_rms_m > 0:  # the verdict judges the calibration's part only
+        head += (f"; the galvos' frame noise adds {umap.frame_rms_m * 1e3:.3f} mm "
+                 f'({umap.total_rms_m * 1e3:.3f} mm together)')
     if not (worst > VERDICT_FLATNESS * median):
         return f'good: {head}'
     i = int(np.argmin(np.abs(umap.u_tilt - ut)))

@@ -782,46 +782,71 @@ def predicted_uncertainty(cal, rig, depth: float) -> dict:
     (:func:`galvoscan.sim_scores.reconstruction_errors`, after the best rigid motion: the
     shape, as the prediction).
 
+    A point's error has two parts: the calibration's (the same in every scan: what its
+    parameters' covariance predicts) and the galvos' per-frame noise (new in every frame:
+    what the stages measured as :func:`reconstructor.uncertainty.frame_noise`). The
+    simulator's galvos scatter too, so the total is measured on the rig as it is and the
+    calibration's part on the same rig without that scatter (``Rig.without_jitter``).
+
     Returns
     -------
     dict
-        ``predicted_uncertainty_mm`` (RMS over the map), ``predicted_uncertainty_max_mm``,
+        ``predicted_uncertainty_mm`` (RMS over the map of both parts together),
+        ``predicted_calibration_uncertainty_mm`` and ``predicted_frame_noise_mm`` (the
+        parts), ``predicted_uncertainty_max_mm`` (the calibration's worst view),
         ``predicted_v0_placement_mm`` (the rigid part, not in the map),
-        ``measured_shape_error_mm``, ``uncertainty_ratio`` (predicted / measured),
-        ``uncertainty_modes_effective`` and ``uncertainty_within_2x_probability`` (how
-        widely one calibration's error scatters about the prediction: see
-        :class:`reconstructor.uncertainty.UncertaintyMap`) and ``map`` (the map, and per
-        stage the G1 voltages its views used); NaN figures and ``uncertainty_failed`` when
-        it cannot be formed.
+        ``measured_shape_error_mm`` (the rig as it is) and
+        ``measured_systematic_error_mm`` (without the galvos' scatter),
+        ``uncertainty_ratio`` (predicted / measured, both parts) and
+        ``uncertainty_ratio_calibration`` (the calibration's part / the systematic error),
+        ``uncertainty_modes_effective``, ``uncertainty_within_2x_probability`` (of the
+        total) and ``uncertainty_calibration_within_2x_probability`` (how widely one
+        calibration's error scatters about the prediction: see
+        :class:`reconstructor.uncertainty.UncertaintyMap`), ``frame_noise_V`` and ``map``
+        (the map, and per stage the G1 voltages its views used); NaN figures and
+        ``uncertainty_failed`` when it cannot be formed.
     """
     from galvoscan import sim_scores
-    from reconstructor.uncertainty import parameter_covariance, point_uncertainty_map
+    from reconstructor.uncertainty import frame_noise, parameter_covariance, point_uncertainty_map
 
     try:
         pc = parameter_covariance(cal)
         if not pc.names:
             raise ValueError('the calibration holds no covariance')
+        noise = frame_noise(cal)
         umap = point_uncertainty_map(cal.model, pc, depth=depth, span=UNCERTAINTY_SPAN_V,
-                                     n=UNCERTAINTY_GRID)
+                                     n=UNCERTAINTY_GRID, frame_noise_v=noise)
         measured = sim_scores.reconstruction_errors(
             cal.model, rig, span=UNCERTAINTY_SPAN_V, n=UNCERTAINTY_GRID, depth=depth)
+        systematic = sim_scores.reconstruction_errors(
+            cal.model, rig.without_jitter(), span=UNCERTAINTY_SPAN_V, n=UNCERTAINTY_GRID,
+            depth=depth)
     except (ValueError, RuntimeError) as exc:
         nan = float('nan')
         return {'predicted_uncertainty_mm': nan, 'measured_shape_error_mm': nan,
                 'uncertainty_ratio': nan, 'uncertainty_failed': str(exc)}
-    predicted = umap.rms_m * 1e3
+    predicted = umap.total_rms_m * 1e3
+    calib = umap.rms_m * 1e3
     shape = measured['aligned_rms_m'] * 1e3
+    steady = systematic['aligned_rms_m'] * 1e3
     views = {stage: rec.get('views_u1_V') for stage, rec in cal.stages.items()
              if isinstance(rec, dict) and rec.get('views_u1_V')}
     return {'predicted_uncertainty_mm': predicted,
+            'predicted_calibration_uncertainty_mm': calib,
+            'predicted_frame_noise_mm': umap.frame_rms_m * 1e3,
             'predicted_uncertainty_max_mm': umap.worst()[0] * 1e3,
             'predicted_v0_placement_mm': umap.absolute_rms_m * 1e3,
             'measured_shape_error_mm': shape,
+            'measured_systematic_error_mm': steady,
             'uncertainty_ratio': predicted / shape if shape > 0 else float('nan'),
+            'uncertainty_ratio_calibration': calib / steady if steady > 0 else float('nan'),
             'uncertainty_modes_effective': umap.modes_effective,
-            'uncertainty_within_2x_probability': umap.within_2x_probability,
+            'uncertainty_within_2x_probability': umap.total_within_2x_probability,
+            'uncertainty_calibration_within_2x_probability': umap.within_2x_probability,
+            'frame_noise_V': noise,
             'map': {**umap.to_dict(), 'views_u1_V': views, 'notes': pc.notes,
-                    'measured_shape_error_mm': shape}}
+                    'measured_shape_error_mm': shape,
+                    'measured_systematic_error_mm': steady}}
 
 
 def _paper_method(args, graph, rig, site, out, progress) -> dict:

@@ -25,10 +25,19 @@ _ROWS = [  # (metrics key, label, paper key)
      'plate_flatness_rmse_mm'),
     ('sphere_radius_error_mm', 'calibration sphere, radius error [mm]', None),
     ('predicted_uncertainty_mm', "predicted 1-sigma point error over G1's range (the "
-     "calibration's covariance; shape, RMS over the map) [mm]", None),
+     "calibration's covariance and the galvos' measured frame noise; shape, RMS over the "
+     'map) [mm]', None),
+    ('predicted_calibration_uncertainty_mm', "its calibration's part (the same in every scan) "
+     '[mm]', None),
+    ('predicted_frame_noise_mm', "its frame-noise part (the galvos' repeatability, new in "
+     'every frame) [mm]', None),
     ('measured_shape_error_mm', 'measured point error there against the truth (true stripe '
      'pixels, after the best rigid motion), RMS [mm]', None),
-    ('uncertainty_ratio', 'predicted / measured point error (1 = an honest covariance)', None),
+    ('measured_systematic_error_mm', "the same without the simulated galvos' frame noise: "
+     "the calibration's error [mm]", None),
+    ('uncertainty_ratio', 'predicted / measured point error (1 = an honest prediction)', None),
+    ('uncertainty_ratio_calibration', "the calibration's part / the calibration's error (1 = "
+     'an honest covariance)', None),
     ('transfer_matrix_error_rmse_mm', 'dynamic camera transfer-matrix error, RMSE [mm]',
      'transfer_matrix_error_rmse_mm'),
     ('joint_error_before_mm', 'joint correction: error before [mm]', 'joint_error_before_mm'),
@@ -309,11 +318,14 @@ def _plot_uncertainty(umap, path):
     if umap.get('views_u1_V'):
         ax.legend(loc='upper center', bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=7)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
-    cb.set_label('predicted 1-sigma point error (shape) [um]')
-    ax.set_title(f"Predicted uncertainty at {umap['depth_m'] * 1e3:.0f} mm: RMS "
-                 f"{umap['rms_m'] * 1e6:.0f} um (measured against the truth: "
-                 f"{umap.get('measured_shape_error_mm', float('nan')) * 1e3:.0f} um)",
-                 fontsize=9)
+    cb.set_label("calibration's predicted 1-sigma point error (shape) [um]")
+    nan = float('nan')
+    ax.set_title(f"Predicted uncertainty at {umap['depth_m'] * 1e3:.0f} mm, calibration's "
+                 f"part: RMS {umap['rms_m'] * 1e6:.0f} um (measured without frame noise: "
+                 f"{umap.get('measured_systematic_error_mm', nan) * 1e3:.0f} um)\n"
+                 f"with the galvos' frame noise ({umap.get('frame_rms_m', 0.0) * 1e6:.0f} um): "
+                 f"{umap.get('total_rms_m', umap['rms_m']) * 1e6:.0f} um (measured: "
+                 f"{umap.get('measured_shape_error_mm', nan) * 1e3:.0f} um)", fontsize=9)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return True

@@ -14,7 +14,7 @@ parameters the physical description corresponds to.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -332,6 +332,16 @@ class Rig:
         if U.shape != (4,):
             raise ValueError(f'voltages: expected shape (4,), got {U.shape}')
         return self.dac.quantize(U)
+
+    def without_jitter(self) -> Rig:
+        """The same rig with every galvo's per-frame angle noise set to zero: its repeatable
+        geometry, which a calibration can know (scores split a model's error into that part
+        and the frame noise)."""
+        def quiet(head):
+            return replace(head, pan_drive=replace(head.pan_drive, jitter=0.0),
+                           tilt_drive=replace(head.tilt_drive, jitter=0.0))
+
+        return replace(self, g1=quiet(self.g1), g2=quiet(self.g2))
 
     def mirror_angles(self, applied, jitter_draws=None) -> np.ndarray:
         """True mechanical angles (theta1..theta4) [rad] for applied voltages.

@@ -18,11 +18,15 @@ Parameters are named by their dotted key in ``RigModel.to_dict()``, with ``[j]``
 element of a list: ``intrinsics.cx``, ``intrinsics.dist[1]``, ``g1_pan.poly[0]``,
 ``laser_plane_v0[3]``, ``physical.camera_rotation[2]``. SI units throughout.
 
+- :func:`frame_noise`: the galvos' per-frame noise (their repeatability) that the stages
+  measured; the map carries it to the points beside the calibration's share, and the two
+  together are a point's uncertainty.
+
 What the prediction leaves out, by construction: the stripe extractor's noise on the
-points themselves (the map is the calibration's share of the error), a joint-correction
-table's own uncertainty, and any error the model cannot represent (a model error is no
-random variable). Comparing the prediction with the error measured against the simulator's
-truth is how the last one shows (``galvoscan evaluate``'s ``uncertainty_ratio``).
+points themselves, a joint-correction table's own uncertainty, and any error the model
+cannot represent (a model error is no random variable). Comparing the prediction with the
+error measured against the simulator's truth is how the last one shows (``galvoscan
+evaluate``'s ``uncertainty_ratio`` and ``uncertainty_ratio_calibration``).
 """
 
 from __future__ import annotations
@@ -310,6 +314,27 @@ def parameter_covariance(calibration) -> ParameterCovariance:
     return ParameterCovariance(names, C, stage_of, notes)
 
 
+# ----------------------------------------------------------------------------- frame noise
+#: The galvo channels whose per-frame noise the stages measure: channel -> (stage, residual
+#: key, index in the (U1 pan, U1 tilt, U2 pan, U2 tilt) voltages).
+FRAME_NOISE_KEYS = {'u1_pan': ('dynamic_camera', 'frame_noise_u1_pan_V', 0),
+                    'u1_tilt': ('dynamic_camera', 'frame_noise_u1_tilt_V', 1),
+                    'u2_tilt': ('laser_axis', 'frame_noise_u2_tilt_V', 3)}
+
+
+def frame_noise(calibration) -> dict:
+    """``{channel: 1 sigma [V]}`` of the galvos' per-frame noise, as the calibration's stages
+    measured it (:data:`FRAME_NOISE_KEYS`; the dynamic camera's views for G1, the laser
+    bundle's for G2). A channel no stage measured is absent."""
+    out = {}
+    for channel, (stage, key, _) in FRAME_NOISE_KEYS.items():
+        rec = calibration.stages.get(stage)
+        value = (rec.get('residuals') or {}).get(key) if isinstance(rec, dict) else None
+        if isinstance(value, (int, float)) and math.isfinite(value) and 0 <= value < 0.1:
+            out[channel] = float(value)
+    return out
+
+
 # ----------------------------------------------------------------------------- map
 @dataclass
 class UncertaintyMap:
@@ -349,6 +374,16 @@ class UncertaintyMap:
         The probability that one calibration drawn from this covariance measures an RMS
         shape error within a factor of 2 of ``rms_m`` (from ``modes_effective``'s
         variances, by 20,000 seeded draws).
+    frame_sigma_m : ndarray, shape (n, n)
+        RMS over the view's points of the 3-D 1-sigma error that the galvos' per-frame noise
+        adds (``frame_noise``; independent from frame to frame) [m]; zero without it.
+    frame_rms_m : float
+        RMS of ``frame_sigma_m`` over the views that have points.
+    frame_noise_V : dict
+        The per-frame noise that entered, ``{channel: 1 sigma [V]}``.
+    total_within_2x_probability : float
+        As ``within_2x_probability``, for :attr:`total_rms_m` (the frame noise, spread
+        over every view independently, taken as its mean).
     """
 
     u_pan: np.ndarray
@@ -363,6 +398,22 @@ class UncertaintyMap:
     absolute_rms_m: float = math.nan
     modes_effective: float = math.nan
     within_2x_probability: float = math.nan
+    frame_sigma_m: np.ndarray | None = None
+    frame_rms_m: float = 0.0
+    frame_noise_V: dict = field(default_factory=dict)
+    total_within_2x_probability: float = math.nan
+
+    @property
+    def total_sigma_m(self) -> np.ndarray:
+        """A point's 1-sigma error per view: the calibration's share and the frame noise's."""
+        frame = self.frame_sigma_m if self.frame_sigma_m is not None else 0.0
+        return np.sqrt(self.sigma_m ** 2 + np.square(frame))
+
+    @property
+    def total_rms_m(self) -> float:
+        """RMS over the map of :attr:`total_sigma_m`: what a point measured anywhere in the
+        range is uncertain by."""
+        return math.sqrt(self.rms_m ** 2 + self.frame_rms_m ** 2)
 
     def worst(self) -> tuple[float, float, float]:
         """(sigma [m], pan [V], tilt [V]) of the view with the largest predicted error."""
@@ -381,7 +432,12 @@ class UncertaintyMap:
                 'parameters': list(self.parameters), 'points': self.points,
                 'absolute_rms_m': self.absolute_rms_m,
                 'modes_effective': self.modes_effective,
-                'within_2x_probability': self.within_2x_probability}
+                'within_2x_probability': self.within_2x_probability,
+                'frame_sigma_m': arr(self.frame_sigma_m if self.frame_sigma_m is not None
+                                     else np.zeros_like(self.sigma_m)),
+                'frame_rms_m': self.frame_rms_m, 'frame_noise_V': dict(self.frame_noise_V),
+                'total_rms_m': self.total_rms_m,
+                'total_within_2x_probability': self.total_within_2x_probability}
 
 
 def stripe_samples(model: RigModel, u_pan, u_tilt, depth: float, *, samples: int = 15,
@@ -426,13 +482,16 @@ def stripe_samples(model: RigModel, u_pan, u_tilt, depth: float, *, samples: int
 
 def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
                           depth: float = 0.65, span: float = 8.0, n: int = 9,
-                          samples: int = 15) -> UncertaintyMap:
+                          samples: int = 15, frame_noise_v: dict | None = None
+                          ) -> UncertaintyMap:
     """The 1-sigma error of reconstructed points that ``covariance`` predicts, over an n x n
     grid of G1 voltages within +-``span`` V, for stripes on a wall at V0 depth ``depth``.
 
     Each point's derivatives with respect to every parameter are central differences of its
     triangulation (the same pixel and voltages, the parameter moved by +-1 sigma); the
-    point's covariance is ``J C J.T``.
+    point's covariance is ``J C J.T``. ``frame_noise_v`` (:func:`frame_noise`) adds, per
+    view, what the galvos' per-frame noise does: the same pixels triangulated at voltages
+    moved by +-1 sigma per channel, the channels independent.
 
     Raises
     ------
@@ -483,6 +542,17 @@ def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
         J[:, :, k] = (plus - minus) / (2.0 * h)
     C = covariance.matrix
     P0 = triangulate_batch(model, uv, fi, volts).p_v0
+    frame_noise_v = {k: float(v) for k, v in (frame_noise_v or {}).items() if v > 0}
+    var_frame = np.zeros(len(uv))
+    for channel, sd_v in frame_noise_v.items():
+        if channel not in FRAME_NOISE_KEYS or not math.isfinite(sd_v):
+            raise ValueError(f'frame_noise_v: unknown channel or bad value {channel}={sd_v}')
+        step = np.zeros(4)
+        step[FRAME_NOISE_KEYS[channel][2]] = sd_v
+        plus = triangulate_batch(model, uv, fi, volts + step).p_v0
+        minus = triangulate_batch(model, uv, fi, volts - step).p_v0
+        var_frame += np.sum(((plus - minus) / 2.0) ** 2, axis=1)
+    frame_sigma = np.full((n, n), np.nan)
     J_shape = _without_rigid_motion(J, P0)
     var_abs = np.einsum('nik,kl,nil->n', J, C, J)
     cov_p = np.einsum('nik,kl,njl->nij', J_shape, C, J_shape)
@@ -499,6 +569,7 @@ def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
         i, j = divmod(int(c), n)
         sigma[i, j] = math.sqrt(max(float(np.mean(var3[sel])), 0.0))
         sigma_d[i, j] = math.sqrt(max(float(np.mean(var_d[sel])), 0.0))
+        frame_sigma[i, j] = math.sqrt(float(np.mean(var_frame[sel])))
         for s in stages:
             by_stage[s][i, j] = float(np.mean(part[s][sel]) / max(np.mean(var3[sel]), 1e-300))
     ok = np.isfinite(sigma)
@@ -506,10 +577,14 @@ def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
     # every view weighs the same, as in rms: weight 1 / (views * its points) per point
     counts = np.bincount(cell, minlength=n * n)
     w = 1.0 / (int(ok.sum()) * counts[cell])
-    modes, p2 = error_modes(np.einsum('n,nik,nil->kl', w, J_shape, J_shape), C)
+    A = np.einsum('n,nik,nil->kl', w, J_shape, J_shape)
+    modes, p2 = error_modes(A, C)
+    frame_rms = float(np.sqrt(np.mean(frame_sigma[ok] ** 2)))
+    p2_total = error_modes(A, C, floor=frame_rms ** 2)[1] if frame_rms > 0 else p2
     return UncertaintyMap(grid, grid, sigma, sigma_d, by_stage, rms, depth,
                           list(covariance.names), int(len(uv)),
-                          float(np.sqrt(np.mean(var_abs))), modes, p2)
+                          float(np.sqrt(np.mean(var_abs))), modes, p2, frame_sigma, frame_rms,
+                          frame_noise_v, p2_total)
 
 
 def prediction_check(predicted, measured, probabilities, factor: float = 2.0) -> dict:
@@ -547,11 +622,14 @@ def prediction_check(predicted, measured, probabilities, factor: float = 2.0) ->
 
 
 def error_modes(A: np.ndarray, C: np.ndarray, *, factor: float = 2.0,
-                draws: int = 20000) -> tuple[float, float]:
+                draws: int = 20000, floor: float = 0.0) -> tuple[float, float]:
     """How a mean square error ``e = d.T A d`` with parameter errors ``d ~ N(0, C)`` spreads.
 
     ``e`` is a sum of independent ``l_k z_k**2`` (``l`` the eigenvalues of ``L.T A L``,
-    ``C = L L.T``), of mean ``sum l`` (the predicted mean square).
+    ``C = L L.T``), of mean ``sum l`` (the predicted mean square). ``floor`` is a mean
+    square added to every draw (noise spread over so many independent terms that it hardly
+    scatters: the frame noise over the map's views); the probability is then that of
+    ``sqrt(e + floor)`` about ``sqrt(sum l + floor)``.
 
     Returns
     -------
@@ -567,7 +645,8 @@ def error_modes(A: np.ndarray, C: np.ndarray, *, factor: float = 2.0,
         return math.nan, math.nan
     lam = lam[lam > 1e-9 * lam.max()]
     rng = np.random.default_rng(0)
-    r = np.sqrt((rng.standard_normal((draws, lam.size)) ** 2) @ lam / total)
+    r = np.sqrt(((rng.standard_normal((draws, lam.size)) ** 2) @ lam + floor)
+                / (total + floor))
     inside = (r >= 1.0 / factor) & (r <= factor)
     return float(total ** 2 / float(lam @ lam)), float(np.mean(inside))
 
