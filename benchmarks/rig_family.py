@@ -34,7 +34,7 @@ import numpy as np
 import yaml
 
 from galvoscan_sim.rig_family import draw_rig, working_distance
-from reconstructor.uncertainty import prediction_check
+from reconstructor.uncertainty import prediction_summary
 
 #: The issue's acceptance thresholds at a rig's own distance [mm] (the paper's figures).
 STAIR_LIMIT_MM = 0.165
@@ -50,6 +50,12 @@ FIGURES = (  # (metrics key, short name, absolute value)
     ('measured_shape_error_mm', 'measured_shape_error_mm', False),
     ('uncertainty_ratio', 'uncertainty_ratio', False),
     ('uncertainty_within_2x_probability', 'uncertainty_within_2x_probability', False),
+    ('predicted_calibration_uncertainty_mm', 'predicted_calibration_uncertainty_mm', False),
+    ('predicted_frame_noise_mm', 'predicted_frame_noise_mm', False),
+    ('measured_systematic_error_mm', 'measured_systematic_error_mm', False),
+    ('uncertainty_ratio_calibration', 'uncertainty_ratio_calibration', False),
+    ('uncertainty_calibration_within_2x_probability',
+     'uncertainty_calibration_within_2x_probability', False),
     ('uncertainty_modes_effective', 'uncertainty_modes_effective', False),
 )
 #: The predicted uncertainty is honest on a rig when it is within this factor of the error
@@ -185,20 +191,10 @@ def summarise(rows, wall_s: float, quick: bool) -> dict:
         print(f"  stair at {mm:>4s} mm (re-set)         median {_f(s['median'])}  max "
               f"{_f(s['max'])}  (n = {s['n']})")
         summary[f'stair_rmse_mm_at_{mm}_median'] = s['median']
-    ratios = [r.get('uncertainty_ratio') for r in rows if _finite(r.get('uncertainty_ratio'))]
-    within = sum(1 / UNCERTAINTY_FACTOR <= q <= UNCERTAINTY_FACTOR for q in ratios)
-    summary['uncertainty_within_2x'] = within
-    summary['uncertainty_within_2x_fraction'] = within / len(ratios) if ratios else None
-    both = [r for r in rows if _finite(r.get('uncertainty_ratio'))]
-    check = prediction_check([r.get('predicted_uncertainty_mm') for r in both],
-                             [r.get('measured_shape_error_mm') for r in both],
-                             [r.get('uncertainty_within_2x_probability', math.nan)
-                              for r in both], UNCERTAINTY_FACTOR)
-    summary.update({f'uncertainty_{k}': v for k, v in check.items() if k != 'within'})
-    print(f'  predicted uncertainty within {UNCERTAINTY_FACTOR:g}x of the measured error on '
-          f'{within} of {len(ratios)} rigs (a right covariance: '
-          f"{_f(check['within_expected'])} +- {_f(check['within_expected_sd'])}); pooled "
-          f"predicted / measured {_f(check['pooled_ratio'])}")
+    figures, lines = prediction_summary(rows, UNCERTAINTY_FACTOR)
+    summary.update({f'uncertainty_{k}': v for k, v in figures.items()})
+    for line in lines:
+        print(f'  uncertainty, {line}')
     failures = [{'seed': r['seed'], **f} for r in rows for f in r['failures']]
     if failures:
         print('failures:')

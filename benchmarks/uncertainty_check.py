@@ -33,10 +33,9 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import yaml
 
-from reconstructor.uncertainty import prediction_check
+from reconstructor.uncertainty import prediction_summary
 
 ROOT = Path(__file__).resolve().parents[1]
 FACTOR = 2.0
@@ -107,33 +106,9 @@ def main(argv=None) -> int:
               f"{row.get('uncertainty_modes_effective', math.nan):.2f} effective modes "
               f"[{row['calibrate_s']:.0f} s]", flush=True)
     summary = {'rigs': len(rows), 'reference': args.reference, 'quick': args.quick}
-    for label, pred, meas, ratio, prob in (
-            ('', 'predicted_uncertainty_mm', 'measured_shape_error_mm', 'uncertainty_ratio',
-             'uncertainty_within_2x_probability'),
-            ('calibration_', 'predicted_calibration_uncertainty_mm',
-             'measured_systematic_error_mm', 'uncertainty_ratio_calibration',
-             'uncertainty_calibration_within_2x_probability')):
-        both = [r for r in rows if math.isfinite(r.get(ratio, math.nan))]
-        ratios = [r[ratio] for r in both]
-        within = sum(1 / FACTOR <= q <= FACTOR for q in ratios)
-        check = prediction_check([r[pred] for r in both], [r[meas] for r in both],
-                                 [r.get(prob, math.nan) for r in both], FACTOR)
-        summary.update({
-            f'{label}measured': len(ratios), f'{label}within_2x': within,
-            f'{label}within_2x_expected': check['within_expected'],
-            f'{label}within_2x_expected_sd': check['within_expected_sd'],
-            f'{label}pooled_ratio': check['pooled_ratio'],
-            f'{label}within_2x_fraction': within / len(ratios) if ratios else None,
-            f'{label}ratio_median': float(np.median(ratios)) if ratios else None,
-            f'{label}ratio_min': min(ratios, default=None),
-            f'{label}ratio_max': max(ratios, default=None)})
-        what = 'point error' if not label else "calibration's part"
-        print(f"\n{what}: predicted within {FACTOR:g}x of measured on {within} of "
-              f"{len(ratios)} rigs; a right prediction would give "
-              f"{check['within_expected'] or math.nan:.1f} +- "
-              f"{check['within_expected_sd'] or math.nan:.1f} (each rig's error is one draw "
-              f"over few modes); pooled predicted / measured "
-              f"{check['pooled_ratio'] or math.nan:.2f}")
+    figures, lines = prediction_summary(rows, FACTOR)
+    summary.update(figures)
+    print('\n' + '\n'.join(lines))
     summary['wall_s'] = time.monotonic() - t0
     print(json.dumps(summary, default=float))
     return 0

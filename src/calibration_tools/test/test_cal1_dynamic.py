@@ -13,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from calibration_tools.board_fit import g1_frame_noise
 from calibration_tools.board_geometry import project_circle_centres, view_T_board
 from calibration_tools.board_layout import PAPER_CIRCLE_BOARD
 from calibration_tools.dynamic_camera import (
@@ -121,13 +122,17 @@ def test_transfer_matrix_error_follows_eq18():
 
 
 # ----------------------------------------------------------------------------- PnP, refine
-def _observations(model, V0_T_W, n, seed, noise=0.0):
+def _observations(model, V0_T_W, n, seed, noise=0.0, jitter_v=0.0):
+    """Views of the board at random G1 voltages; with ``jitter_v`` each is seen at voltages
+    off by that much (1 sigma, per channel) from those recorded, as a galvo that scatters
+    from frame to frame shows it."""
     rng = np.random.default_rng(seed)
     obs = []
     idx = np.arange(B.n_circles)
     while len(obs) < n:
         U = rng.uniform(-7, 7, 2)
-        uv = project_circle_centres(model.intrinsics, view_T_board(model, *U, V0_T_W),
+        seen = U + rng.normal(0.0, jitter_v, 2) if jitter_v else U
+        uv = project_circle_centres(model.intrinsics, view_T_board(model, *seen, V0_T_W),
                                     B.points(idx), B.radius(idx))
         ok = np.isfinite(uv).all(axis=1) & (uv[:, 0] > 60) & (uv[:, 0] < 660) & (
             uv[:, 1] > 60) & (uv[:, 1] < 480)
@@ -177,6 +182,23 @@ def test_refine_recovers_the_rig_from_a_rough_start():
         refine(start, [], B, V0_T_W)
     with pytest.raises(ValueError, match="pose_index"):
         refine(start, obs, B, {1: V0_T_W})
+
+
+def test_the_fit_measures_g1s_frame_noise():
+    """Views seen at voltages scattered by 2.3e-4 V (8 urad on a 2 deg/V galvo) from frame to
+    frame: the views' common shifts that the fit leaves give that scatter back per channel;
+    without it, next to nothing (the circles' own noise is taken out)."""
+    truth = nominal_example_rig()
+    V0_T_W = _pose([0.05, -0.1, 0.02], [0.01, -0.02, 0.66])
+    sigma = 2.3e-4
+    for jitter, check in ((sigma, lambda v: v == pytest.approx(sigma, rel=0.25)),
+                          (0.0, lambda v: v < 0.25 * sigma)):
+        obs = _observations(truth, V0_T_W, 60, seed=7, noise=0.03, jitter_v=jitter)
+        res = refine(truth, obs, B, V0_T_W)
+        got = g1_frame_noise(res, obs, B)
+        assert got["frame_noise_views"] >= 30  # views of 6 circles or more
+        for key in ("frame_noise_u1_pan_V", "frame_noise_u1_tilt_V"):
+            assert check(got[key]), (jitter, key, got[key])
 
 
 # ----------------------------------------------------------------------------- the stage

@@ -20,9 +20,11 @@ def _truth():
     return sim.truth_model(rigs.load_rig("reference"), kind="physical")
 
 
-def _stripes(model, rows, rng, noise=8e-6, view_shift=4e-6):
+def _stripes(model, rows, rng, noise=8e-6, view_shift=4e-6, jitter_v=0.0):
     """Per row and offset, four board-sized segments of the model's laser plane (two depths,
-    two sides), points moved along the plane's normal by per-point and per-view noise."""
+    two sides), points moved along the plane's normal by per-point and per-view noise; with
+    ``jitter_v`` each view's sheet is the one of a voltage off by that much (1 sigma), as a
+    galvo that scatters from frame to frame draws it."""
     out = []
     for u in rows:
         for du in (-0.05, 0.05):
@@ -32,6 +34,9 @@ def _stripes(model, rows, rng, noise=8e-6, view_shift=4e-6):
             along /= np.linalg.norm(along)
             for z in (0.6, 0.7):
                 for x in (-0.02, 0.02):
+                    if jitter_v:
+                        pl = laser_plane_v0(model, u + du + rng.normal(0.0, jitter_v))
+                        n, e = pl[:3], pl[3]
                     p0 = np.array([x, 0.0, z])
                     p0 = p0 - (n @ p0 + e) * n  # onto the plane
                     s = np.linspace(-0.015, 0.015, 60)
@@ -109,3 +114,18 @@ def test_bad_input_is_refused():
         fit_laser_bundle(paper, _stripes(truth, ROWS, rng))
     with pytest.raises(ValueError, match="poly_degree"):
         fit_laser_bundle(_start(truth), _stripes(truth, ROWS, rng), poly_degree=0)
+
+
+def test_the_bundle_measures_g2s_frame_noise():
+    """Sheets drawn at voltages scattered by 2.3e-4 V (8 urad on a 2 deg/V galvo) from frame
+    to frame: the bundle's per-view offsets give that scatter back; without it, next to
+    nothing (the per-point noise is taken out)."""
+    truth = _truth()
+    rows = np.linspace(-7.0, 5.0, 13)
+    sigma = 2.3e-4
+    noisy = fit_laser_bundle(_start(truth), _stripes(truth, rows, np.random.default_rng(6),
+                                                     view_shift=0.0, jitter_v=sigma))
+    assert noisy.frame_noise_u2_V == pytest.approx(sigma, rel=0.25), noisy.frame_noise_u2_V
+    quiet = fit_laser_bundle(_start(truth), _stripes(truth, rows, np.random.default_rng(6),
+                                                     view_shift=0.0))
+    assert quiet.frame_noise_u2_V < 0.25 * sigma, quiet.frame_noise_u2_V

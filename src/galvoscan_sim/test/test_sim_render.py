@@ -150,6 +150,23 @@ def test_truth_angles_follow_voltages_and_jitter():
     assert np.allclose(tr.V0_T_V, np.linalg.inv(tr.W_T_V0) @ tr.W_T_V, atol=1e-12)
 
 
+def test_the_rig_without_jitter_keeps_its_geometry_and_loses_only_the_scatter():
+    quiet = REFERENCE.without_jitter()
+    volts = [1.0, -2.0, 0.5, 0.25]
+    frames = [Simulator(quiet, load_scene('plane'), seed=s).render(volts) for s in (2, 3)]
+    for f in frames:  # every seed: the response itself, to the last bit
+        assert np.array_equal(f.truth.angles, REFERENCE.mirror_angles(f.truth.voltages_applied))
+    loud = Simulator(REFERENCE, load_scene('plane'), seed=2).render(volts)
+    assert not np.array_equal(loud.truth.angles, frames[0].truth.angles)
+    for a, b in ((quiet.true_model_parameters(), REFERENCE.true_model_parameters()),
+                 (quiet.physical_model_parameters(), REFERENCE.physical_model_parameters())):
+        a, b = (x.__dict__ if hasattr(x, '__dict__') else x for x in (a, b))
+        assert a.keys() == b.keys()
+        for key in a:
+            assert np.array_equal(np.asarray(a[key]), np.asarray(b[key])), key
+    assert REFERENCE.g1.pan_drive.jitter > 0  # the original is left as it was
+
+
 def test_occluded_wall_points_have_no_truth_and_no_stripe():
     rig = IDEAL
     volts = aimed(rig, 0.70)

@@ -621,6 +621,59 @@ def prediction_check(predicted, measured, probabilities, factor: float = 2.0) ->
             'pooled_ratio': float(np.sqrt(np.mean(p ** 2) / np.mean(m ** 2)))}
 
 
+#: The predictions ``galvoscan evaluate`` checks against the simulator's truth: (prefix of
+#: the summary's keys, what, predicted key, measured key, probability key) of its metrics.
+PREDICTION_PAIRS = (
+    ('', 'point error', 'predicted_uncertainty_mm', 'measured_shape_error_mm',
+     'uncertainty_within_2x_probability'),
+    ('calibration_', "calibration's part", 'predicted_calibration_uncertainty_mm',
+     'measured_systematic_error_mm', 'uncertainty_calibration_within_2x_probability'),
+)
+
+
+def prediction_summary(rows, factor: float = 2.0) -> tuple[dict, list]:
+    """:func:`prediction_check` of both :data:`PREDICTION_PAIRS` over calibrations' metrics.
+
+    Parameters
+    ----------
+    rows : sequence of dict
+        One per calibration, with ``galvoscan evaluate``'s uncertainty metrics (missing or
+        NaN entries are left out).
+
+    Returns
+    -------
+    (dict, list of str)
+        Per pair, keys ``<prefix>measured``, ``within_2x``, ``within_2x_expected``,
+        ``within_2x_expected_sd``, ``pooled_ratio``, ``within_2x_fraction`` and
+        ``ratio_median`` / ``ratio_min`` / ``ratio_max``; and one line of text per pair.
+    """
+    out, lines = {}, []
+    for prefix, what, pred, meas, prob in PREDICTION_PAIRS:
+        both = [r for r in rows
+                if all(isinstance(r.get(k), (int, float)) and math.isfinite(r[k])
+                       for k in (pred, meas)) and r[meas] > 0]
+        ratios = [r[pred] / r[meas] for r in both]
+        check = prediction_check([r[pred] for r in both], [r[meas] for r in both],
+                                 [r.get(prob, math.nan) for r in both], factor)
+        nan = math.nan
+        out.update({
+            f'{prefix}measured': len(ratios), f'{prefix}within_2x': check['within'],
+            f'{prefix}within_2x_expected': check['within_expected'],
+            f'{prefix}within_2x_expected_sd': check['within_expected_sd'],
+            f'{prefix}pooled_ratio': check['pooled_ratio'],
+            f'{prefix}within_2x_fraction': check['within'] / len(ratios) if ratios else None,
+            f'{prefix}ratio_median': float(np.median(ratios)) if ratios else None,
+            f'{prefix}ratio_min': min(ratios, default=None),
+            f'{prefix}ratio_max': max(ratios, default=None)})
+        lines.append(
+            f"{what}: predicted within {factor:g}x of measured on {check['within']} of "
+            f"{len(ratios)} calibrations; a right prediction would give "
+            f"{check['within_expected'] or nan:.1f} +- {check['within_expected_sd'] or nan:.1f}"
+            f" (each one's error is one draw over few modes); pooled predicted / measured "
+            f"{check['pooled_ratio'] or nan:.2f}")
+    return out, lines
+
+
 def error_modes(A: np.ndarray, C: np.ndarray, *, factor: float = 2.0,
                 draws: int = 20000, floor: float = 0.0) -> tuple[float, float]:
     """How a mean square error ``e = d.T A d`` with parameter errors ``d ~ N(0, C)`` spreads.

@@ -185,6 +185,41 @@ def test_the_predicted_map_matches_the_scatter_of_drawn_calibrations():
     np.testing.assert_allclose(shares, 1.0, atol=1e-9)
 
 
+def test_the_frame_noise_in_the_map_matches_the_scatter_of_scattered_frames():
+    """Galvos that scatter from frame to frame (each view at its own voltages, off by the
+    noise): the map's frame part against the same pixels triangulated at drawn voltages, and
+    the noise read back from the stages' records."""
+    from reconstructor.calibration_file import Calibration
+    from reconstructor.uncertainty import frame_noise
+
+    model = nominal_example_rig()
+    pc = ParameterCovariance(['l'], np.array([[1e-8]]), {'l': 'stage'})
+    noise = {'u1_pan': 2.3e-4, 'u1_tilt': 1.5e-4, 'u2_tilt': 3.0e-4}
+    umap = point_uncertainty_map(model, pc, depth=0.65, span=6.0, n=3, frame_noise_v=noise)
+    quiet = point_uncertainty_map(model, pc, depth=0.65, span=6.0, n=3)
+    assert quiet.frame_rms_m == 0.0 and umap.rms_m == pytest.approx(quiet.rms_m)
+    assert umap.total_rms_m == pytest.approx(math.hypot(umap.rms_m, umap.frame_rms_m))
+    uv, fi, volts = _grid_points(model)
+    p0 = triangulate_batch(model, uv, fi, volts).p_v0
+    rng = np.random.default_rng(11)
+    sd = np.array([noise['u1_pan'], noise['u1_tilt'], 0.0, noise['u2_tilt']])
+    sq = []
+    for _ in range(400):
+        moved = volts + rng.normal(size=volts.shape) * sd  # every view its own draw
+        sq.append(np.sum((triangulate_batch(model, uv, fi, moved).p_v0 - p0) ** 2, axis=1))
+    per_view = [math.sqrt(np.mean(np.array(sq)[:, fi == k])) for k in range(len(volts))]
+    mc = math.sqrt(np.mean(np.square(per_view)))
+    assert umap.frame_rms_m == pytest.approx(mc, rel=0.1), (umap.frame_rms_m, mc)
+    assert 1e-6 < umap.frame_rms_m < 1e-3
+    with pytest.raises(ValueError, match='frame_noise_v'):
+        point_uncertainty_map(model, pc, n=3, frame_noise_v={'u2_pan': 1e-4})
+    cal = Calibration(model=model, stages={
+        'dynamic_camera': {'residuals': {'frame_noise_u1_pan_V': 2.3e-4,
+                                         'frame_noise_u1_tilt_V': float('nan')}},
+        'laser_axis': {'residuals': {'frame_noise_u2_tilt_V': 3.0e-4}}})
+    assert frame_noise(cal) == {'u1_pan': 2.3e-4, 'u2_tilt': 3.0e-4}  # NaN: not measured
+
+
 def test_map_arguments_are_checked():
     model = nominal_example_rig()
     pc = ParameterCovariance(['l'], np.array([[1e-8]]), {'l': 's'})
@@ -218,3 +253,25 @@ def test_one_calibrations_error_scatters_about_the_prediction_by_its_modes():
     assert check['within_expected'] == pytest.approx(2.4)
     assert check['within_expected_sd'] == pytest.approx(np.sqrt(4 * 0.24))
     assert check['pooled_ratio'] == pytest.approx(np.sqrt(3.0 / 1.54))
+
+
+def test_the_prediction_summary_checks_the_point_error_and_the_calibrations_part():
+    from reconstructor.uncertainty import prediction_summary
+
+    rows = [{'predicted_uncertainty_mm': 0.08, 'measured_shape_error_mm': 0.06,
+             'uncertainty_within_2x_probability': 0.99,
+             'predicted_calibration_uncertainty_mm': 0.05, 'measured_systematic_error_mm': 0.02,
+             'uncertainty_calibration_within_2x_probability': 0.9},
+            {'predicted_uncertainty_mm': 0.08, 'measured_shape_error_mm': 0.08,
+             'uncertainty_within_2x_probability': 0.99,
+             'predicted_calibration_uncertainty_mm': 0.05, 'measured_systematic_error_mm': 0.05,
+             'uncertainty_calibration_within_2x_probability': 0.9},
+            {'predicted_uncertainty_mm': float('nan'), 'measured_shape_error_mm': 0.08}]
+    got, lines = prediction_summary(rows)
+    assert got['measured'] == 2 and got['within_2x'] == 2
+    assert got['within_2x_expected'] == pytest.approx(1.98)
+    pooled = math.sqrt(0.08 ** 2 / ((0.06 ** 2 + 0.08 ** 2) / 2))
+    assert got['pooled_ratio'] == pytest.approx(pooled)
+    assert got['calibration_measured'] == 2 and got['calibration_within_2x'] == 1  # 2.5x off
+    assert got['calibration_ratio_max'] == pytest.approx(2.5)
+    assert len(lines) == 2 and "calibration's part" in lines[1]
