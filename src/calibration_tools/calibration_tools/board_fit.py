@@ -502,7 +502,8 @@ def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None,
     """1-sigma standard errors of the model parameters from the Jacobian (SI units), and the
     covariance record behind them (:attr:`RefineResult.covariance`).
 
-    ``s2 inv(J.T J)`` of the reprojection residuals (board poses included), plus, when
+    The covariance of the reprojection fit (board poses included; per view, not per circle:
+    :func:`_view_clustered`), plus, when
     ``input_std`` gives the standard errors of intrinsics the fit holds fixed, their effect
     propagated through the solution: ``G diag(sd**2) G.T`` with ``G = -inv(J.T J) J.T J_in``
     (the intrinsics taken as independent here; the record keeps G itself, so that their full
@@ -519,6 +520,7 @@ def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None,
         cov, _ = covariance_from_jacobian(jac, res.ravel(), n_params=prob.n_params)
     except ValueError:
         return {}, {}
+    cov = _view_clustered(prob, res, jac, cov)
     scale = prob.scale[:n_model]
     own = cov[:n_model, :n_model] * np.outer(scale, scale)
     inputs, G_x = [], np.zeros((n_model, 0))
@@ -549,6 +551,29 @@ def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None,
     if np.isfinite(own).all():
         record = covariance_record(prob.names, own, inputs, G_x, priors=held)
     return std, record
+
+
+def _view_clustered(prob: _RefineProblem, res, jac, cov) -> np.ndarray:
+    """The solution's covariance with each view's circles taken as one sample.
+
+    The circles of one view share that frame's errors: a galvo's scatter from frame to frame
+    moves them all together (:func:`g1_frame_noise`), so they are not independent and
+    ``s2 inv(J.T J)`` over circles counts each view's shift as many times as it has circles.
+    The cluster-robust sandwich ``inv(J.T J) (sum_v s_v s_v.T) inv(J.T J)`` over views ``v``
+    (``s_v`` the sum of its residuals' ``J.T r``), scaled by ``V / (V - p)`` for V views
+    and p parameters, holds whatever the correlation within a view; with too few views for
+    that, ``cov`` (per circle) is kept.
+    """
+    view = np.repeat(prob.view_of, 2)
+    n_views = int(view.max()) + 1
+    p = jac.shape[1]
+    if n_views <= p + 2 or not np.isfinite(cov).all():  # undetermined: as the fit says
+        return cov
+    B = np.linalg.inv(jac.T @ jac)
+    scores = np.zeros((n_views, p))
+    np.add.at(scores, view, jac * res.ravel()[:, None])
+    out = n_views / (n_views - p) * B @ (scores.T @ scores) @ B
+    return 0.5 * (out + out.T) if np.isfinite(out).all() else cov
 
 
 def refine(

@@ -238,9 +238,7 @@ def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE,
     dof = len(groups) - laser.size
     if dof <= 0:
         raise ValueError(f'{len(groups)} stripe views for {laser.size} laser parameters')
-    # one unit of information per view: sum over views of their mean square residual
-    s2 = float(np.sum(r[inlier] ** 2)) / dof
-    cov_x = s2 * np.linalg.inv(JtJ)
+    cov_x = _clustered_covariance(J, np.where(inlier, r, 0.0), groups, counts, JtJ)
     G = _jacobian(laser.vector, sol.x, laser.scale)
     cov = G @ cov_x @ G.T
     cov = 0.5 * (cov + cov.T)
@@ -261,6 +259,30 @@ def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE,
         rms_start_m=float(np.sqrt(np.mean(raw0 ** 2))),
         points=int(len(P)), views=len(groups), poly_degree=poly_degree,
         frame_noise_u2_V=noise)
+
+
+def _clustered_covariance(J, r, groups, counts, JtJ) -> np.ndarray:
+    """The solution's covariance with the views of one board taken as one sample.
+
+    A board's pose comes from one laser-off frame (G1's scatter in that frame, the pose fit's
+    noise), and every lit frame of the board carries that error alike: its views are not
+    independent, and more lit frames of the same boards would not make the laser better
+    known. The covariance is the cluster-robust sandwich ``inv(J.T J) (sum_c s_c s_c.T)
+    inv(J.T J)`` over boards ``c`` (their G1 voltages), ``s_c`` the sum of their points'
+    ``J.T r``, scaled by ``C / (C - p)`` for C boards and p parameters; with too few boards
+    for that, one mean square residual per view (``s2 inv(J.T J)``).
+    """
+    keys = {}
+    board = np.array([keys.setdefault((round(a, 4), round(b, 4)), len(keys))
+                      for _, a, b in groups])
+    n_boards, p = len(keys), J.shape[1]
+    JtJ_inv = np.linalg.inv(JtJ)
+    if n_boards <= p + 2:
+        s2 = float(np.sum(r ** 2)) / (len(groups) - p)
+        return s2 * JtJ_inv
+    scores = np.zeros((n_boards, p))
+    np.add.at(scores, np.repeat(board, counts), J * r[:, None])
+    return n_boards / (n_boards - p) * JtJ_inv @ (scores.T @ scores) @ JtJ_inv
 
 
 def _g2_frame_noise(model, groups, u2, raw, inlier, n_params: int,

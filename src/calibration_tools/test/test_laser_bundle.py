@@ -42,7 +42,9 @@ def _stripes(model, rows, rng, noise=8e-6, view_shift=4e-6, jitter_v=0.0):
                     s = np.linspace(-0.015, 0.015, 60)
                     pts = p0 + s[:, None] * along
                     shift = rng.normal(0.0, view_shift) + rng.normal(0.0, noise, len(s))
-                    out.append((pts + shift[:, None] * n, float(u + du), 0.0, 0.0))
+                    # each board its own G1 voltages, shared by its two lit frames
+                    out.append((pts + shift[:, None] * n, float(u + du), 10.0 * x + z,
+                                float(u) / 10.0))
     return out
 
 
@@ -129,3 +131,29 @@ def test_the_bundle_measures_g2s_frame_noise():
     quiet = fit_laser_bundle(_start(truth), _stripes(truth, rows, np.random.default_rng(6),
                                                      view_shift=0.0))
     assert quiet.frame_noise_u2_V < 0.25 * sigma, quiet.frame_noise_u2_V
+
+
+def test_more_frames_of_the_same_boards_do_not_make_the_laser_better_known():
+    """Each board's pose error is shared by all its lit frames: three times the frames of the
+    same boards leave the stated uncertainty about where it was (the views of one board are
+    one sample), where counting frames as independent would shrink it by sqrt(3)."""
+    truth = _truth()
+
+    def stripes(copies, seed):
+        rng = np.random.default_rng(seed)
+        out = []
+        for p, u2, a, b in _stripes(truth, ROWS, rng, noise=2e-6, view_shift=0.0):
+            pl = laser_plane_v0(truth, u2)
+            board = np.random.default_rng(int(abs(a * 1e3 + b * 1e5))).normal(0.0, 8e-6)
+            for _ in range(copies):
+                move = board + rng.normal(0.0, 1e-6, len(p))
+                out.append((p + move[:, None] * pl[:3], u2, a, b))
+        return out
+
+    def sd(b):
+        return float(np.sqrt(b.covariance[b.names.index("laser_plane_v0[3]"),
+                                          b.names.index("laser_plane_v0[3]")]))
+
+    one = fit_laser_bundle(_start(truth), stripes(1, 8))
+    three = fit_laser_bundle(_start(truth), stripes(3, 8))
+    assert 0.8 < sd(three) / sd(one) < 1.25, (sd(one), sd(three))
