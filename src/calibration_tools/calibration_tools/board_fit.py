@@ -216,7 +216,12 @@ class RefineResult:
     rms_px : float
         RMS reprojection error over all circles (norm of the 2-D residual), pixels.
     std : dict of str to float
-        1-sigma standard errors of the refined model parameters (SI), from the Jacobian.
+        1-sigma standard errors of the refined model parameters (SI), from the Jacobian,
+        each view's circles one sample (:func:`_view_clustered`).
+    precision : dict of str to float
+        The same with every circle one sample (``s2 inv(J.T J)``): how sharply the data pin
+        a parameter down, comparable with other stages' per-point figures. The stage's
+        choices of what to free compare these; ``std`` is what the parameters are known to.
     names : tuple of str
         Refined model parameters (dotted names as in ``RigModel.to_dict()``).
     success : bool
@@ -237,6 +242,7 @@ class RefineResult:
     success: bool
     message: str
     covariance: dict = dataclasses.field(default_factory=dict)
+    precision: dict = dataclasses.field(default_factory=dict)
 
 
 _INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
@@ -515,26 +521,30 @@ def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None,
 
     n_model = prob.n_model
     if not n_model:
-        return {}, {}
+        return {}, {}, {}
     try:
-        cov, _ = covariance_from_jacobian(jac, res.ravel(), n_params=prob.n_params)
+        per_circle, _ = covariance_from_jacobian(jac, res.ravel(), n_params=prob.n_params)
     except ValueError:
-        return {}, {}
-    cov = _view_clustered(prob, res, jac, cov)
+        return {}, {}, {}
+    cov = _view_clustered(prob, res, jac, per_circle)
     scale = prob.scale[:n_model]
     own = cov[:n_model, :n_model] * np.outer(scale, scale)
-    inputs, G_x = [], np.zeros((n_model, 0))
+    inputs, G_x, added = [], np.zeros((n_model, 0)), 0.0
     if input_std:
         J_in, sd = _input_jacobian(prob, z, input_std)
         if len(sd):
             G = -np.linalg.pinv(jac.T @ jac) @ (jac.T @ J_in)
-            cov = cov + (G * sd**2) @ G.T
+            added = (G * sd**2) @ G.T
             G_x = G[:n_model] * scale[:, None]
             inputs = [f"intrinsics.{n}" for n, s in input_std.items()
                       if s > 0 and f"intrinsics.{n}" not in prob.names]
-    var = np.diag(cov)[:n_model]
-    sd_model = np.sqrt(np.where(np.isfinite(var), np.clip(var, 0.0, None), np.inf))
-    std = {n: float(v) for n, v in zip(prob.names, sd_model * scale, strict=True)}
+
+    def sigmas(c):
+        var = np.diag(c + added)[:n_model]
+        sd_model = np.sqrt(np.where(np.isfinite(var), np.clip(var, 0.0, None), np.inf))
+        return {n: float(v) for n, v in zip(prob.names, sd_model * scale, strict=True)}
+
+    std, precision = sigmas(cov), sigmas(per_circle)
     record = {}
     held = {n: float(t) for n, t in (held_priors or {}).items()
             if t > 0 and n not in prob.names}
@@ -550,7 +560,7 @@ def _model_std(prob: _RefineProblem, res, jac, z, input_std: dict | None = None,
         inputs = inputs + list(held)
     if np.isfinite(own).all():
         record = covariance_record(prob.names, own, inputs, G_x, priors=held)
-    return std, record
+    return std, record, precision
 
 
 def _view_clustered(prob: _RefineProblem, res, jac, cov) -> np.ndarray:
@@ -658,7 +668,7 @@ def refine(
     res = (prob.predict(sol_x) - prob.uv_obs)
     per_view = np.split(res, np.cumsum(prob.counts)[:-1])
     rms = float(np.sqrt(np.mean(np.sum(res**2, axis=1))))
-    std, record = _model_std(prob, res, jac, sol_x, input_std, held_priors)
+    std, record, precision = _model_std(prob, res, jac, sol_x, input_std, held_priors)
     return RefineResult(
         model=m,
         board_poses={k: T for k, T in zip(prob.pose_keys, Ts, strict=True)},
@@ -669,6 +679,7 @@ def refine(
         success=success,
         message=message,
         covariance=record,
+        precision=precision,
     )
 
 

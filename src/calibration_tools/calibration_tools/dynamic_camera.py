@@ -676,7 +676,7 @@ def observable_physical_fit(ident, lin, obs, board, *, refine_intrinsics=(), inp
                        refine_intrinsics=intr,
                        refine_physical=[n for n in tolerances if n not in gauge], **fit_kw)
         for name in list(intr):
-            sd, before = trial.std.get(f"intrinsics.{name}", math.inf), input_std.get(name)
+            sd, before = trial.precision.get(f"intrinsics.{name}", math.inf), input_std.get(name)
             if before is None or not sd < before:
                 intr.remove(name)
                 held_intr[f"intrinsics.{name}"] = (
@@ -705,7 +705,8 @@ def fit_observable(fit, fit_without, tolerances=None, fraction: float = OBSERVAB
 
     All candidates (``tolerances``' keys, default :data:`G1_PHYSICAL_TOLERANCES`) are freed;
     those whose standard error (board poses free, the held intrinsics' uncertainty
-    propagated) exceeds ``fraction`` of their mounting tolerance are held at their starting
+    propagated; every circle one sample, :attr:`RefineResult.precision`, as ``fraction``
+    was set for) exceeds ``fraction`` of their mounting tolerance are held at their starting
     value (zero from the paper's model), the worst first, and the fit repeated.
 
     Parameters
@@ -725,12 +726,12 @@ def fit_observable(fit, fit_without, tolerances=None, fraction: float = OBSERVAB
     fixed = {}
     while free:
         fin = fit(free)
-        ratio = {n: fin.std.get(f"physical.{n}", math.inf) / tolerances[n] for n in free}
+        ratio = {n: fin.precision.get(f"physical.{n}", math.inf) / tolerances[n] for n in free}
         bad = {n: r for n, r in ratio.items() if not r <= fraction}
         if not bad:
             return fin, fixed
         worst = max(bad, key=lambda n: bad[n] if math.isfinite(bad[n]) else math.inf)
-        sd = fin.std.get(f"physical.{worst}", math.inf)
+        sd = fin.precision.get(f"physical.{worst}", math.inf)
         fixed[worst] = (f"not determined by these views: standard error {sd:.3g} would exceed "
                         f"{fraction:g} x its mounting tolerance {tolerances[worst]:.3g} "
                         f"(SI units); held at its starting value")
