@@ -34,7 +34,11 @@ from reconstructor.model import (
     v0_T_v,
 )
 
-from .board_geometry import ellipse_centres_normalised, project_circle_centres
+from .board_geometry import (
+    contour_offsets,
+    ellipse_centres_normalised,
+    project_circle_centres,
+)
 from .board_layout import CircleBoard
 from .stages import covariance_from_jacobian
 
@@ -364,6 +368,7 @@ class _RefineProblem:
     volts: np.ndarray
     view_of: np.ndarray
     pose_of_view: np.ndarray
+    offset: np.ndarray | float = 0.0
 
     @property
     def n_model(self) -> int:
@@ -394,12 +399,17 @@ class _RefineProblem:
                 Ts.append(_transform(self.R0[j], self.t0[j]))
         return m, Ts
 
-    def predict(self, z):
-        """Predicted ellipse centres of all circles, shape (N, 2), pixels."""
+    def view_T_board(self, z) -> tuple:
+        """The model and every circle's board-to-view transform, shape (N, 4, 4)."""
         m, Ts = self.unpack(z)
         V_T_V0 = rigid_inverse(v0_T_v(m, self.volts[:, 0], self.volts[:, 1]))
-        V_T_W = V_T_V0 @ np.stack(Ts)[self.pose_of_view]
-        return project_circle_centres(m.intrinsics, V_T_W[self.view_of], self.P, self.radii)
+        return m, (V_T_V0 @ np.stack(Ts)[self.pose_of_view])[self.view_of]
+
+    def predict(self, z):
+        """Predicted centres of all circles as the detector measures them, shape (N, 2),
+        pixels: ellipse centres, and the distorted outline's offset (``offset``)."""
+        m, V_T_W = self.view_T_board(z)
+        return project_circle_centres(m.intrinsics, V_T_W, self.P, self.radii) + self.offset
 
     def fun(self, z):
         """Flat residual vector for the solver (non-finite residuals replaced by 1e6 px; a
@@ -412,12 +422,18 @@ class _RefineProblem:
 
 
 def _build_problem(model, obs, board, poses, names, refine_pose, ellipse_correction):
-    """Stack the circles of all observations into a :class:`_RefineProblem`."""
+    """Stack the circles of all observations into a :class:`_RefineProblem`.
+
+    With ``ellipse_correction`` the prediction also carries each circle's distorted-outline
+    offset (:func:`calibration_tools.board_geometry.contour_offsets`), computed once at the
+    starting model and poses: it is a second-order effect of the distortion that a fit's
+    steps hardly change.
+    """
     pose_keys = sorted({o.pose_index for o in obs})
     counts = np.array([len(o.index) for o in obs])
     index = np.concatenate([o.index for o in obs])
     n_pose = 6 * len(pose_keys) if refine_pose else 0
-    return _RefineProblem(
+    prob = _RefineProblem(
         model=model,
         names=names,
         x_model0=np.array([_get_param(model, n) for n in names], dtype=np.float64),
@@ -434,6 +450,11 @@ def _build_problem(model, obs, board, poses, names, refine_pose, ellipse_correct
         view_of=np.repeat(np.arange(len(obs)), counts),
         pose_of_view=np.array([pose_keys.index(o.pose_index) for o in obs]),
     )
+    if ellipse_correction:
+        m, V_T_W = prob.view_T_board(np.zeros(prob.n_params))
+        offset = contour_offsets(m.intrinsics, V_T_W, prob.P, prob.radii)
+        prob.offset = np.where(np.isfinite(offset), offset, 0.0)
+    return prob
 
 
 def _grouped_jacobian(prob: _RefineProblem):

@@ -11,6 +11,13 @@ the pole of the line at infinity::
 
 with ``p = R c + t`` the circle centre in V and ``Z = p_z``. Lens distortion is then applied
 to that (undistorted, normalised) centre.
+
+Distortion bends the ellipse itself, and the detector fits an ellipse to the bent outline:
+its centre is not the distorted ellipse centre. On the reference rig (k1 = -0.6, 5 mm
+circles about 60 px across) the difference runs radially inwards from 0.005 px near the
+image centre to 0.022 px at its edge: what the simulator's true centres showed as the
+detector's "bias", and what made the dynamic camera's l 4 sigma off on a rig without galvo
+scatter. :func:`contour_offsets` gives that difference (fifteenth session).
 """
 
 from __future__ import annotations
@@ -149,4 +156,63 @@ def pixels_to_board(model: RigModel, uv, u1_pan: float, u1_tilt: float, V0_T_W) 
         s = -o[2] / rays[:, 2]
         out = o[:2] + s[:, None] * rays[:, :2]
     out[~(s > 0.0)] = np.nan
+    return out
+
+
+#: Outline points per circle in :func:`contour_offsets`.
+CONTOUR_POINTS = 24
+
+
+def contour_offsets(intrinsics: CameraIntrinsics, V_T_W, points_w, radii,
+                    n: int = CONTOUR_POINTS) -> np.ndarray:
+    """Centre of an ellipse fitted to each circle's distorted outline, minus its
+    :func:`project_circle_centres`, pixels.
+
+    Per circle, ``n`` points of its outline are projected with the lens distortion and a
+    conic ``x^2 + b xy + c (y^2 - x^2) + d x + e y + f = 0`` fitted to them by least
+    squares (about the distorted ellipse centre, in units of the circle's radius); its
+    centre is what an ellipse fit to the detected edge reports. Zero without distortion
+    (the outline is then an exact ellipse); a second-order effect of the distortion over a
+    circle's size, so a fit can hold it at its starting geometry.
+
+    Returns
+    -------
+    ndarray, shape (m, 2)
+        NaN where the circle is not in front of the camera.
+    """
+    P = np.asarray(points_w, dtype=np.float64)
+    r = np.asarray(radii, dtype=np.float64)
+    m = P.shape[0] if P.ndim == 2 else 0
+    if P.ndim != 2 or P.shape[1] != 3 or r.shape != (m,):
+        raise ValueError(f"points_w (m, 3) and radii (m,) expected, got {P.shape}, {r.shape}")
+    centre = project_circle_centres(intrinsics, V_T_W, P, r)
+    if m == 0 or not np.any(r > 0):
+        return np.zeros((m, 2))
+    T = _check_transforms(V_T_W, "V_T_W", m)
+    a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    outline = (P[:, None, :] + r[:, None, None]
+               * np.stack([np.cos(a), np.sin(a), np.zeros(n)], axis=1)[None])  # (m, n, 3)
+    R = T[:3, :3] if T.ndim == 2 else T[:, None, :3, :3]
+    t = T[:3, 3] if T.ndim == 2 else T[:, None, :3, 3]
+    q = (np.einsum("...ij,...j->...i", R, outline) if T.ndim == 3
+         else outline @ R.T) + t
+    with np.errstate(all="ignore"):
+        x = (q[..., :2] / q[..., 2:3]).reshape(-1, 2)
+        xd = distort_normalised(intrinsics, x.T).T.reshape(m, n, 2)
+    uv = xd * [intrinsics.fx, intrinsics.fy] + [intrinsics.cx, intrinsics.cy]
+    scale = np.where(r > 0, np.abs(intrinsics.fx) * r / np.maximum(q[:, 0, 2], 1e-12), 1.0)
+    u = (uv - centre[:, None, :]) / scale[:, None, None]
+    X, Y = u[..., 0], u[..., 1]
+    A = np.stack([X * Y, Y * Y - X * X, X, Y, np.ones_like(X)], axis=-1)  # (m, n, 5)
+    with np.errstate(all="ignore"):
+        coef = np.linalg.solve(np.einsum("mki,mkj->mij", A, A),
+                               np.einsum("mki,mk->mi", A, -X * X)[..., None])[..., 0]
+        b, c, d, e = coef[:, 0], coef[:, 1], coef[:, 2], coef[:, 3]
+        # centre of the conic: [[2(1 - c), b], [b, 2c]] x = [-d, -e]
+        det = 4.0 * (1.0 - c) * c - b * b
+        x0 = (-d * 2.0 * c + e * b) / det
+        y0 = (-e * 2.0 * (1.0 - c) + d * b) / det
+    out = np.stack([x0, y0], axis=1) * scale[:, None]
+    out[~(r > 0)] = 0.0
+    out[~np.isfinite(centre).all(axis=1)] = np.nan
     return out

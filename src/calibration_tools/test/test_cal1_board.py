@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from calibration_tools.board_geometry import (
+    contour_offsets,
     ellipse_centres_normalised,
     pixels_to_board,
     project_circle_centres,
@@ -206,6 +207,60 @@ def test_detection_on_simulator_frames_against_simulator_truth(rig_name, tol_max
     e = np.concatenate(errors)
     assert np.abs(e).max() < tol_max
     assert np.sqrt(np.mean(e**2)) < tol_rms
+
+
+def test_the_distorted_outline_offset_is_what_the_detector_sees():
+    """The detector fits an ellipse to the distorted outline: on the reference rig's frames
+    (k1 = -0.6) its centres sit inwards of the distorted ellipse centres by up to 0.02 px
+    at the image edge. Ellipse centre plus :func:`contour_offsets` takes that out."""
+    rig = load_rig("reference").without_jitter()
+    scene = load_scene("circle_board")
+    sim = Simulator(rig, scene, seed=11)
+    cam = rig.camera
+    intr = CameraIntrinsics(cam.fx, cam.fy, cam.cx, cam.cy, tuple(cam.distortion),
+                            cam.width, cam.height)
+    plain, fixed, where = [], [], []
+    for k, U in enumerate([(0.4, -0.3), (-3.1, 2.2), (4.6, 3.9), (-5.0, -4.0), (2.0, 6.0)]):
+        frame = sim.calibration_frame([U[0], U[1], 0.0, 0.0], frame_index=k)
+        V_T_O = np.linalg.inv(frame.truth.W_T_V) @ scene.objects[0].W_T_O
+        idx = np.arange(B.n_circles)
+        uv = project_circle_centres(intr, V_T_O, B.points(idx), B.radius(idx))
+        ok = np.isfinite(uv).all(axis=1)
+        off = contour_offsets(intr, V_T_O, B.points(idx[ok]), B.radius(idx[ok]))
+        det = detect_circles(frame.image)
+        j, dist = _match(uv[ok], det.centres)
+        plain.append(det.centres - uv[ok][j])
+        fixed.append(det.centres - (uv[ok][j] + off[j]))
+        where.append(uv[ok][j] - [cam.cx, cam.cy])
+    plain, fixed, where = (np.concatenate(x) for x in (plain, fixed, where))
+    outer = np.linalg.norm(where, axis=1) > 200.0
+    radial = np.einsum("ij,ij->i", plain, where) / np.linalg.norm(where, axis=1)
+    radial_fixed = np.einsum("ij,ij->i", fixed, where) / np.linalg.norm(where, axis=1)
+    assert radial[outer].mean() < -0.01  # the bias is there
+    assert abs(radial_fixed[outer].mean()) < 0.003  # and taken out
+    assert np.sqrt(np.mean(fixed**2)) < 0.6 * np.sqrt(np.mean(plain**2))
+
+
+def test_contour_offsets_vanish_without_distortion_and_match_an_ellipse_fit():
+    T = _pose([0.3, -0.4, 0.1], [0.01, -0.02, 0.65])
+    clean = CameraIntrinsics(7800.0, 7800.0, 360.0, 270.0, (0.0,) * 5, 720, 540)
+    idx = np.arange(B.n_circles)
+    uv = project_circle_centres(clean, T, B.points(idx), B.radius(idx))
+    seen = idx[(uv[:, 0] > 60) & (uv[:, 0] < 660) & (uv[:, 1] > 60) & (uv[:, 1] < 480)]
+    assert len(seen) >= 3
+    board, radii = B.points(seen), B.radius(seen)
+    np.testing.assert_allclose(contour_offsets(clean, T, board, radii), 0.0, atol=1e-8)
+    bent = CameraIntrinsics(7800.0, 7800.0, 360.0, 270.0, (-0.6, 4.0, 3e-4, -2e-4, 0.0),
+                            720, 540)
+    got = contour_offsets(bent, T, board, radii)
+    centre = project_circle_centres(bent, T, board, radii)
+    a = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    for k, (p, r) in enumerate(zip(board, radii, strict=True)):
+        rim = p + r * np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
+        uv = project_points(bent, rim @ T[:3, :3].T + T[:3, 3])
+        np.testing.assert_allclose(fit_ellipse(uv)[0] - centre[k], got[k], atol=1e-3)
+    with pytest.raises(ValueError, match="points_w"):
+        contour_offsets(bent, T, np.zeros((3, 2)), np.zeros(3))
 
 
 def test_detect_circles_input_checks_and_blank_image():
