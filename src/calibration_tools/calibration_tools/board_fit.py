@@ -40,7 +40,7 @@ from .board_geometry import (
     project_circle_centres,
 )
 from .board_layout import CircleBoard
-from .stages import covariance_from_jacobian
+from .stages import clustered_covariance, covariance_from_jacobian
 
 
 # ------------------------------------------------------------------------------ small maths
@@ -590,21 +590,14 @@ def _view_clustered(prob: _RefineProblem, res, jac, cov) -> np.ndarray:
     The circles of one view share that frame's errors: a galvo's scatter from frame to frame
     moves them all together (:func:`g1_frame_noise`), so they are not independent and
     ``s2 inv(J.T J)`` over circles counts each view's shift as many times as it has circles.
-    The cluster-robust sandwich ``inv(J.T J) (sum_v s_v s_v.T) inv(J.T J)`` over views ``v``
-    (``s_v`` the sum of its residuals' ``J.T r``), scaled by ``V / (V - p)`` for V views
-    and p parameters, holds whatever the correlation within a view; with too few views for
-    that, ``cov`` (per circle) is kept.
+    The cluster-robust sandwich over views
+    (:func:`calibration_tools.stages.clustered_covariance`) holds whatever the correlation
+    within a view; with too few views for that, ``cov`` (per circle) is kept.
     """
-    view = np.repeat(prob.view_of, 2)
-    n_views = int(view.max()) + 1
-    p = jac.shape[1]
-    if n_views <= p + 2 or not np.isfinite(cov).all():  # undetermined: as the fit says
+    if not np.isfinite(cov).all():  # undetermined: as the fit says
         return cov
-    B = np.linalg.inv(jac.T @ jac)
-    scores = np.zeros((n_views, p))
-    np.add.at(scores, view, jac * res.ravel()[:, None])
-    out = n_views / (n_views - p) * B @ (scores.T @ scores) @ B
-    return 0.5 * (out + out.T) if np.isfinite(out).all() else cov
+    out = clustered_covariance(jac, res.ravel(), np.repeat(prob.view_of, 2))
+    return cov if out is None else out
 
 
 def refine(
@@ -756,7 +749,7 @@ def g1_frame_noise(result: RefineResult, observations: Sequence[ViewObservation]
         floors.append(np.diag(Jinv @ (np.cov(r.T) / len(r)) @ Jinv.T))
     # the fit took up part of the offsets: scale by shifts over shifts less its parameters
     n_fit = len(result.names) + 6 * len(result.board_poses)
-    if len(offsets) < 3 or 2 * len(offsets) <= 2 * n_fit:
+    if len(offsets) < 3 or len(offsets) <= n_fit:  # more views than the fit's parameters
         return {}
     dof = 2 * len(offsets) / (2 * len(offsets) - n_fit)
     var = dof * np.mean(np.square(offsets), axis=0) - np.mean(floors, axis=0)

@@ -267,10 +267,9 @@ def _clustered_covariance(J, r, groups, counts, JtJ) -> np.ndarray:
     A board's pose comes from one laser-off frame (G1's scatter in that frame, the pose fit's
     noise), and every lit frame of the board carries that error alike: its views are not
     independent, and more lit frames of the same boards would not make the laser better
-    known. The covariance is the cluster-robust sandwich ``inv(J.T J) (sum_c s_c s_c.T)
-    inv(J.T J)`` over boards ``c`` (their G1 voltages), ``s_c`` the sum of their points'
-    ``J.T r``, scaled by ``C / (C - p)`` for C boards and p parameters; with too few boards
-    for that, one mean square residual per view (``s2 inv(J.T J)``).
+    known. The covariance is the cluster-robust sandwich over boards (their G1 voltages;
+    :func:`calibration_tools.stages.clustered_covariance`); with too few boards for that,
+    one mean square residual per view (``s2 inv(J.T J)``).
 
     Fifteenth session, against the error measured on the simulator: one sample per view (as
     before) shrank the stated error by sqrt(3) with three times the lit frames while the
@@ -278,17 +277,15 @@ def _clustered_covariance(J, r, groups, counts, JtJ) -> np.ndarray:
     overstated it (the frames' own scatter counted as the board's): pooled 1.41 on the
     reference rig. This sandwich assumes nothing about the errors within a board.
     """
-    keys = {}
+    from .stages import clustered_covariance
+
+    keys: dict = {}
     board = np.array([keys.setdefault((round(a, 4), round(b, 4)), len(keys))
                       for _, a, b in groups])
-    n_boards, p = len(keys), J.shape[1]
-    JtJ_inv = np.linalg.inv(JtJ)
-    if n_boards <= p + 2:
-        s2 = float(np.sum(r ** 2)) / (len(groups) - p)
-        return s2 * JtJ_inv
-    scores = np.zeros((n_boards, p))
-    np.add.at(scores, np.repeat(board, counts), J * r[:, None])
-    return n_boards / (n_boards - p) * JtJ_inv @ (scores.T @ scores) @ JtJ_inv
+    out = clustered_covariance(J, r, np.repeat(board, counts))
+    if out is None:
+        return float(np.sum(r ** 2)) / (len(groups) - J.shape[1]) * np.linalg.inv(JtJ)
+    return out
 
 
 def _g2_frame_noise(model, groups, u2, raw, inlier, n_params: int,
@@ -309,6 +306,7 @@ def _g2_frame_noise(model, groups, u2, raw, inlier, n_params: int,
     from reconstructor.model import laser_plane_v0, v0_T_v
 
     counts = [len(g[0]) for g in groups]
+    noise_g1 = g1_noise_v or {}
     offsets, floors = [], []
     start = 0
     for (p, a, b), u, n in zip(groups, u2, counts, strict=True):
@@ -326,12 +324,13 @@ def _g2_frame_noise(model, groups, u2, raw, inlier, n_params: int,
             continue
         offsets.append(float(np.mean(d)) / slope)
         share = 0.0
-        pl = laser_plane_v0(model, np.array([u]))[0]
-        for k, sd in enumerate(((g1_noise_v or {}).get('u1_pan', 0.0),
-                                (g1_noise_v or {}).get('u1_tilt', 0.0))):
+        g1 = (noise_g1.get('u1_pan', 0.0), noise_g1.get('u1_tilt', 0.0))
+        if any(sd > 0 for sd in g1):  # once per view: the sheet at u, the view at U1
+            pl = laser_plane_v0(model, np.array([u]))[0]
+            base = np.linalg.inv(v0_T_v(model, a, b))
+        for k, sd in enumerate(g1):
             if not sd > 0:
                 continue
-            base = np.linalg.inv(v0_T_v(model, a, b))
             moved = []
             for sign in (1.0, -1.0):
                 v = [a, b]

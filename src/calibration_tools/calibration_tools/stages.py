@@ -233,6 +233,44 @@ def covariance_from_jacobian(jac, residuals, *, n_params: int | None = None,
     return cov, math.sqrt(s2)
 
 
+def clustered_covariance(jac, residuals, cluster) -> np.ndarray | None:
+    """Cluster-robust covariance of least-squares parameters: samples are clusters.
+
+    ``inv(J.T J) (sum_c s_c s_c.T) inv(J.T J)`` with ``s_c`` the sum of ``J.T r`` over the
+    rows of cluster ``c``, scaled by ``C / (C - p)`` for C clusters and p parameters. It
+    holds whatever the correlation of the residuals within a cluster (the circles of one
+    view, the lit frames of one board: what one frame's galvo scatter moves together).
+
+    Parameters
+    ----------
+    jac : array_like, shape (m, p)
+    residuals : array_like, shape (m,)
+        At the solution (rows left out of the fit: zero).
+    cluster : array_like of int, shape (m,)
+        Cluster index of each row, 0..C-1.
+
+    Returns
+    -------
+    ndarray, shape (p, p), or None
+        None with too few clusters (C <= p + 2) or a singular or non-finite result: the
+        caller keeps its row-wise covariance.
+    """
+    J = np.asarray(jac, dtype=np.float64)
+    r = np.asarray(residuals, dtype=np.float64).ravel()
+    c = np.asarray(cluster, dtype=np.intp).ravel()
+    n_clusters, p = (int(c.max()) + 1 if c.size else 0), J.shape[1]
+    if n_clusters <= p + 2:
+        return None
+    try:
+        B = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    scores = np.zeros((n_clusters, p))
+    np.add.at(scores, c, J * r[:, None])
+    out = n_clusters / (n_clusters - p) * B @ (scores.T @ scores) @ B
+    return 0.5 * (out + out.T) if np.isfinite(out).all() else None
+
+
 def correlation(cov) -> np.ndarray:
     """Correlation matrix of a covariance, shape (p, p) (NaN where a variance is 0 or inf)."""
     c = np.asarray(cov, dtype=np.float64)

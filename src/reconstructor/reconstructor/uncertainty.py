@@ -480,6 +480,19 @@ def stripe_samples(model: RigModel, u_pan, u_tilt, depth: float, *, samples: int
     return uv[ok], pts[ok], u2
 
 
+def _checked_frame_noise(frame_noise_v) -> dict:
+    """``{channel: 1 sigma [V]}`` with the zero ones left out; ValueError on an unknown
+    channel or a value that is not a finite number >= 0."""
+    out = {}
+    for channel, sd_v in (frame_noise_v or {}).items():
+        ok = isinstance(sd_v, (int, float)) and math.isfinite(sd_v) and sd_v >= 0
+        if channel not in FRAME_NOISE_KEYS or not ok:
+            raise ValueError(f'frame_noise_v: unknown channel or bad value {channel}={sd_v}')
+        if sd_v > 0:
+            out[channel] = float(sd_v)
+    return out
+
+
 def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
                           depth: float = 0.65, span: float = 8.0, n: int = 9,
                           samples: int = 15, frame_noise_v: dict | None = None
@@ -504,6 +517,7 @@ def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
         raise ValueError(f'span: expected 0..10 V, got {span}')
     if not (isinstance(n, int) and 1 <= n <= 41):
         raise ValueError(f'n: expected an integer 1..41, got {n}')
+    frame_noise_v = _checked_frame_noise(frame_noise_v)
     grid = np.linspace(-span, span, n) if n > 1 else np.zeros(1)
     uv_all, fi, volts, rays, cell = [], [], [], [], []
     for i, ut in enumerate(grid):
@@ -542,11 +556,8 @@ def point_uncertainty_map(model: RigModel, covariance: ParameterCovariance, *,
         J[:, :, k] = (plus - minus) / (2.0 * h)
     C = covariance.matrix
     P0 = triangulate_batch(model, uv, fi, volts).p_v0
-    frame_noise_v = {k: float(v) for k, v in (frame_noise_v or {}).items() if v > 0}
     var_frame = np.zeros(len(uv))
     for channel, sd_v in frame_noise_v.items():
-        if channel not in FRAME_NOISE_KEYS or not math.isfinite(sd_v):
-            raise ValueError(f'frame_noise_v: unknown channel or bad value {channel}={sd_v}')
         step = np.zeros(4)
         step[FRAME_NOISE_KEYS[channel][2]] = sd_v
         plus = triangulate_batch(model, uv, fi, volts + step).p_v0
