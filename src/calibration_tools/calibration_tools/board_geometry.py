@@ -205,8 +205,9 @@ def contour_offsets(intrinsics: CameraIntrinsics, V_T_W, points_w, radii,
     X, Y = u[..., 0], u[..., 1]
     A = np.stack([X * Y, Y * Y - X * X, X, Y, np.ones_like(X)], axis=-1)  # (m, n, 5)
     with np.errstate(all="ignore"):
-        coef = np.linalg.solve(np.einsum("mki,mkj->mij", A, A),
-                               np.einsum("mki,mk->mi", A, -X * X)[..., None])[..., 0]
+        # pinv: an outline seen edge-on (collinear points) gives NaN, not an exception
+        coef = (np.linalg.pinv(np.einsum("mki,mkj->mij", A, A))
+                @ np.einsum("mki,mk->mi", A, -X * X)[..., None])[..., 0]
         b, c, d, e = coef[:, 0], coef[:, 1], coef[:, 2], coef[:, 3]
         # centre of the conic: [[2(1 - c), b], [b, 2c]] x = [-d, -e]
         det = 4.0 * (1.0 - c) * c - b * b
