@@ -84,14 +84,15 @@ def _scan_and_check(driver, emu, edges, ros_env):
         req = StartScan.Request(pattern='custom', voltages=volts.ravel().tolist(),
                                 frame_rate=RATE, laser_on=True)
         progress_client = node.create_client(GetScanProgress, 'scan/progress')
-        resp = call_service(ex, node.create_client(StartScan, 'scan/start'), req, timeout=30.0)
+        resp = call_service(ex, node.create_client(StartScan, 'scan/start'), req, timeout=30.0,
+                            resend=True)
         assert resp.success, resp.message + driver.log_path.read_text()
         deadline = time.monotonic() + ROWS / RATE + 15.0
         state = 'running'
         while state == 'running' and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.1)
             state = call_service(ex, progress_client, GetScanProgress.Request(),
-                                 timeout=20.0).state
+                                 timeout=20.0, resend=True).state
         end = time.monotonic() + 1.0
         while time.monotonic() < end:  # the last messages on their way
             ex.spin_once(timeout_sec=0.05)

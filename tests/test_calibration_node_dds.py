@@ -14,6 +14,7 @@ from galvoscan_msgs.srv import (
 )
 from rclpy.node import Node
 
+from galvoscan_common.executor import call_service
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
 
@@ -36,13 +37,15 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
     ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
 
-    def call(srv, name, req, timeout=240.0):
-        client = node.create_client(srv, name)
-        assert client.wait_for_service(timeout_sec=60), proc.log_path.read_text()
-        fut = client.call_async(req)
-        ex.spin_until_future_complete(fut, timeout_sec=timeout)
-        assert fut.result() is not None, proc.log_path.read_text()
-        return fut.result()
+    clients = {}
+
+    def call(srv, name, req, timeout=240.0, resend=False):
+        if name not in clients:
+            clients[name] = node.create_client(srv, name)
+        try:
+            return call_service(ex, clients[name], req, timeout, resend=resend)
+        except RuntimeError as exc:
+            raise AssertionError(f'{exc}\n' + proc.log_path.read_text()) from exc
 
     try:
         cap = call(CaptureCalibration, 'calibration/capture',
@@ -71,10 +74,12 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
 
         bad = tmp_path / 'bad.yaml'
         bad.write_text(cal_path.read_text().replace('format_version: 1', 'format_version: 7'))
-        resp = call(LoadCalibration, 'calibration/load', LoadCalibration.Request(path=str(bad)))
+        resp = call(LoadCalibration, 'calibration/load', LoadCalibration.Request(path=str(bad)),
+                    resend=True)
         assert not resp.success and 'format_version' in resp.message
         copy = tmp_path / 'copy.yaml'
-        resp = call(SaveCalibration, 'calibration/save', SaveCalibration.Request(path=str(copy)))
+        resp = call(SaveCalibration, 'calibration/save', SaveCalibration.Request(path=str(copy)),
+                    resend=True)
         assert resp.success and calibration_file.load(copy).model.l == cal.model.l
         resp = call(ComputeCalibration, 'calibration/compute',
                     ComputeCalibration.Request(stage='no_such_stage'))

@@ -56,14 +56,16 @@ def test_driver_scan_then_signal_leaves_board_safe(spawn, ros_env, tmp_path, sig
         req = StartScan.Request(pattern='custom', voltages=volts.ravel().tolist(),
                                 frame_rate=200.0, laser_on=True)
         progress_client = node.create_client(GetScanProgress, 'scan/progress')
-        resp = call_service(ex, node.create_client(StartScan, 'scan/start'), req, timeout=20.0)
+        resp = call_service(ex, node.create_client(StartScan, 'scan/start'), req, timeout=20.0,
+                            resend=True)
         assert resp.success, resp.message + driver.log_path.read_text()
         assert resp.frames_total == 400
         deadline = time.monotonic() + 20
         while len(states) < 100 and time.monotonic() < deadline:
             ex.spin_once(timeout_sec=0.05)
         assert len(states) >= 100, driver.log_path.read_text()
-        progress = call_service(ex, progress_client, GetScanProgress.Request(), timeout=20.0)
+        progress = call_service(ex, progress_client, GetScanProgress.Request(), timeout=20.0,
+                                resend=True)
         assert progress.state == 'running' and progress.frames_total == 400
 
         # every received frame carries exactly the DAC-quantised voltages of its row

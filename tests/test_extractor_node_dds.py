@@ -21,6 +21,7 @@ from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 
+from galvoscan_common.executor import call_service
 from stripe_extractor.synthetic import StripeSpec, render, score
 
 pytestmark = pytest.mark.dds
@@ -179,9 +180,7 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, th
         def set_param(name, ptype, **value):
             req = SetParameters.Request(parameters=[Parameter(
                 name=name, value=ParameterValue(type=ptype, **value))])
-            fut = client.call_async(req)
-            executor.spin_until_future_complete(fut, timeout_sec=10)
-            return fut.result().results[0]
+            return call_service(executor, client, req, timeout=10.0, resend=True).results[0]
 
         r = set_param('roi_half_height', ParameterType.PARAMETER_INTEGER, integer_value=2)
         assert not r.successful

@@ -15,6 +15,7 @@ from galvoscan_msgs.srv import GetScanProgress, StartScan
 from rclpy.node import Node
 from sensor_msgs.msg import PointCloud2
 
+from galvoscan_common.executor import call_service
 from galvoscan_sim import Simulator, load_rig, load_scene, patterns
 from reconstructor.cloud import CLOUD_DTYPE
 
@@ -60,11 +61,10 @@ def test_scan_through_the_graph(spawn, ros_env, tmp_path, one_process, sim_graph
             ex.spin_once(timeout_sec=0.1)
 
         def scan(v):
-            fut = start.call_async(StartScan.Request(
+            resp = call_service(ex, start, StartScan.Request(
                 pattern='custom', voltages=v.ravel().tolist(), frame_rate=25.0,
-                laser_on=True))
-            ex.spin_until_future_complete(fut, timeout_sec=20)
-            assert fut.result().success, fut.result().message
+                laser_on=True), timeout=20.0, resend=True)
+            assert resp.success, resp.message
 
         # discovery is not symmetric: one-frame scans until the whole chain delivers
         deadline = time.monotonic() + 30
@@ -86,10 +86,9 @@ def test_scan_through_the_graph(spawn, ros_env, tmp_path, one_process, sim_graph
             assert node.count_subscribers('camera/image_raw') == 0
 
         progress = node.create_client(GetScanProgress, 'scan/progress')
-        fut = progress.call_async(GetScanProgress.Request())
-        ex.spin_until_future_complete(fut, timeout_sec=10)
-        assert fut.result().state == 'done'
-        assert fut.result().frames_done == len(volts) and fut.result().frames_dropped == 0
+        p = call_service(ex, progress, GetScanProgress.Request(), timeout=10.0, resend=True)
+        assert p.state == 'done'
+        assert p.frames_done == len(volts) and p.frames_dropped == 0
 
         total_truth = sum(len(t.u) for t in truth)
         total = 0

@@ -22,6 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
+from galvoscan_common.executor import call_service
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
 
@@ -112,13 +113,15 @@ def test_hand_eye_poses_from_the_topic(spawn, ros_env, tmp_path):
     robot = Robot(node)
     programme = flange_poses(truth, 6)
 
-    def call(srv, name, req, timeout=120.0):
-        client = node.create_client(srv, name)
-        assert client.wait_for_service(timeout_sec=60), proc.log_path.read_text()
-        fut = client.call_async(req)
-        ex.spin_until_future_complete(fut, timeout_sec=timeout)
-        assert fut.result() is not None, proc.log_path.read_text()
-        return fut.result()
+    clients = {}
+
+    def call(srv, name, req, timeout=120.0, resend=False):
+        if name not in clients:
+            clients[name] = node.create_client(srv, name)
+        try:
+            return call_service(ex, clients[name], req, timeout, resend=resend)
+        except RuntimeError as exc:
+            raise AssertionError(f'{exc}\n' + proc.log_path.read_text()) from exc
 
     def capture():
         t0 = time.monotonic()
@@ -176,7 +179,7 @@ def test_hand_eye_poses_from_the_topic(spawn, ros_env, tmp_path):
         # too few poses: compute says so; then five more, and the mounting comes out
         robot.broken = False
         too_few = call(ComputeCalibration, 'calibration/compute',
-                       ComputeCalibration.Request(stage='hand_eye'))
+                       ComputeCalibration.Request(stage='hand_eye'), resend=True)  # refused
         assert not too_few.success and 'at least 5' in too_few.message, too_few.message
         for k in range(1, 6):
             robot.pose = programme[k]

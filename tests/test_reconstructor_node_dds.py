@@ -16,6 +16,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import PointCloud2
 
+from galvoscan_common.executor import call_service
 from reconstructor import calibration_file
 from reconstructor.cloud import CLOUD_DTYPE
 from reconstructor.model import (
@@ -189,9 +190,9 @@ def test_reconstructor_node(rig, tmp_path):
     save = node.create_client(SaveScan, 'reconstructor/save_scan')
     assert save.wait_for_service(timeout_sec=10)
     for name, ok in (('scan.ply', True), ('scan.pcd', True), ('scan.xyz', False)):
-        fut = save.call_async(SaveScan.Request(path=str(tmp_path / name)))
-        ex.spin_until_future_complete(fut, timeout_sec=10)
-        assert fut.result().success is ok, fut.result().message
+        resp = call_service(ex, save, SaveScan.Request(path=str(tmp_path / name)),
+                            timeout=10.0, resend=True)
+        assert resp.success is ok, resp.message
         if ok:
             pcd = o3d.io.read_point_cloud(str(tmp_path / name))
             assert len(pcd.points) == scans[0].width
@@ -200,9 +201,9 @@ def test_reconstructor_node(rig, tmp_path):
     assert reload.wait_for_service(timeout_sec=10)
     broken = tmp_path / 'broken.yaml'
     broken.write_text(cal_path.read_text().replace('l: 0.08345', 'l: 83.45'))
-    fut = reload.call_async(LoadCalibration.Request(path=str(broken)))
-    ex.spin_until_future_complete(fut, timeout_sec=10)
-    assert not fut.result().success and 'model.l' in fut.result().message
+    resp = call_service(ex, reload, LoadCalibration.Request(path=str(broken)), timeout=10.0,
+                        resend=True)
+    assert not resp.success and 'model.l' in resp.message
     # the previous calibration is still active
     clouds.clear()
     pub.publish(centers_msg(model, frames[1], 50, truth[1]))
@@ -279,10 +280,11 @@ def test_alternating_broken_and_good_reloads(rig, tmp_path):
     assert reload.wait_for_service(timeout_sec=10)
 
     def call(path):
-        fut = reload.call_async(LoadCalibration.Request(path=str(path)))
-        r.ex.spin_until_future_complete(fut, timeout_sec=10)
-        assert fut.result() is not None, 'no answer:\n' + r.log()
-        return fut.result()
+        try:
+            return call_service(r.ex, reload, LoadCalibration.Request(path=str(path)),
+                                timeout=10.0, resend=True)
+        except RuntimeError as exc:
+            raise AssertionError(f'{exc}:\n' + r.log()) from exc
 
     goods = []
     for k, ls in enumerate(np.linspace(0.080, 0.086, 20)):

@@ -14,6 +14,7 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from galvoscan_bag.reader import deserialize, read_messages
+from galvoscan_common.executor import call_service
 
 pytestmark = pytest.mark.dds
 BAG = Path(__file__).resolve().parents[1] / 'bags' / 'stair_scan'
@@ -48,10 +49,11 @@ def test_sample_bag_replays_to_the_recorded_centres(spawn, ros_env):
             ex.spin_once(timeout_sec=0.1)
         time.sleep(1.0)  # let discovery settle both ways
         for _ in range(3):  # a replay pass publishes every recorded frame once
-            fut = client.call_async(StartScan.Request(pattern='custom', voltages=[0.0] * 4))
-            ex.spin_until_future_complete(fut, timeout_sec=10)
-            assert fut.result().success, fut.result().message
-            assert fut.result().frames_total == len(recorded)
+            resp = call_service(ex, client, StartScan.Request(pattern='custom',
+                                                              voltages=[0.0] * 4),
+                                timeout=10.0, resend=True)
+            assert resp.success, resp.message
+            assert resp.frames_total == len(recorded)
             deadline = time.monotonic() + 20
             while len(got) < len(recorded) and time.monotonic() < deadline:
                 ex.spin_once(timeout_sec=0.1)

@@ -25,6 +25,7 @@ from sensor_msgs.msg import PointCloud2
 from tf2_msgs.msg import TFMessage
 
 from galvoscan.simulated_rig import truth_calibration
+from galvoscan_common.executor import call_service
 from galvoscan_common.tf_tree import TfBuffer, stamp_ns
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
@@ -228,9 +229,9 @@ def check_updates(lis, graph, cal, cal_path):
     calibration_file.save(cal, cal_path)
     reload = lis.node.create_client(LoadCalibration, 'reconstructor/reload_calibration')
     assert reload.wait_for_service(timeout_sec=10)
-    fut = reload.call_async(LoadCalibration.Request(path=str(cal_path)))
-    lis.ex.spin_until_future_complete(fut, timeout_sec=10)
-    assert fut.result().success, fut.result().message
+    resp = call_service(lis.ex, reload, LoadCalibration.Request(path=str(cal_path)),
+                        timeout=10.0, resend=True)
+    assert resp.success, resp.message
     lis.spin_until(lambda: len(lis.statics) == 3, 10, graph, 'the reloaded /tf_static')
     np.testing.assert_allclose(lis.buffer.lookup('robot_cell', 'v0'), cal.cell_T_v0,
                                atol=1e-12)

@@ -213,7 +213,9 @@ class CalibrationNode(Node):
 
     # -- capture ----------------------------------------------------------------------
     def _call(self, name, request, timeout=60.0):
-        return call_service(self._cap_executor, self._cap.clients_[name], request, timeout)
+        # scene, start (by its request_id) and progress are all safe to resend
+        return call_service(self._cap_executor, self._cap.clients_[name], request, timeout,
+                            resend=True)
 
     def _record_step(self, step, bag_dir):
         cap = self._cap

@@ -7,7 +7,10 @@ Topics (published reliable; consumers subscribe with sensor-data QoS):
                        given, else from the simulator's rig)
     galvo/state        galvoscan_msgs/GalvoState, same stamp and the frame's sequence number
 Services:
-    scan/start     galvoscan_msgs/StartScan
+    scan/start     galvoscan_msgs/StartScan; a request whose ``request_id`` the driver has
+                   answered before (its answer lost on the way, the caller resent it) gets
+                   that answer again and starts nothing; the same id with another request
+                   is refused
     scan/stop      galvoscan_msgs/StopScan
     scan/progress  galvoscan_msgs/GetScanProgress
     sim/set_scene  galvoscan_msgs/SetScene (sim backend only)
@@ -29,6 +32,8 @@ not run ``on_shutdown`` on SIGINT/SIGTERM.
 
 from __future__ import annotations
 
+import collections
+import hashlib
 import time
 
 import numpy as np
@@ -55,6 +60,8 @@ from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay', 'rig')
+#: StartScan answers kept for resends, by request_id (the newest ones)
+ANSWERED_STARTS_KEPT = 64
 #: Camera parameters of the rig backend: GenICam feature name -> (default meaning "keep the
 #: camera's value", descriptor range, description).
 CAMERA_PARAMS = {
@@ -153,6 +160,8 @@ class GalvoDriverNode(LifecycleNode):
         self._scan = {'scan_id': '', 'state': 'idle', 'total': 0, 'done': 0, 'dropped': 0,
                       't0': 0.0, 'last_seq': None}
         self._scan_count = 0
+        #: request_id -> (the request's digest, the answer given), newest last
+        self._answered_starts = collections.OrderedDict()
         for srv_type, name, callback in (
                 (StartScan, 'scan/start', self._on_start),
                 (StopScan, 'scan/stop', self._on_stop),
@@ -431,6 +440,28 @@ class GalvoDriverNode(LifecycleNode):
 
     # -- services ---------------------------------------------------------------------
     def _on_start(self, req, resp):
+        key = req.request_id
+        if key:
+            body = _request_digest(req)
+            seen = self._answered_starts.get(key)
+            if seen is not None:
+                if seen[0] != body:
+                    resp.success = False
+                    resp.message = (f'scan refused: request_id {key!r} was already used for '
+                                    'another request')
+                    self.get_logger().warning(resp.message)
+                    return resp
+                self.get_logger().info(f'scan/start {key!r} resent: answered again, '
+                                       'nothing started')
+                return seen[1]
+        self._start(req, resp)
+        if key:
+            self._answered_starts[key] = (body, resp)
+            while len(self._answered_starts) > ANSWERED_STARTS_KEPT:
+                self._answered_starts.popitem(last=False)
+        return resp
+
+    def _start(self, req, resp):
         if self.backend is None or self._timer is None:
             resp.success, resp.message = False, 'driver is not active'
             return resp
@@ -505,6 +536,23 @@ class GalvoDriverNode(LifecycleNode):
             return resp
         resp.success, resp.message = True, f'scene set: {resp.objects} objects'
         return resp
+
+
+def _request_digest(req) -> bytes:
+    """A digest of the StartScan request's fields but its ``request_id``: what a resend repeats.
+
+    From the values, not the CDR bytes: serialisation leaves its alignment padding
+    uninitialised, so two equal requests can serialise differently.
+    """
+    h = hashlib.sha256()
+    for name in req.get_fields_and_field_types():
+        if name == 'request_id':
+            continue
+        value = getattr(req, name)
+        h.update(name.encode())
+        h.update(np.asarray(value, dtype=np.float64).tobytes() if name == 'voltages'
+                 else repr(value).encode())
+    return h.digest()
 
 
 def main(args=None):

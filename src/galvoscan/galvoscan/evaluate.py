@@ -98,11 +98,13 @@ class GraphClient:
             QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
         self._clients = {}
 
-    def call(self, srv_type, name, request, timeout=60.0):
+    def call(self, srv_type, name, request, timeout=60.0, resend=True):
+        """One service call; resent while unanswered unless ``resend`` is false (a
+        lifecycle transition: a resend of a done transition would be refused)."""
         client = self._clients.get(name)
         if client is None:
             client = self._clients[name] = self.node.create_client(srv_type, name)
-        return call_service(self.ex, client, request, timeout)
+        return call_service(self.ex, client, request, timeout, resend=resend)
 
     def spin(self, seconds):
         t_end = time.monotonic() + seconds
@@ -579,7 +581,8 @@ class Graph:
         for label in transitions:
             tid = getattr(Transition, f'TRANSITION_{label.upper()}')
             resp = self.client.call(ChangeState, 'galvo_driver/change_state',
-                                    ChangeState.Request(transition=Transition(id=tid)))
+                                    ChangeState.Request(transition=Transition(id=tid)),
+                                    resend=False)
             if not resp.success:
                 raise RuntimeError(f'galvo_driver: lifecycle transition {label} failed')
 

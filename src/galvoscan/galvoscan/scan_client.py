@@ -96,8 +96,9 @@ def main(argv=None):
     def call(srv, name, req, timeout=30.0):
         if name not in clients:
             clients[name] = node.create_client(srv, name)
+        # every call here is safe to resend (StartScan by its request_id)
         return call_service(executor, clients[name], req, timeout,
-                            hint='is the driver running?')
+                            hint='is the driver running?', resend=True)
 
     started = False
     try:

@@ -13,6 +13,7 @@ loop that ends on either signal, on context shutdown, or after ``duration``.
 from __future__ import annotations
 
 import time
+import uuid
 
 #: Longest wait inside one ``spin_once`` [s]: how late a stop request is noticed.
 SPIN_TIMEOUT_S = 0.1
@@ -71,10 +72,24 @@ def run_node(factory, args=None) -> None:
         rclpy.try_shutdown()
 
 
-def call_service(executor, client, request, timeout: float = 60.0, hint: str = ''):
+#: First wait for an answer before a request is resent [s]; each later wait is twice as long.
+FIRST_RESEND_AFTER_S = 1.0
+
+
+def call_service(executor, client, request, timeout: float = 60.0, hint: str = '',
+                 resend: bool = False):
     """Call one ROS service and wait for its answer, spinning ``executor`` meanwhile.
 
-    The one service-call helper of the project (calibration node, evaluation, scan client).
+    The one service-call helper of the project (calibration node, evaluation, scan client,
+    the DDS tests).
+
+    A DDS service's answer can be lost: the server answers before it has discovered the
+    client's reply reader (a new client on a busy machine; Fast DDS waits only briefly for
+    that match), and the client then waits in vain. With ``resend`` the request is sent
+    again after 1, 2, 4, ... s without an answer, until ``timeout``. Only for requests that
+    are safe to repeat: queries, stops, scene changes, and a StartScan: a request with a
+    ``request_id`` field gets a fresh unique id here when it has none, and the driver
+    answers a resend with its first answer.
 
     Parameters
     ----------
@@ -85,20 +100,38 @@ def call_service(executor, client, request, timeout: float = 60.0, hint: str = '
         How long to wait for the service to appear, and again for its answer.
     hint : str
         Appended to the "not available" error (e.g. ``'is the driver running?'``).
+    resend : bool
+        Resend the request while no answer has come (see above).
 
     Raises
     ------
     RuntimeError
         The service did not appear, or did not answer within ``timeout``; the pending
-        request is then withdrawn so that a late answer is dropped.
+        requests are then withdrawn so that a late answer is dropped.
     """
     name = client.srv_name
     if not client.wait_for_service(timeout_sec=timeout):
         raise RuntimeError(f'service {name} is not available' + (f': {hint}' if hint else ''))
-    future = client.call_async(request)
-    executor.spin_until_future_complete(future, timeout_sec=timeout)
-    if not future.done() or future.result() is None:
-        future.cancel()
-        client.remove_pending_request(future)
-        raise RuntimeError(f'service {name} did not answer within {timeout} s')
-    return future.result()
+    if resend and getattr(request, 'request_id', None) == '':
+        request.request_id = uuid.uuid4().hex
+    t_end = time.monotonic() + timeout
+    wait = FIRST_RESEND_AFTER_S if resend else timeout
+    pending = []
+    try:
+        while True:
+            future = client.call_async(request)
+            pending.append(future)
+            left = t_end - time.monotonic()
+            executor.spin_until_future_complete(future, timeout_sec=max(min(wait, left), 0.0))
+            for f in pending:  # an earlier request's late answer is as good
+                if f.done() and f.result() is not None:
+                    return f.result()
+            if not resend or time.monotonic() >= t_end - 1e-3:
+                raise RuntimeError(f'service {name} did not answer within {timeout} s'
+                                   + (f' ({len(pending)} requests sent)' if resend else ''))
+            wait *= 2.0
+    finally:
+        for f in pending:
+            if not f.done():
+                f.cancel()
+                client.remove_pending_request(f)
