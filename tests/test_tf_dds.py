@@ -16,9 +16,9 @@ import pytest
 import rclpy
 from galvoscan_msgs.msg import GalvoState
 from galvoscan_msgs.srv import LoadCalibration
+from rcl_interfaces.srv import SetParameters
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.parameter_client import AsyncParameterClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import PointCloud2
@@ -204,20 +204,23 @@ def check_tf_and_clouds(lis, graph, model, cell_T_v0):
 def check_updates(lis, graph, cal, cal_path):
     """Parameter sets refused with a reason or re-sending /tf_static; a reload too."""
     # parameters: a bad extrinsic or a clashing name is refused with the reason ...
-    params_client = AsyncParameterClient(lis.node, 'reconstructor')
-    assert params_client.wait_for_services(timeout_sec=20)
+    params_client = lis.node.create_client(SetParameters, 'reconstructor/set_parameters')
+
+    def set_parameter(param):  # setting a value again is harmless: safe to resend
+        resp = call_service(lis.ex, params_client,
+                            SetParameters.Request(parameters=[param.to_parameter_msg()]),
+                            timeout=20.0, resend=True)
+        (result,) = resp.results
+        return result
+
     mirror = (np.diag([1.0, 1.0, -1.0, 1.0])).ravel().tolist()
     for param, reason in ((Parameter('cell_T_v0', value=mirror), 'determinant -1'),
                           (Parameter('cell_frame', value='v0'), 'must differ'),
                           (Parameter('cell_T_v0', value=[1.0] * 3), '4x4')):
-        fut = params_client.set_parameters([param])
-        lis.ex.spin_until_future_complete(fut, timeout_sec=10)
-        (result,) = fut.result().results
+        result = set_parameter(param)
         assert not result.successful and reason in result.reason, result.reason
     # ... a good one re-sends /tf_static whole (the file's extrinsic still wins)
-    fut = params_client.set_parameters([Parameter('cell_frame', value='robot_cell')])
-    lis.ex.spin_until_future_complete(fut, timeout_sec=10)
-    assert fut.result().results[0].successful
+    assert set_parameter(Parameter('cell_frame', value='robot_cell')).successful
     lis.spin_until(lambda: len(lis.statics) == 2, 10, graph, 'the new /tf_static')
     assert {(t.header.frame_id, t.child_frame_id) for t in lis.statics[1].transforms} == \
         {('robot_cell', 'v0'), ('v', 'camera_optical')}
