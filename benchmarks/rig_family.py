@@ -12,6 +12,10 @@ point, and the by-distance evaluation re-sets, calibrates and scans the rig at e
 paper's six distances. A rig that fails (a stage, a crash, the timeout) is recorded and the
 next one runs.
 
+A rig's recorded calibration bags (``calibration_data`` folders, 2-7 GB a rig) are deleted
+once it has passed, unless ``--keep-bags``; a rig that did not pass keeps them to be looked
+into. Metrics, reports, plots, logs and calibrations are always kept.
+
 One progress line per rig. At the end: the completion and pass rates (pass: completed, stair
 RMSE <= 0.165 mm and plate RMSE <= 0.281 mm at the rig's own distance, a finite stair figure
 at every distance), median / p90 / max of the stair, plate, sphere-radius and
@@ -25,6 +29,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -123,6 +128,16 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
     return row
 
 
+def drop_bags(folder: Path) -> int:
+    """Delete the ``calibration_data`` folders (recorded bags) under ``folder``; bytes freed."""
+    freed = 0
+    for data in sorted(Path(folder).rglob('calibration_data')):
+        if data.is_dir() and not data.is_symlink():
+            freed += sum(f.stat().st_size for f in data.rglob('*') if f.is_file())
+            shutil.rmtree(data)
+    return freed
+
+
 def _passes(row) -> bool:
     by = row.get('by_distance_mm') or {}
     return (row['completed'] and _finite(row.get('stair_rmse_mm'))
@@ -218,6 +233,9 @@ def main(argv=None) -> int:
     p.add_argument('--model', choices=('paper', 'physical', 'both'), default='physical',
                    help="model form the calibrations fit (both: every rig with each, and the "
                         "rigs the physical model does worse on)")
+    p.add_argument('--keep-bags', action='store_true',
+                   help="keep every rig's recorded calibration bags (default: only of the rigs "
+                        'that did not pass)')
     args = p.parse_args(argv)
     if args.rigs < 1 or args.seed_start < 0 or args.timeout <= 0:
         p.error('--rigs must be >= 1, --seed-start >= 0 and --timeout > 0')
@@ -233,6 +251,9 @@ def main(argv=None) -> int:
             row['model'] = m
             rows[m].append(row)
             print(f'[{m}] ' + _line(i, args.rigs, row), flush=True)
+            if _passes(row) and not args.keep_bags:
+                row['bags_deleted_bytes'] = drop_bags(folder / m if len(models) > 1
+                                                      else folder)
     wall = time.monotonic() - t0
     summary = {}
     for m in models:
