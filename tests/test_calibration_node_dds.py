@@ -14,7 +14,7 @@ from galvoscan_msgs.srv import (
 )
 from rclpy.node import Node
 
-from galvoscan_common.executor import call_service
+from galvoscan_common.executor import ServiceClients
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
 
@@ -37,15 +37,11 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
     ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
 
-    clients = {}
+    services = ServiceClients(node, ex, on_error=lambda exc: AssertionError(
+        f'{exc}\n' + proc.log_path.read_text()))
 
     def call(srv, name, req, timeout=240.0, resend=False):
-        if name not in clients:
-            clients[name] = node.create_client(srv, name)
-        try:
-            return call_service(ex, clients[name], req, timeout, resend=resend)
-        except RuntimeError as exc:
-            raise AssertionError(f'{exc}\n' + proc.log_path.read_text()) from exc
+        return services.call(srv, name, req, timeout, resend)
 
     try:
         cap = call(CaptureCalibration, 'calibration/capture',

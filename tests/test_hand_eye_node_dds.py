@@ -22,7 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
-from galvoscan_common.executor import call_service
+from galvoscan_common.executor import ServiceClients
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
 
@@ -113,15 +113,11 @@ def test_hand_eye_poses_from_the_topic(spawn, ros_env, tmp_path):
     robot = Robot(node)
     programme = flange_poses(truth, 6)
 
-    clients = {}
+    services = ServiceClients(node, ex, on_error=lambda exc: AssertionError(
+        f'{exc}\n' + proc.log_path.read_text()))
 
     def call(srv, name, req, timeout=120.0, resend=False):
-        if name not in clients:
-            clients[name] = node.create_client(srv, name)
-        try:
-            return call_service(ex, clients[name], req, timeout, resend=resend)
-        except RuntimeError as exc:
-            raise AssertionError(f'{exc}\n' + proc.log_path.read_text()) from exc
+        return services.call(srv, name, req, timeout, resend)
 
     def capture():
         t0 = time.monotonic()

@@ -41,7 +41,7 @@ from scipy.optimize import brentq
 
 from galvoscan import eval_scenes, metrics
 from galvoscan.progress import Progress
-from galvoscan_common.executor import call_service
+from galvoscan_common.executor import ServiceClients
 from galvoscan_common.frame import VOLTAGE_LIMIT
 from galvoscan_common.runtime import private_domain
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
@@ -96,15 +96,12 @@ class GraphClient:
         self.node.create_subscription(
             PointCloud2, 'points', self.clouds.append,
             QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
-        self._clients = {}
+        self._services = ServiceClients(self.node, self.ex)
 
     def call(self, srv_type, name, request, timeout=60.0, resend=True):
         """One service call; resent while unanswered unless ``resend`` is false (a
         lifecycle transition: a resend of a done transition would be refused)."""
-        client = self._clients.get(name)
-        if client is None:
-            client = self._clients[name] = self.node.create_client(srv_type, name)
-        return call_service(self.ex, client, request, timeout, resend=resend)
+        return self._services.call(srv_type, name, request, timeout, resend)
 
     def spin(self, seconds):
         t_end = time.monotonic() + seconds

@@ -82,7 +82,7 @@ def main(argv=None):
     from rclpy.node import Node
     from rclpy.signals import SignalHandlerOptions
 
-    from galvoscan_common.executor import call_service
+    from galvoscan_common.executor import ServiceClients
 
     # Ctrl-C stays a plain KeyboardInterrupt so that the context can still stop the scan
     rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
@@ -91,14 +91,11 @@ def main(argv=None):
     executor = SingleThreadedExecutor()
     executor.add_node(node)
 
-    clients = {}
+    services = ServiceClients(node, executor, hint='is the driver running?')
 
     def call(srv, name, req, timeout=30.0):
-        if name not in clients:
-            clients[name] = node.create_client(srv, name)
         # every call here is safe to resend (StartScan by its request_id)
-        return call_service(executor, clients[name], req, timeout,
-                            hint='is the driver running?', resend=True)
+        return services.call(srv, name, req, timeout, resend=True)
 
     started = False
     try:

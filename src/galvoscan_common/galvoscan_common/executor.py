@@ -135,3 +135,34 @@ def call_service(executor, client, request, timeout: float = 60.0, hint: str = '
             if not f.done():
                 f.cancel()
                 client.remove_pending_request(f)
+
+
+class ServiceClients:
+    """One node's service clients by name, each made on first use and called through
+    :func:`call_service` (a client kept for the next call is already discovered).
+
+    Parameters
+    ----------
+    node, executor : the rclpy node the clients are made on, and the executor spinning it.
+    hint : str
+        For the "not available" error (e.g. ``'is the driver running?'``).
+    on_error : callable, optional
+        ``f(RuntimeError) -> BaseException`` raised instead of a call's error (a test adds
+        the server's log).
+    """
+
+    def __init__(self, node, executor, hint: str = '', on_error=None) -> None:
+        self.node, self.executor, self.hint, self.on_error = node, executor, hint, on_error
+        self.clients = {}
+
+    def call(self, srv_type, name: str, request, timeout: float = 60.0, resend: bool = False):
+        """The answer of service ``name`` to ``request`` (see :func:`call_service`)."""
+        client = self.clients.get(name)
+        if client is None:
+            client = self.clients[name] = self.node.create_client(srv_type, name)
+        try:
+            return call_service(self.executor, client, request, timeout, self.hint, resend)
+        except RuntimeError as exc:
+            if self.on_error is None:
+                raise
+            raise self.on_error(exc) from exc
