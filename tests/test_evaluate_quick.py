@@ -4,12 +4,14 @@ paper's distances, and the off-nominal table at all six."""
 
 import json
 import math
+import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
+from calibration_tools.stages import STAGES
 from galvoscan_sim import load_rig
 from galvoscan_sim.rig_family import working_distance, working_point
 
@@ -58,6 +60,18 @@ def test_evaluate_quick_writes_every_output(ros_env, tmp_path):
     assert set(details['range_views']) == {'x-', 'x+', 'y-', 'y+', 'x-y-', 'x+y-', 'x-y+',
                                            'x+y+'}
     assert details['stages']['cell_extrinsic']['positions'] == 6
+    # each capture is followed by its stage's compute, every stage in every calibration: a
+    # capture or compute is never resent (a resend would run it again, queued behind it)
+    log = (out / 'logs' / 'calibration.log').read_text()
+    events = [('capture', a) if a else ('compute', b) for a, b in re.findall(
+        r'\]: (?:capture ([a-z_]+): step 1/|([a-z_]+): \d+ used)', log)]
+    assert events and len(events) % 2 == 0, events
+    pairs = list(zip(events[0::2], events[1::2], strict=True))
+    assert all(c == ('capture', s) and d == ('compute', s) for c, d in pairs
+               for s in [c[1]]), events
+    done = [c[1] for c, _ in pairs]
+    assert all(done.count(stage) == done.count(STAGES[0]) for stage in STAGES), done
+    assert done.count('cell_extrinsic') >= 1, done
     # the reference rig is set up for 544 mm from its G1 exit mirror, 650 mm deep along V0
     assert abs(metrics['working_distance_mm'] - 544.4) < 0.5
     assert abs(metrics['working_point_depth_mm'] - 650.0) < 1.0

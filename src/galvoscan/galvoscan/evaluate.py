@@ -98,9 +98,10 @@ class GraphClient:
             QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE))
         self._services = ServiceClients(self.node, self.ex)
 
-    def call(self, srv_type, name, request, timeout=60.0, resend=True):
-        """One service call; resent while unanswered unless ``resend`` is false (a
-        lifecycle transition: a resend of a done transition would be refused)."""
+    def call(self, srv_type, name, request, timeout=60.0, resend=False):
+        """One service call; resent while unanswered only with ``resend``, for requests
+        safe to repeat (never a capture, a compute or a lifecycle transition: a resend
+        would run it again)."""
         return self._services.call(srv_type, name, request, timeout, resend)
 
     def spin(self, seconds):
@@ -120,14 +121,16 @@ class GraphClient:
     def set_scene(self, text):
         from galvoscan_msgs.srv import SetScene
 
-        resp = self.call(SetScene, 'sim/set_scene', SetScene.Request(scene_yaml=text))
+        resp = self.call(SetScene, 'sim/set_scene', SetScene.Request(scene_yaml=text),
+                         resend=True)
         if not resp.success:
             raise RuntimeError(f'set_scene: {resp.message}')
 
     def _progress(self):
         from galvoscan_msgs.srv import GetScanProgress
 
-        return self.call(GetScanProgress, 'scan/progress', GetScanProgress.Request())
+        return self.call(GetScanProgress, 'scan/progress', GetScanProgress.Request(),
+                         resend=True)
 
     def scan(self, voltages, frame_rate=500.0, laser_on=True, timeout=120.0):
         """Run a custom scan; return its per-frame clouds (structured arrays) in stamp order.
@@ -140,7 +143,7 @@ class GraphClient:
         t_request = time.time() - 1e-3
         resp = self.call(StartScan, 'scan/start', StartScan.Request(
             pattern='custom', voltages=np.asarray(voltages).ravel().tolist(),
-            frame_rate=frame_rate, laser_on=laser_on))
+            frame_rate=frame_rate, laser_on=laser_on), resend=True)  # by its request_id
         if not resp.success:
             raise RuntimeError(f'scan/start: {resp.message}')
         n = resp.frames_total
@@ -578,8 +581,7 @@ class Graph:
         for label in transitions:
             tid = getattr(Transition, f'TRANSITION_{label.upper()}')
             resp = self.client.call(ChangeState, 'galvo_driver/change_state',
-                                    ChangeState.Request(transition=Transition(id=tid)),
-                                    resend=False)
+                                    ChangeState.Request(transition=Transition(id=tid)))
             if not resp.success:
                 raise RuntimeError(f'galvo_driver: lifecycle transition {label} failed')
 
@@ -588,7 +590,8 @@ class Graph:
         from rclpy.parameter import Parameter
 
         resp = self.client.call(SetParameters, f'{node}/set_parameters', SetParameters.Request(
-            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]))
+            parameters=[Parameter(k, value=v).to_parameter_msg() for k, v in values.items()]),
+            resend=True)
         bad = [f'{k}: {r.reason}' for k, r in zip(values, resp.results, strict=True)
                if not r.successful]
         if bad:
@@ -608,8 +611,8 @@ class Graph:
         from lifecycle_msgs.srv import GetState
 
         folder = Path(folder)
-        state = self.client.call(GetState, 'galvo_driver/get_state',
-                                 GetState.Request()).current_state.label
+        state = self.client.call(GetState, 'galvo_driver/get_state', GetState.Request(),
+                                 resend=True).current_state.label
         # from wherever an earlier switch left it (a refused rig leaves it unconfigured)
         self._lifecycle(*{'active': ('deactivate', 'cleanup'), 'inactive': ('cleanup',)}.get(
             state, ()))
@@ -637,7 +640,7 @@ class Graph:
                              quick=bool(quick), data_dir=str(folder / 'calibration_data'),
                              model=str(model))
         resp = self.client.call(LoadCalibration, 'calibration/load',
-                                LoadCalibration.Request(path=str(start)))
+                                LoadCalibration.Request(path=str(start)), resend=True)
         if not resp.success:
             raise RuntimeError(f'calibration/load {start}: {resp.message}')
 
@@ -678,7 +681,7 @@ class Graph:
                     self.progress.log(f'cell extrinsic not measured: {exc}')
         cal = calibration_file.load(self.cal_path)
         resp = self.client.call(LoadCalibration, 'reconstructor/reload_calibration',
-                                LoadCalibration.Request(path=str(self.cal_path)))
+                                LoadCalibration.Request(path=str(self.cal_path)), resend=True)
         if not resp.success:
             raise RuntimeError(resp.message)
         self.client.warm_up(np.zeros((1, 4)))
