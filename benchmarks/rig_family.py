@@ -12,9 +12,9 @@ point, and the by-distance evaluation re-sets, calibrates and scans the rig at e
 paper's six distances. A rig that fails (a stage, a crash, the timeout) is recorded and the
 next one runs.
 
-A rig's recorded calibration bags (``calibration_data`` folders, 2-7 GB a rig) are deleted
-once it has passed, unless ``--keep-bags``; a rig that did not pass keeps them to be looked
-into. Metrics, reports, plots, logs and calibrations are always kept.
+A rig's recorded calibration bags (``calibration_data`` folders, 0.37 GB a rig and model)
+are deleted once it has passed, unless ``--keep-bags``; a rig that did not pass keeps them
+to be looked into. Metrics, reports, plots, logs and calibrations are always kept.
 
 One progress line per rig. At the end: the completion and pass rates (pass: completed, stair
 RMSE <= 0.165 mm and plate RMSE <= 0.281 mm at the rig's own distance, a finite stair figure
