@@ -63,3 +63,28 @@ def test_an_unanswered_request_is_resent(spawn, ros_env, resend):
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
+
+
+def test_a_shutdown_ends_the_wait(spawn, ros_env):
+    """A context shut down (a signal) while waiting ends the call at once, resend or not
+    (rclpy's ExternalShutdownException): no request sent again and again until the timeout."""
+    import threading
+
+    from rclpy.executors import ExternalShutdownException
+
+    peer = spawn([sys.executable, PEER, 4.0], name='peer')
+    _wait_ready(peer)
+    ctx, node, ex = _client(ros_env)
+    try:
+        client = node.create_client(SetBool, 'slow/set_bool')
+        assert client.wait_for_service(timeout_sec=20)
+        threading.Timer(0.5, rclpy.shutdown, kwargs={'context': ctx}).start()
+        t0 = time.monotonic()
+        with pytest.raises(ExternalShutdownException):
+            call_service(ex, client, SetBool.Request(data=True), timeout=30.0, resend=True)
+        assert time.monotonic() - t0 < 3.0
+        assert not client._pending_requests  # withdrawn
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
