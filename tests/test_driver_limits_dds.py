@@ -115,6 +115,9 @@ def test_a_resent_start_is_answered_again_and_starts_nothing(spawn, ros_env):
         other = once(sweep('a1', steps=30))  # the same id for another request
         assert not other.success and 'already used' in other.message, other.message
         assert _call(ex, progress, GetScanProgress.Request()).state == 'done'
+        huge = once(sweep('x' * 100_000))  # an absurd id: refused, not kept, nothing started
+        assert not huge.success and '100000 characters' in huge.message, huge.message
+        assert _call(ex, progress, GetScanProgress.Request()).scan_id == first.scan_id
         # a new id is a new scan
         second = once(sweep('a2'))
         assert second.success and second.scan_id != first.scan_id, second.message

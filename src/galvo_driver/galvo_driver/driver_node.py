@@ -62,6 +62,8 @@ from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 BACKENDS = ('sim', 'serial', 'replay', 'rig')
 #: StartScan answers kept for resends, by request_id (the newest ones)
 ANSWERED_STARTS_KEPT = 64
+#: Longest StartScan request_id [characters]: a uuid is 36; the answers kept hold their ids
+REQUEST_ID_MAX_CHARS = 256
 #: Camera parameters of the rig backend: GenICam feature name -> (default meaning "keep the
 #: camera's value", descriptor range, description).
 CAMERA_PARAMS = {
@@ -441,6 +443,12 @@ class GalvoDriverNode(LifecycleNode):
     # -- services ---------------------------------------------------------------------
     def _on_start(self, req, resp):
         key = req.request_id
+        if len(key) > REQUEST_ID_MAX_CHARS:
+            resp.success = False
+            resp.message = (f'scan refused: request_id is {len(key)} characters long, at most '
+                            f'{REQUEST_ID_MAX_CHARS} (a uuid is 36)')
+            self.get_logger().warning(resp.message)
+            return resp
         if key:
             body = _request_digest(req)
             seen = self._answered_starts.get(key)
