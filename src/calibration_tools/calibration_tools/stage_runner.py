@@ -15,6 +15,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import re
@@ -30,6 +31,28 @@ log = logging.getLogger('galvoscan.calibration.stage_runner')
 
 #: Directory names written by the calibration node: one bag per capture step.
 BAG_NAME = re.compile(r'^pose(\d+)_step(\d+)$')
+
+@contextlib.contextmanager
+def opencv_single_thread():
+    """OpenCV on one thread while the block runs (its thread count restored after).
+
+    OpenCV's parallel loops split their sums by thread, in an order that varies from run to
+    run: two computes of the same intrinsics views differed in the 14th digit, and the
+    dynamic-camera fit, whose l and d lie along a flat valley, carried that to about 1 um in
+    l, 0.01 px in fx, and 5 % in the calibration's shape error over the range (reference
+    rig, seventeenth session). One thread makes a stage a function of its data. OpenCV's
+    thread count is the process's: an extractor in the same process runs on one thread too
+    while a stage computes.
+    """
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
 
 # ----------------------------------------------------------------------------- bags
 def expand_bag_dirs(paths) -> list[Path]:
@@ -318,6 +341,9 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
     ------
     ValueError
         Unknown stage, no views, or a stage that cannot compute (the reason in the message).
+
+    The same views and calibration give the same result to the last bit: the solver runs with
+    OpenCV on one thread (:func:`opencv_single_thread`).
     """
     registry.stage(stage)
     views = list(views)
@@ -328,7 +354,8 @@ def compute(stage: str, views: Sequence[CaptureView], calibration,
             raise ValueError(f'views[{i}] must be a CaptureView, got {type(v).__name__}')
     if not hasattr(calibration, 'model'):
         raise ValueError('calibration must be a reconstructor.calibration_file.Calibration')
-    result = registry.run(stage, views, calibration, progress, inputs)
+    with opencv_single_thread():
+        result = registry.run(stage, views, calibration, progress, inputs)
     result.extra['coverage'] = coverage(result, views)
     log.info(coverage_line(stage, result.extra['coverage']))
     return result
