@@ -105,8 +105,10 @@ def _perp(v) -> tuple[np.ndarray, np.ndarray]:
     return a, np.cross(v, a)
 
 
-class _Laser:
-    """The minimal parameters about a starting model, and the models they give."""
+class LaserParameters:
+    """The laser's minimal parameters about a starting model (module docstring), and the
+    models they give: ``values(x)`` the laser's fields, ``model_at(x)`` the whole model,
+    ``scale`` their typical sizes (:data:`_SCALES`)."""
 
     def __init__(self, model, poly_degree: int) -> None:
         from reconstructor.model import RigModel
@@ -216,7 +218,7 @@ def fit_laser_bundle(model, stripes, *, poly_degree: int = BUNDLE_POLY_DEGREE,
 
     P = np.concatenate([g[0] for g in groups])
     while True:
-        laser = _Laser(model, poly_degree)
+        laser = LaserParameters(model, poly_degree)
         f = residual_fn(laser, P)
         x0 = np.zeros(laser.size)
         r0 = f(x0)
