@@ -64,6 +64,7 @@ from galvoscan_bag.writer import BagWriter
 from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subscription
 from galvoscan_common.diagnostics import publish_periodically
 from galvoscan_common.executor import call_service
+from galvoscan_common.logbridge import forward_python_logging
 from reconstructor import calibration_file
 
 
@@ -545,6 +546,7 @@ def _cap_frames(steps, max_frames):
 def main(args=None):
     rclpy.init(args=args)
     node = CalibrationNode()
+    forward_python_logging(node.get_logger())  # the stages' coverage lines and warnings
     executor = SingleThreadedExecutor()
     executor.add_node(node)
     try:

@@ -57,6 +57,7 @@ from galvo_driver.backend import BackendError
 from galvoscan_common import cdr, intra
 from galvoscan_common.boundary import CallbackErrors, guard_service
 from galvoscan_common.diagnostics import publish_periodically
+from galvoscan_common.logbridge import forward_python_logging
 from galvoscan_common.runtime import freeze_startup_heap, tune_this_process
 
 BACKENDS = ('sim', 'serial', 'replay', 'rig')
@@ -405,9 +406,11 @@ class GalvoDriverNode(LifecycleNode):
             self.make_safe()
         if self._scan['state'] == 'running' and not self.backend.running:
             self._scan['state'] = 'done'
-            self.get_logger().info(
-                f"scan {self._scan['scan_id']} done: {self._scan['done']} frames, "
-                f"{self._scan['dropped']} dropped")
+            done, total = self._scan['done'], self._scan['total']
+            missing = (f"; {total - done} not published ({self._scan['dropped']} of them in "
+                       "sequence gaps; the backend's log says why)" if total > done else '')
+            self.get_logger().info(f"scan {self._scan['scan_id']} done: {done} of {total} "
+                                   f"frames published{missing}")
         if self._scan['state'] != 'running' and not self.backend.running \
                 and self._timer is not None:
             self._set_poll_period(IDLE_POLL_PERIOD)
@@ -567,6 +570,7 @@ def main(args=None):
     tune_this_process()
     rclpy.init(args=args)
     node = GalvoDriverNode()
+    forward_python_logging(node.get_logger())  # the backends' and serial link's logging
     executor = rclpy.executors.SingleThreadedExecutor()
     executor.add_node(node)
     freeze_startup_heap()

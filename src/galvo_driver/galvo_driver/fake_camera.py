@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import json
 import os
 import select
 import signal
@@ -76,6 +77,8 @@ _REG_TRIGGER_SOURCE_SELECTED = 0x310
 _GVBS_USER_DEFINED_NAME = 0xE8
 _GVBS_USER_DEFINED_NAME_SIZE = 16
 _READY = "FAKE_CAMERA_READY"
+#: The child's last stderr line: what became of the line's edges, and the frames it made
+_LINE_REPORT = "FAKE_CAMERA_LINE"
 _GVCP_PORT = 3956
 # A GVCP READREG command (key 0x42, flags, command 0x0080, length 4, request id, address)
 # of the bootstrap version register: harmless, answered by any GigE Vision device.
@@ -384,6 +387,10 @@ class FakeCamera:
         self._xml_dir: tempfile.TemporaryDirectory | None = None
         self._line_port: int | None = None
         self._line_sock: socket.socket | None = None
+        #: After `close`: the child's count of line edges (``edges``, ``taken``, ``missed
+        #: (previous trigger pending)``, ``ignored (not the trigger source)``) and
+        #: ``frames made``; empty before.
+        self.line_report: dict = {}
 
     # -- life cycle ---------------------------------------------------------------------
 
@@ -480,8 +487,15 @@ class FakeCamera:
             pass  # nobody listens (the camera was killed): the edge is lost
 
     def close(self) -> None:
-        """Stop the camera and remove its temporary files."""
-        self._stop(signal.SIGTERM)
+        """Stop the camera and remove its temporary files. What became of the line's
+        edges is then in `line_report`."""
+        err = self._stop(signal.SIGTERM)
+        for line in err.splitlines():
+            if line.startswith(_LINE_REPORT + " "):
+                try:
+                    self.line_report = json.loads(line[len(_LINE_REPORT) + 1:])
+                except ValueError:
+                    pass
         if self._line_sock is not None:
             self._line_sock.close()
             self._line_sock = None
@@ -595,6 +609,8 @@ class _RampFill:
         lib.arv_buffer_set_timestamp.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
         #: Instants [ns] of the line edges taken and not yet turned into a frame, oldest first.
         self.edges: collections.deque = collections.deque()
+        #: Frames filled (made by the streaming thread), line-triggered or not.
+        self.frames = 0
         self._proto = ctypes.CFUNCTYPE(
             None,
             ctypes.c_void_p,
@@ -640,6 +656,7 @@ class _RampFill:
         import numpy as np
 
         lib = self._lib
+        self.frames += 1
         edge = self.edges.popleft() if self.edges else None
         if edge is not None:  # a frame of a line edge: stamped with the edge (exposure start)
             lib.arv_buffer_set_timestamp(buffer, edge)
@@ -724,6 +741,8 @@ def _serve(args: argparse.Namespace) -> int:
         except OSError:
             pass
 
+    counts = collections.Counter()  # what became of the line's edges (stderr at exit)
+
     def trigger_line() -> None:  # the camera's trigger input Line0: one datagram per edge
         pending = False  # a trigger taken and not yet acknowledged by the streaming thread
         while True:
@@ -741,9 +760,14 @@ def _serve(args: argparse.Namespace) -> int:
             if data is None:
                 continue
             edge = int.from_bytes(data[:8], "little") if len(data) >= 8 else time.time_ns()
+            counts["edges"] += 1
             if register(_REG_TRIGGER_MODE) != 1 or register(_REG_TRIGGER_SOURCE_SELECTED) != 0:
+                counts["ignored (not the trigger source)"] += 1
                 continue  # the line is not the trigger source: the edge does nothing
-            if register(_REG_TRIGGER_SOFTWARE) == 0:  # else still busy: this edge is missed
+            if register(_REG_TRIGGER_SOFTWARE) != 0:
+                counts["missed (previous trigger pending)"] += 1
+            else:  # else still busy: this edge is missed
+                counts["taken"] += 1
                 fill.edges.append(edge)
                 cam.write_register(_REG_TRIGGER_SOFTWARE, 1)
                 if args.wake_on_edge:
@@ -765,6 +789,9 @@ def _serve(args: argparse.Namespace) -> int:
     while not stop.wait(0.2):
         pass
     del gv  # stops the GVCP/GVSP thread and closes the sockets
+    counts["frames made"] = fill.frames
+    print(f"{_LINE_REPORT} {json.dumps(dict(counts), sort_keys=True)}", file=sys.stderr,
+          flush=True)
     return 0
 
 

@@ -51,11 +51,14 @@ def run_node(factory, args=None) -> None:
     """``main`` of a process holding one node: settings, init, spin, clean shutdown.
 
     ``factory()`` builds the node after ``rclpy.init``; the process settings of
-    :mod:`galvoscan_common.runtime` are applied first. Ctrl-C and SIGTERM end it normally.
+    :mod:`galvoscan_common.runtime` are applied first, and the libraries' Python logging
+    goes to the node's ROS log (:mod:`galvoscan_common.logbridge`). Ctrl-C and SIGTERM end
+    it normally.
     """
     import rclpy
     from rclpy.executors import ExternalShutdownException
 
+    from galvoscan_common.logbridge import forward_python_logging
     from galvoscan_common.runtime import tune_this_process
 
     tune_this_process()
@@ -63,6 +66,7 @@ def run_node(factory, args=None) -> None:
     node = None
     try:
         node = factory()
+        forward_python_logging(node.get_logger())
         spin_nodes([node])
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
