@@ -19,7 +19,8 @@ One :class:`~galvoscan_common.frame.Frame` per trigger EVENT, with
 * ``seq`` = (frames of previous scans) + the event's trigger index, so a lost event leaves a
   gap in ``seq``; every gap is counted in ``stats['lost_events']``;
 * ``stamp`` = the board's trigger time mapped to ``time.time()`` (offset from the
-  lowest-round-trip GET_STATUS exchange before each scan) plus ``exposure / 2``.
+  lowest-round-trip GET_STATUS exchange before each scan, the board crystal's drift from
+  the EVENT arrivals: :mod:`galvo_driver.serial_link.clock`) plus ``exposure / 2``.
 
 Faults
 ------
@@ -48,6 +49,7 @@ import serial
 
 from galvo_driver.backend import BackendError, GalvoBackend
 from galvo_driver.serial_link import protocol as p
+from galvo_driver.serial_link.clock import BoardClock
 from galvoscan_common.frame import STATUS_FAULT, STATUS_SETTLED, Frame, check_voltages
 
 log = logging.getLogger(__name__)
@@ -141,7 +143,8 @@ class SerialBackend(GalvoBackend):
         self._need_safe = False
         self._link_error: str | None = None
         self._fault: str | None = None
-        self._clock_offset = 0.0
+        self._clock = BoardClock()
+        self._rx_time = 0.0  # time.time() of the last read from the board
         self._last_rx = 0.0
         self._last_board_seq: int | None = None
         self._board_status: p.BoardStatus | None = None
@@ -173,9 +176,18 @@ class SerialBackend(GalvoBackend):
         self._listeners.append(callback)
 
     def board_to_host(self, board_us: float) -> float:
-        """A board clock time [us] in the host's ``time.time()`` base [s], with the offset
-        of the lowest-round-trip GET_STATUS exchange before the last scan (or handshake)."""
-        return self._clock_offset + board_us * 1e-6
+        """A board clock time [us] in the host's ``time.time()`` base [s]: the offset of the
+        lowest-round-trip GET_STATUS exchange before the last scan (or handshake), and the
+        board crystal's drift since, from the EVENT arrivals (:mod:`.clock`)."""
+        with self._cond:
+            return self._clock.to_host(board_us)
+
+    @property
+    def board_clock_drift_ppm(self) -> float:
+        """The host clock's rate against the board's, minus one [ppm]; 0 until a few
+        seconds of trigger events have been seen (:class:`.clock.BoardClock`)."""
+        with self._cond:
+            return self._clock.drift_ppm
 
     @property
     def boot_id(self) -> int | None:
@@ -502,7 +514,8 @@ class SerialBackend(GalvoBackend):
             self._info = info
             self._boot_id = info.boot_id
             self._session_lost = False
-            self._clock_offset = (t0 + t1) / 2 - info.uptime_us * 1e-6
+            self._clock.reset()  # a new session: the board may have restarted its clock
+            self._clock.sync((t0 + t1) / 2 - info.uptime_us * 1e-6, info.uptime_us)
         status = self._sync_clock(self._abort_gen)
         # Never reuse the board's current scan id: stale STATUS cannot match a new scan.
         self._next_scan_id = (status.scan_id + 1) & 0xFFFF
@@ -519,7 +532,7 @@ class SerialBackend(GalvoBackend):
             if best is None or t1 - t0 < best[0]:
                 best = (t1 - t0, (t0 + t1) / 2 - st.uptime_us * 1e-6, st)
         with self._cond:
-            self._clock_offset = best[1]
+            self._clock.sync(best[1], best[2].uptime_us)
         return best[2]
 
     def _next_seq(self) -> int:
@@ -607,6 +620,7 @@ class SerialBackend(GalvoBackend):
             return
         self._session_lost = True
         self._counters['board_resets'] += 1
+        self._clock.reset()
         scan = self._scan
         if scan is not None and scan.active:
             log.error('board reset during scan %d (%s; new boot %08x) after %d of %d frames: '
@@ -647,6 +661,7 @@ class SerialBackend(GalvoBackend):
                     self._on_link_lost(f'read failed: {err}')
                 return
             if data:
+                self._rx_time = time.time()
                 for pkt in self._decoder.feed(data):
                     if self._listeners and isinstance(pkt.msg, (p.Event, p.Boot, p.Status)):
                         self._notify(pkt.msg)
@@ -695,6 +710,7 @@ class SerialBackend(GalvoBackend):
                 self._board_reset(ev.boot_id, 'EVENT from a new boot')
             self._counters['rejected_events'] += 1
             return
+        self._clock.arrival(self._rx_time, ev.timestamp_us)
         scan = self._scan
         if (scan is None or not scan.active or not scan.start_sent
                 or ev.scan_id != scan.scan_id or ev.index >= scan.n
@@ -715,7 +731,7 @@ class SerialBackend(GalvoBackend):
                       ev.index, ev.codes, tuple(int(c) for c in commanded))
         self._frames.append(Frame(
             seq=scan.seq_base + ev.index,
-            stamp=self._clock_offset + ev.timestamp_us * 1e-6 + 0.5 * self.exposure,
+            stamp=self._clock.to_host(ev.timestamp_us) + 0.5 * self.exposure,
             voltages=p.codes_to_volts(np.array(ev.codes, dtype=np.int64)),
             laser_on=ev.laser_on, status=status, image=None))
         scan.next_index = ev.index + 1
