@@ -20,7 +20,8 @@ One :class:`~galvoscan_common.frame.Frame` per trigger EVENT, with
   gap in ``seq``; every gap is counted in ``stats['lost_events']``;
 * ``stamp`` = the board's trigger time mapped to ``time.time()`` (offset from the
   lowest-round-trip GET_STATUS exchange before each scan, the board crystal's drift from
-  the EVENT arrivals: :mod:`galvo_driver.serial_link.clock`) plus ``exposure / 2``.
+  the arrivals of the STATUS answering every heartbeat and of the EVENTs:
+  :mod:`galvo_driver.serial_link.clock`) plus ``exposure / 2``.
 
 Faults
 ------
@@ -178,14 +179,15 @@ class SerialBackend(GalvoBackend):
     def board_to_host(self, board_us: float) -> float:
         """A board clock time [us] in the host's ``time.time()`` base [s]: the offset of the
         lowest-round-trip GET_STATUS exchange before the last scan (or handshake), and the
-        board crystal's drift since, from the EVENT arrivals (:mod:`.clock`)."""
+        board crystal's drift since, from the arrivals of its STATUS and EVENT messages
+        (:mod:`.clock`)."""
         with self._cond:
             return self._clock.to_host(board_us)
 
     @property
     def board_clock_drift_ppm(self) -> float:
-        """The host clock's rate against the board's, minus one [ppm]; 0 until a few
-        seconds of trigger events have been seen (:class:`.clock.BoardClock`)."""
+        """The host clock's rate against the board's, minus one [ppm]; 0 for the first
+        2 s after the handshake (:class:`.clock.BoardClock`)."""
         with self._cond:
             return self._clock.drift_ppm
 
@@ -745,6 +747,7 @@ class SerialBackend(GalvoBackend):
         if self._boot_id is not None and st.boot_id != self._boot_id:
             self._board_reset(st.boot_id, 'STATUS from a new boot')
             return
+        self._clock.arrival(self._rx_time, st.uptime_us)  # every heartbeat's answer
         self._board_status = st
         scan = self._scan
         if scan is None or not scan.active or not scan.started or st.scan_id != scan.scan_id:

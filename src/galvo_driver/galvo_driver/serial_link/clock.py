@@ -7,10 +7,12 @@ the stamps away from the host's time: +200 ppm is 0.2 ms per second, 12 ms after
 of scanning, and the frames of a long scan no longer line up with the robot's poses or any
 other host-stamped data.
 
-The board reports every trigger as an EVENT with its board time; the host reads it some
-latency later, never earlier. So over a stretch of events, the smallest ``host - board``
+The board answers every heartbeat (20 a second) with a STATUS holding its uptime, and
+reports every trigger as an EVENT with its board time; the host reads each some latency
+later, never earlier. So over a stretch of messages, the smallest ``host - board``
 difference follows the clocks' offset, shifted by the link's least latency, and its trend
-is the drift. :class:`BoardClock` keeps that lower envelope in bins of board time and
+is the drift: known 2 s after the handshake, before the first scan.
+:class:`BoardClock` keeps that lower envelope in bins of board time and
 fits a line through the bins' minima: the slope is the drift; the offset stays the one of
 the last sync, so the stamps no longer drift between syncs. The envelope outlives a scan
 (the drift is the crystal's); a jump that two successive bins agree on (a board clock
