@@ -372,6 +372,8 @@ class GalvoDriverNode(LifecycleNode):
                'scan': {k: self._scan[k] for k in ('state', 'done', 'total', 'dropped')}}
         if getattr(self.backend, 'name', '') == 'rig':
             out['rig'] = self.backend.stats  # pairing/<drop kind>, drift_ppm, camera, board
+        elif getattr(self.backend, 'name', '') == 'serial':
+            out['serial'] = self.backend.stats  # lost_events, ..., clock_drift_ppm
         return out
 
     def _tick_boundary(self):

@@ -231,9 +231,11 @@ class SerialBackend(GalvoBackend):
     @property
     def stats(self) -> dict:
         """Counters: lost_events, rejected_events, mismatched_events, retries,
-        board_seq_gaps, board_resets and the decoder's bad-frame counts."""
+        board_seq_gaps, board_resets and the decoder's bad-frame counts; and
+        ``clock_drift_ppm`` (:attr:`board_clock_drift_ppm`)."""
         with self._cond:
             out = dict(self._counters)
+            out['clock_drift_ppm'] = round(self._clock.drift_ppm, 2)
         out.update({f'rx_{k}_errors': v for k, v in self._decoder.errors.items()})
         return out
 
