@@ -32,6 +32,7 @@ log = logging.getLogger('galvoscan.calibration.stage_runner')
 #: Directory names written by the calibration node: one bag per capture step.
 BAG_NAME = re.compile(r'^pose(\d+)_step(\d+)$')
 
+
 @contextlib.contextmanager
 def opencv_single_thread():
     """OpenCV on one thread while the block runs (its thread count restored after).

@@ -764,9 +764,9 @@ def _serve(args: argparse.Namespace) -> int:
             if register(_REG_TRIGGER_MODE) != 1 or register(_REG_TRIGGER_SOURCE_SELECTED) != 0:
                 counts["ignored (not the trigger source)"] += 1
                 continue  # the line is not the trigger source: the edge does nothing
-            if register(_REG_TRIGGER_SOFTWARE) != 0:
+            if register(_REG_TRIGGER_SOFTWARE) != 0:  # still busy: this edge is missed
                 counts["missed (previous trigger pending)"] += 1
-            else:  # else still busy: this edge is missed
+            else:
                 counts["taken"] += 1
                 fill.edges.append(edge)
                 cam.write_register(_REG_TRIGGER_SOFTWARE, 1)
