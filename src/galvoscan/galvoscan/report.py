@@ -309,8 +309,11 @@ def _plot_uncertainty(umap, path):
     for stage, pts in (umap.get('views_u1_V') or {}).items():
         p = np.asarray(pts, dtype=float).reshape(-1, 2)
         marker, colour = _MARKERS.get(stage, ('+', 'y'))
-        ax.scatter(p[:, 0], p[:, 1], s=14, marker=marker, facecolors=colour,
-                   edgecolors='k', linewidths=0.5, label=f'{stage} views ({len(p)})')
+        # a filled marker gets a black outline; a line marker ('x', '+') is its colour alone
+        outline = {} if marker in ('x', '+', '1', '2', '3', '4', '|', '_') else \
+            {'edgecolors': 'k'}
+        ax.scatter(p[:, 0], p[:, 1], s=14, marker=marker, c=colour, linewidths=0.5,
+                   label=f'{stage} views ({len(p)})', **outline)
     ax.set_xlim(-10.5, 10.5)
     ax.set_ylim(-10.5, 10.5)
     ax.set_xlabel('G1 pan voltage [V]')
