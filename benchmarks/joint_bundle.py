@@ -74,10 +74,8 @@ class JointProblem:
     def __init__(self, before, views, staged_model, sigma_stripe_m: float) -> None:
         from calibration_tools.board_geometry import project_circle_centres
         from calibration_tools.laser_bundle import LaserParameters
-        from calibration_tools.laser_plane import board_plane_from_pnp, board_stripe_points
+        from calibration_tools.laser_plane import BoardPoses, board_stripe_points
         from calibration_tools.registry import board_views, stage_options
-        from calibration_tools.small_board import detect_board
-        from calibration_tools.stages import VOLTAGE_TOL
         from reconstructor.model import v0_T_v
         from reconstructor.uncertainty import parameter_covariance, parameter_value
 
@@ -89,21 +87,18 @@ class JointProblem:
         self.obj = board.object_points()
         zero = np.zeros(len(self.obj))
         intr = before.model.intrinsics
+        poses = BoardPoses(bv, board, before.model, 0.5)  # as the stage found them
         boards: dict = {}
         self.stripes = []
-        for s in coll.stripes:  # each stripe's board: a laser-off view, same pose and G1
-            lit = bv[s.view_index]
-            key = next((j for j, w in enumerate(bv) if not w.laser_on
-                        and w.pose_index == lit.pose_index
-                        and np.all(np.abs(np.asarray(w.voltages[:2])
-                                          - np.asarray(lit.voltages[:2])) <= VOLTAGE_TOL)
-                        and detect_board(board, w.image) is not None), None)
-            if key is None:
+        for s in coll.stripes:  # each stripe's board: the laser-off view it was measured on
+            pose, corners, _ = poses.for_view(s.view_index)
+            if pose is None:
                 continue
+            key = id(pose)
             if key not in boards:
-                corners = detect_board(board, bv[key].image)
-                pose = board_plane_from_pnp(corners, self.obj, intr)
-                boards[key] = {'T': pose.V_T_B, 'corners': corners, 'index': len(boards)}
+                boards[key] = {'T': pose.V_T_B,
+                               'corners': np.asarray(corners, float).reshape(-1, 2),
+                               'index': len(boards)}
             T = v0_T_v(before.model, *s.u1)
             p_v = (s.points_v0 - T[:3, 3]) @ T[:3, :3]  # back to V; its pixels, as measured
             uv = project_circle_centres(intr, np.eye(4), p_v, np.zeros(len(p_v)))

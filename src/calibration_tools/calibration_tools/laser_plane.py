@@ -444,7 +444,7 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
     _check_views(views)
     check_small_board(board)
     out = StripeCollection()
-    poses = _BoardPoses(views, board, model, max_pnp_rms_px)
+    poses = BoardPoses(views, board, model, max_pnp_rms_px)
     for i, view in enumerate(views):
         if not view.laser_on:
             continue
@@ -469,8 +469,11 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
     return out
 
 
-class _BoardPoses:
-    """Board pose (PnP) per view, computed once: (pose, corners, '') or (None, None, why)."""
+class BoardPoses:
+    """Board pose (PnP) per view, computed once: (pose, corners, '') or (None, None, why).
+
+    ``for_view(i)`` gives the board under laser-on view ``i`` (:func:`board_stripe_points`
+    uses it; so does ``benchmarks/joint_bundle.py``)."""
 
     def __init__(self, views, board, model, max_pnp_rms_px: float) -> None:
         self.views, self.board, self.model = views, board, model

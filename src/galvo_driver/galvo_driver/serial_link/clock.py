@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 #: Board time per envelope bin [s].
 BIN_S = 0.5
 #: Bins kept (the newest): the drift is fitted over at most this many bins.
@@ -107,26 +109,20 @@ class BoardClock:
         return d - (ref_d + self._slope * (board_s - ref_b))
 
     def _fit(self) -> None:
-        pts = sorted(self._bins.values())
-        if len(pts) < MIN_BINS or pts[-1][0] - pts[0][0] < MIN_SPAN_S:
+        b, d = np.array(sorted(self._bins.values())).T if self._bins else ((), ())
+        if len(b) < MIN_BINS or b[-1] - b[0] < MIN_SPAN_S:
             self._slope = 0.0
             return
+        b, d = b - b.mean(), d - d.mean()  # d is ~1e9 s: centred for precision
         for _ in range(2):  # least squares, then once more without the bins well above it
-            n = len(pts)
-            mb = sum(b for b, _ in pts) / n
-            md = sum(d for _, d in pts) / n
-            sbb = sum((b - mb) ** 2 for b, _ in pts)
-            if sbb <= 0.0:
-                return
-            slope = sum((b - mb) * (d - md) for b, d in pts) / sbb
-            res = [d - md - slope * (b - mb) for b, d in pts]
-            spread = sorted(abs(r) for r in res)[n // 2] * 1.4826
-            keep = [q for q, r in zip(pts, res, strict=True) if r <= 3.0 * spread + 1e-6]
-            if len(keep) == n or len(keep) < MIN_BINS:
+            slope, icpt = np.polyfit(b, d, 1)
+            res = d - icpt - slope * b
+            keep = res <= 3.0 * 1.4826 * float(np.median(np.abs(res))) + 1e-6
+            if keep.all() or keep.sum() < MIN_BINS:
                 break
-            pts = keep
+            b, d = b[keep], d[keep]
         if abs(slope) * 1e6 <= MAX_DRIFT_PPM:
-            self._slope = slope
+            self._slope = float(slope)
 
     @property
     def drift_ppm(self) -> float:
