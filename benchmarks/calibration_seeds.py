@@ -1,5 +1,5 @@
 """Does the calibration drift with the seed? Two seeds, one rig, the calibration's own
-standard errors as the yardstick (issue 17 section 3).
+standard errors as the yardstick.
 
 Run: ``.venv/bin/python benchmarks/calibration_seeds.py [--rig NAME] [--seeds 0 7] [--quick]``
 
@@ -9,7 +9,7 @@ so far, render as the driver's sim backend would, compute, merge). For every cal
 parameter that a stage states a standard error for (``stages.<stage>.standard_errors`` of the
 calibration file) it prints the value and standard error per seed, the simulator's
 model-equivalent truth, and ``|a - b| / sqrt(sa**2 + sb**2)`` between the first two seeds.
-Acceptance (issue 17): cx, cy, l and d within 3 of those combined sigmas.
+Acceptance: cx, cy, l and d within 3 of those combined sigmas.
 
 The same is printed with each parameter's sigma from the chain's joint covariance
 (``stages.<stage>.covariance`` joined by ``reconstructor.uncertainty.parameter_covariance``):

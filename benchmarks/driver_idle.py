@@ -3,7 +3,7 @@
 Starts ``galvo_driver`` in its own process, waits until it is active, lets it sit for
 ``--seconds`` and reads its CPU time (user + system) from ``/proc/PID/stat`` before and after.
 The same is measured in the same run for a bare rclpy node that only spins (the floor any
-node pays), and the ratio is printed. Goal (issue 18): the idle driver under 2 % of a core.
+node pays), and the ratio is printed. Goal: the idle driver under 2 % of a core.
 
     .venv/bin/python benchmarks/driver_idle.py [--seconds 20]
 

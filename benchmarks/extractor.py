@@ -1,4 +1,4 @@
-"""Benchmark and accuracy report of the stripe extractor (issue 5).
+"""Benchmark and accuracy report of the stripe extractor.
 
 Run: ``.venv/bin/python benchmarks/extractor.py [--frames N] [--repeats M]``
 

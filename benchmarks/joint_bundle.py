@@ -3,7 +3,7 @@
 Run: ``.venv/bin/python benchmarks/joint_bundle.py [--rigs 3] [--seed-start 0] [--reference]
 [--max-nfev 100]``
 
-Issue 20 asks for every parameter in one sparse least squares. The calibration estimates the
+Every parameter is asked for in one sparse least squares. The calibration estimates the
 camera (intrinsics, dynamic camera) from circles, then the laser from stripe points placed in
 V0 through that camera, and carries the camera's covariance into the laser's
 (:mod:`reconstructor.uncertainty`). What the staged path leaves out is the stripes' own

@@ -64,7 +64,7 @@ FIGURES = (  # (metrics key, short name, absolute value)
     ('uncertainty_modes_effective', 'uncertainty_modes_effective', False),
 )
 #: The predicted uncertainty is honest on a rig when it is within this factor of the error
-#: measured against the truth (issue 20: on at least 80 % of the rigs).
+#: measured against the truth (on at least 80 % of the rigs).
 UNCERTAINTY_FACTOR = 2.0
 
 

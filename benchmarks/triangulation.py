@@ -6,7 +6,7 @@ same pixels. The rig is the nominal example (not a calibration) with an illustra
 distortion. Prints the figures; the last stdout line is one JSON object with
 ``triangulation_us_per_frame``, ``undistort_us_per_frame`` (medians, microseconds) and
 ``ratio`` (triangulation / cv2 undistortion). The same frame through the physical mirror
-model (issue 20: the reference rig's order of deviations) is timed in the same blocks:
+model (the reference rig's order of deviations) is timed in the same blocks:
 ``physical_us_per_frame`` and ``physical_ratio`` (physical / paper model). Goal: both
 medians <= 100 us.
 

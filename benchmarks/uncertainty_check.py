@@ -18,7 +18,7 @@ within +-8 V on a wall at the depth where the calibrated laser plane crosses V0'
   (``galvoscan.sim_scores.reconstruction_errors``): on the rig as it is (its galvos scatter
   from frame to frame), and on the same rig without that scatter (the calibration's error).
 
-Issue 20 asks for the prediction within a factor of 2 of the measured error on at least 80 %
+The target is the prediction within a factor of 2 of the measured error on at least 80 %
 of the rigs. Both pairs are checked: the point error (total) and the calibration's part.
 One line per rig; the last line of stdout is one JSON object.
 """

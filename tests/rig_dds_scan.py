@@ -33,7 +33,7 @@ SERIAL = 'GSRIGDDS'
 # [1], [Hz]: at 200 Hz the fake camera missed two triggers in three on this 2-core machine
 # (a trigger still pending when the next came) and the driver, rightly, paired none of the
 # frames in half the scans; at 50 Hz it misses 3-31 % and 9-30 frames a scan are published
-# (seventeenth session, 6 scans).
+# (6 scans).
 ROWS, RATE = 100, 50.0
 
 

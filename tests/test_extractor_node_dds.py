@@ -1,4 +1,4 @@
-"""The stripe_extractor node as a real separate process over DDS (issue 5).
+"""The stripe_extractor node as a real separate process over DDS.
 
 Frames + galvo states in (in either order), StripeCenters out with the same stamps and
 voltages and centres near the truth; malformed images give no output, raise the node's

@@ -21,7 +21,7 @@ import pytest
 pytestmark = pytest.mark.dds
 
 SCAN = Path(__file__).with_name('rig_dds_scan.py')
-# Scans at 200 Hz published 0, 0, 7, 0, 16, 41, 13, 0, 10, 0 frames (sixteenth session): the
+# Scans at 200 Hz published 0, 0, 7, 0, 16, 41, 13, 0, 10, 0 frames: the
 # fake camera missed most triggers and the driver paired none of its frames in half the
 # scans (its log now says so: "0 of 300 triggers paired"). At 50 Hz (rig_dds_scan.py) six
 # scans published 30, 29, 9, 30, 10, 24 frames; most runs stop after the first attempt.

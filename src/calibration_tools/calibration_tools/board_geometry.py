@@ -17,7 +17,7 @@ its centre is not the distorted ellipse centre. On the reference rig (k1 = -0.6,
 circles about 60 px across) the difference runs radially inwards from 0.005 px near the
 image centre to 0.022 px at its edge: what the simulator's true centres showed as the
 detector's "bias", and what made the dynamic camera's l 4 sigma off on a rig without galvo
-scatter. :func:`contour_offsets` gives that difference (fifteenth session).
+scatter. :func:`contour_offsets` gives that difference.
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ DESIGN.md section 3 step 2 and the paper's section III (Eqs. 9-16, 18-1):
 ``g1_tilt.theta0`` is never refined: it is unobservable from views (see
 :mod:`calibration_tools.board_fit`).
 
-Gauge (issue 17 section 3). A shift of the principal point along x is a rotation of the
+Gauge. A shift of the principal point along x is a rotation of the
 camera about the pan axis, which ``g1_pan.theta0`` takes up exactly (half the angle: a
 mirror doubles it): the views cannot tell them apart, so the two must not both be free.
 The stage holds the intrinsics as the intrinsics stage pinned them (its lens prior, see

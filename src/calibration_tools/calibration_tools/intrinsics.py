@@ -11,7 +11,7 @@ Outlier views: after each calibration the per-view RMS reprojection error is com
 ``outlier_factor`` times the median view and with ``max_view_rms_px``; the worst offending
 view is dropped and the calibration repeated until no view offends.
 
-Gauge of the narrow field of view (issue 17 section 3). Over a 5-degree field three pairs
+Gauge of the narrow field of view. Over a 5-degree field three pairs
 of parameters are nearly interchangeable, as the correlation matrix of the Jacobian shows
 on the reference rig (30 tilted checkerboard views, 0.023 px noise):
 

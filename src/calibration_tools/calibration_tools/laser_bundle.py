@@ -1,4 +1,4 @@
-"""The laser's bundle adjustment: every stripe point on the boards at once (issue 20 §2).
+"""The laser's bundle adjustment: every stripe point on the boards at once.
 
 The staged laser calibration fits a plane to each G2 voltage's stripes, then a cone (or the
 paper's line) to the planes, then G2's response to the planes' turns, and takes the laser
@@ -273,7 +273,7 @@ def _clustered_covariance(J, r, groups, counts, JtJ) -> np.ndarray:
     :func:`calibration_tools.stages.clustered_covariance`); with too few boards for that,
     one mean square residual per view (``s2 inv(J.T J)``).
 
-    Fifteenth session, against the error measured on the simulator: one sample per view (as
+    Against the error measured on the simulator: one sample per view (as
     before) shrank the stated error by sqrt(3) with three times the lit frames while the
     measured error stayed; one sample per board with the boards' mean square residuals
     overstated it (the frames' own scatter counted as the board's): pooled 1.41 on the

@@ -41,7 +41,7 @@ def opencv_single_thread():
     run: two computes of the same intrinsics views differed in the 14th digit, and the
     dynamic-camera fit, whose l and d lie along a flat valley, carried that to about 1 um in
     l, 0.01 px in fx, and 5 % in the calibration's shape error over the range (reference
-    rig, seventeenth session). One thread makes a stage a function of its data. OpenCV's
+    rig). One thread makes a stage a function of its data. OpenCV's
     thread count is the process's: an extractor in the same process runs on one thread too
     while a stage computes.
     """

@@ -96,7 +96,7 @@ def test_reference_file(tmp_path):
 
 def test_the_simulated_cell_pose_is_recovered():
     """The ideal-image rig with its true model: the sphere swept at 6 positions, the robot
-    reporting them with 10 um noise. Issue 21: within 0.1 mm and 0.01 deg."""
+    reporting them with 10 um noise. Within 0.1 mm and 0.01 deg."""
     from galvoscan.simulated_rig import execute_in_process, truth_calibration
     from galvoscan_sim.rig import load_rig
     from galvoscan_sim.scene import load_scene

@@ -1,4 +1,4 @@
-"""The physical mirror model fitted to circle-board views (issue 20): the deviations a capture
+"""The physical mirror model fitted to circle-board views: the deviations a capture
 determines are recovered within their stated uncertainty; a capture that cannot determine
 them says so instead of giving numbers."""
 

@@ -1,4 +1,4 @@
-"""Standard errors of the calibration and the gauge pinning of the narrow field (issue 17 §3).
+"""Standard errors of the calibration and the gauge pinning of the narrow field.
 
 Synthetic problems only (no rendering), so the noise is known: the stated standard errors
 must match the scatter of the estimates over noise draws, shrink with more data, and the

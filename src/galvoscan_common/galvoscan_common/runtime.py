@@ -1,7 +1,6 @@
 """Process settings for the 500 fps image path: glibc malloc, BLAS threads, Fast DDS.
 
-No rclpy here. Measured on this 2-core machine (``benchmarks/pipeline.py`` and the notes
-of issue 8):
+No rclpy here. Measured on this 2-core machine (``benchmarks/pipeline.py``):
 
 - Every 720x540 image is copied several times per hop (rmw take, Python ``bytes``). glibc
   serves blocks this large with fresh ``mmap`` pages and unmaps them on free, so each copy

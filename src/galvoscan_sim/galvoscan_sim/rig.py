@@ -478,7 +478,7 @@ class Rig:
 
 
     def physical_model_parameters(self, u2_pan: float = 0.0) -> dict:
-        """This rig in the terms of the reconstruction's *physical* mirror model (issue 20).
+        """This rig in the terms of the reconstruction's *physical* mirror model.
 
         Reporting only, like :meth:`true_model_parameters`: the mirrors' actual axes, surface
         offsets and responses re-expressed in that model's gauge (the G1 pan axis along -z

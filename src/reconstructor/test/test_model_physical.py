@@ -1,4 +1,4 @@
-"""The physical mirror model (issue 20): equal to the paper's without deviations, exact on the
+"""The physical mirror model: equal to the paper's without deviations, exact on the
 simulator's rigs, fast enough, and refusing bad descriptions."""
 
 import dataclasses

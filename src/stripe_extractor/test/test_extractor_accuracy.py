@@ -49,7 +49,7 @@ COG = ExtractorConfig(method='center_of_gravity', line_width_px=2.0 * FWHM_PER_S
 
 
 def test_issue_target_sigma2_noise4():
-    """Issue 5 target: sigma 2 px stripe, read noise 4 DN: RMS <= 0.02 px, >= 99.5 % found."""
+    """Target: sigma 2 px stripe, read noise 4 DN: RMS <= 0.02 px, >= 99.5 % found."""
     rms, cov, _ = _evaluate(_frames(3, 4.0, seed=1), STEGER)
     assert cov >= 0.995
     assert rms <= 0.02

@@ -1,5 +1,5 @@
 """Robustness of the stripe extractor: empty frames, clipping, speckle, secondary reflections,
-occlusion, widths 1..6 px, 8/16-bit, orientation and input validation (issue 5)."""
+occlusion, widths 1..6 px, 8/16-bit, orientation and input validation."""
 
 import numpy as np
 import pytest

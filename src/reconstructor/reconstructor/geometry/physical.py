@@ -1,4 +1,4 @@
-"""The physical mirror model (issue 20): each galvo mirror as a plane turning about its axis.
+"""The physical mirror model: each galvo mirror as a plane turning about its axis.
 
 The paper's model (DESIGN.md §2) idealises Galvanometer-1 as two mirrors whose surfaces
 contain their rotation axes, the pan axis along G's z, the tilt axis along G's x through
