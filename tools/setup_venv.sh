@@ -81,6 +81,33 @@ step_src() {
   "$PY" -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation --use-pep517 "${args[@]}"
 }
 
+# How long apt-get waits for another package manager (an unattended upgrade, another
+# apt-get) to release the dpkg lock before it gives up [s]; APT_LOCK_TIMEOUT overrides it.
+APT_LOCK_TIMEOUT=${APT_LOCK_TIMEOUT:-600}
+
+# Run apt-get with the lock timeout, its output in a log; on failure say what to do.
+apt_get() {
+  local log
+  log=$(mktemp)
+  if "${sudo[@]}" apt-get -o "DPkg::Lock::Timeout=$APT_LOCK_TIMEOUT" "$@" >"$log" 2>&1; then
+    rm -f "$log"; return 0
+  fi
+  if grep -qiE 'could not get lock|unable to acquire the dpkg|lock-frontend|is held by process' "$log"; then
+    echo "[setup] apt-get $1: the dpkg lock is still held by another process after waiting" \
+         "${APT_LOCK_TIMEOUT} s:"
+    grep -iE 'lock' "$log" | head -3 | sed 's/^/[setup]   /'
+    echo "[setup] another package manager is running (an unattended upgrade, another apt-get)." \
+         "Wait until it has finished (ps -C apt,apt-get,dpkg,unattended-upgr), then run the" \
+         "same make command again; or wait longer: APT_LOCK_TIMEOUT=1800 make test"
+  else
+    tail -20 "$log" | sed 's/^/[setup]   /'
+    echo "[setup] apt-get $* failed (above); install the packages of tools/apt-packages.txt" \
+         "yourself, then run the same make command again"
+  fi
+  rm -f "$log"
+  exit 1
+}
+
 step_apt() {
   local wanted=() missing=()
   mapfile -t wanted < <(grep -vE '^\s*(#|$)' tools/apt-packages.txt)
@@ -88,16 +115,16 @@ step_apt() {
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")
   done
   [ ${#missing[@]} -eq 0 ] && return 0
-  echo "[setup] installing Debian packages: ${missing[*]}"
-  local sudo=()
+  echo "[setup] installing Debian packages: ${missing[*]} (waiting up to ${APT_LOCK_TIMEOUT} s" \
+       "for another package manager to finish)"
+  sudo=()
   if [ "$(id -u)" -ne 0 ]; then
     command -v sudo >/dev/null || { echo "[setup] need root (or sudo) to install: ${missing[*]}"; exit 1; }
     sudo=(sudo)
   fi
   export DEBIAN_FRONTEND=noninteractive
-  "${sudo[@]}" apt-get update -qq >/dev/null \
-    && "${sudo[@]}" apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null \
-    || { echo "[setup] apt-get install ${missing[*]} failed"; exit 1; }
+  apt_get update -qq
+  apt_get install -y -qq --no-install-recommends "${missing[@]}"
 }
 
 step_web() {
