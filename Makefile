@@ -20,7 +20,7 @@ SRC_META := $(wildcard src/*/setup.py src/*/setup.cfg src/*/package.xml)
 DEMO_OUT ?= out
 PYTEST_ARGS ?=
 
-.PHONY: setup test-deps test lint pytest explore demo clean distclean
+.PHONY: setup test-deps test lint pytest explore demo results clean distclean
 
 setup: $(STAMP_SRC) $(STAMP_WEB)
 	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, tf2_msgs.msg, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan_view, galvoscan' \
@@ -65,6 +65,12 @@ explore: setup
 
 demo: setup
 	$(VENV)/bin/galvoscan demo --out $(DEMO_OUT)
+
+# Measure and rewrite docs/results/: the demo and the benchmarks of a minute or less, each
+# recorded with its command, date, commit and machine (minutes; not part of `make test`).
+# `$(PY) tools/gen_results.py --long` adds the long benchmarks (an hour or more).
+results: setup
+	$(PY) tools/gen_results.py
 
 clean:
 	rm -rf build $(DEMO_OUT) .pytest_cache .ruff_cache

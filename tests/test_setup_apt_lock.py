@@ -27,8 +27,9 @@ while [ $# -gt 0 ]; do
   shift
 done
 if ! flock -w "$timeout" "$FAKE_LOCK" true; then
-  echo "E: Could not get lock /var/lib/dpkg/lock-frontend. It is held by process 4242 (unattended-upgr)" >&2
-  echo "E: Unable to acquire the dpkg frontend lock (/var/lib/dpkg/lock-frontend), is another process using it?" >&2
+  lock=/var/lib/dpkg/lock-frontend
+  echo "E: Could not get lock $lock. It is held by process 4242 (unattended-upgr)" >&2
+  echo "E: Unable to acquire the dpkg frontend lock ($lock), is another process using it?" >&2
   exit 100
 fi
 '''

@@ -25,9 +25,11 @@ from __future__ import annotations
 import importlib
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,6 +115,66 @@ def with_sim_starting_calibration(params_file, nodes, workdir) -> str | None:
     return str(out)
 
 
+def with_reconstructor_calibration(params_file, nodes, workdir) -> str | None:
+    """The parameters file to start ``nodes`` with, the reconstructor given a calibration.
+
+    When the reconstructor is among ``nodes``, its ``calibration_file`` is empty and the
+    driver simulates a rig (backend ``sim``, the default), this gives it the calibration that
+    ``galvoscan demo`` or ``galvoscan calibrate`` wrote last for that rig
+    (:mod:`galvoscan.calibration_memory`), or else the rig's design values
+    (:func:`galvoscan.simulated_rig.nominal_calibration`, written to ``workdir``), and logs
+    which. Otherwise ``params_file`` is returned unchanged, and a reconstructor without a
+    calibration on a real rig is named in a warning.
+
+    Raises
+    ------
+    ValueError
+        An unreadable parameters file or an unknown rig.
+    """
+    params = load_params(params_file)
+    if 'reconstructor' not in nodes:
+        return params_file
+    recon = dict(params.get('reconstructor', {}).get('ros__parameters', {}))
+    driver = params.get('galvo_driver', {}).get('ros__parameters', {})
+    if recon.get('calibration_file'):
+        log.info('reconstructor uses the calibration file of the parameters: %s',
+                 recon['calibration_file'])
+        return params_file
+    if driver.get('backend', 'sim') != 'sim':
+        log.warning('the reconstructor has no calibration_file: it skips every frame until '
+                    'one is loaded (set reconstructor: calibration_file in the parameters)')
+        return params_file
+    from galvoscan import calibration_memory
+
+    rig = driver.get('rig', 'reference')
+    record = calibration_memory.last(rig)
+    if record is not None:
+        recon['calibration_file'] = record['path']
+        log.info('reconstructor uses the calibration %s wrote last: %s (sim rig %s, %s)',
+                 record.get('written_by', 'galvoscan'), record['path'], rig,
+                 record.get('written_at', ''))
+    else:
+        from galvoscan.simulated_rig import nominal_calibration
+        from reconstructor import calibration_file
+
+        try:
+            nominal = nominal_calibration(rig)
+        except OSError as exc:
+            raise ValueError(f'rig {rig}: {exc}') from None
+        workdir = Path(workdir)
+        workdir.mkdir(parents=True, exist_ok=True)
+        start = workdir / 'design_values.yaml'
+        calibration_file.save(nominal, start)
+        recon['calibration_file'] = str(start)
+        log.info('reconstructor uses the design values of sim rig %s: no calibration has been '
+                 'made for it yet (make demo, or galvoscan calibrate all --sim, makes one)', rig)
+    params['reconstructor'] = {'ros__parameters': recon}
+    out = Path(workdir) / 'params_reconstructor.yaml'
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump(params, sort_keys=False))
+    return str(out)
+
+
 def _bin(script: str) -> str:
     """The console script installed beside this interpreter (the venv's bin/)."""
     candidate = Path(sys.executable).with_name(script)
@@ -132,8 +194,10 @@ class Supervisor:
     """Start nodes as separate processes, watch them, stop them cleanly."""
 
     def __init__(self, nodes, params_file=None, respawn=False, max_respawns=3,
-                 env=None, log_dir=None):
+                 env=None, log_dir=None, echo=False):
         self.params_file = str(params_file) if params_file else None
+        #: with ``log_dir``: also print each node's lines other than INFO and DEBUG to stderr
+        self.echo = echo
         self.respawn = respawn
         self.max_respawns = max_respawns
         self.env = child_env(env)
@@ -160,9 +224,15 @@ class Supervisor:
             out = open(self.log_dir / f'{child.name}.log', 'ab')  # noqa: SIM115
         # a supervisor killed with SIGKILL takes its nodes with it: each gets SIGTERM and
         # runs its safe-state shutdown (the driver leaves the galvos at 0 V, laser off)
-        child.proc = subprocess.Popen(child.argv, env=self.env, stdout=out,
+        child.proc = subprocess.Popen(child.argv, env=self.env,
+                                      stdout=subprocess.PIPE if out and self.echo else out,
                                       stderr=subprocess.STDOUT if out else None,
                                       preexec_fn=die_with_parent(signal.SIGTERM))
+        if out and self.echo:
+            threading.Thread(target=tee_output, args=(child.proc.stdout, out, child.name),
+                             name=f'{child.name}_output', daemon=True).start()
+        elif out:
+            out.close()  # the child holds its own descriptor
         child.started = time.monotonic()
         log.info('started %s (pid %d)', child.name, child.proc.pid)
 
@@ -219,6 +289,31 @@ class Supervisor:
                 time.sleep(0.05)
             if sig == signal.SIGKILL:
                 remove_zombies()
+
+
+#: a ROS console line's level tag, e.g. ``[INFO] [1764272400.123456789] [reconstructor]: ...``
+_QUIET_LEVEL = re.compile(rb'^\[(INFO|DEBUG)\]')
+
+
+def tee_output(stream, log_file, name, console=None):
+    """Copy a child's output to its log file; print every line but INFO and DEBUG to stderr.
+
+    A node's warnings, errors and anything it prints outside the ROS logger (a traceback)
+    reach the console of ``galvoscan run``, prefixed ``[name]``; its INFO lines stay in the
+    log file. Returns at the end of ``stream`` and closes ``log_file``.
+    """
+    console = console or sys.stderr
+    try:
+        for line in iter(stream.readline, b''):
+            log_file.write(line)
+            log_file.flush()
+            if line.strip() and not _QUIET_LEVEL.match(line):
+                text = line.decode('utf-8', 'replace').rstrip('\n')
+                print(f'[{name}] {text}', file=console, flush=True)
+    except (OSError, ValueError):
+        pass  # the console or the log went away while stopping
+    finally:
+        log_file.close()
 
 
 def remove_zombies():

@@ -52,17 +52,20 @@ def _run(argv):
     parser.add_argument('--duration', type=float, help='stop after this many seconds')
     parser.add_argument('--respawn', action='store_true',
                         help='restart a node that exits unexpectedly (separate processes)')
-    parser.add_argument('--log-dir', help='write each child process log here')
+    parser.add_argument('--log-dir', help="write each node's output to DIR/<node>.log (its "
+                        'warnings and errors are printed here too)')
     args = parser.parse_args(argv)
     nodes = [n for n in args.nodes.split(',') if n]
     try:
         # refuse a bad file before starting anything
         workdir = tempfile.mkdtemp(prefix='galvoscan-run-')
         params = bringup.with_sim_starting_calibration(args.params, nodes, workdir)
+        params = bringup.with_reconstructor_calibration(params, nodes, workdir)
         if args.one_process:
             bringup.run_one_process(nodes, params, args.duration)
             return 0
-        sup = bringup.Supervisor(nodes, params, respawn=args.respawn, log_dir=args.log_dir)
+        sup = bringup.Supervisor(nodes, params, respawn=args.respawn, log_dir=args.log_dir,
+                                 echo=True)
     except ValueError as exc:
         print(f'galvoscan run: {exc}', file=sys.stderr)
         return 2
@@ -83,8 +86,15 @@ def main(argv=None):
     if command == 'run':
         return _run(rest)
     if command == 'demo':
-        return _delegate(DELEGATED['evaluate'], ['--demo', *rest])
-    return _delegate(DELEGATED[command], rest)
+        rc = _delegate(DELEGATED['evaluate'], ['--demo', *rest])
+    else:
+        rc = _delegate(DELEGATED[command], rest)
+    if rc == 0 and command in ('demo', 'calibrate'):
+        # `galvoscan run` on this simulated rig starts its reconstructor from this calibration
+        from galvoscan.calibration_memory import remember_from_command
+
+        remember_from_command(command, rest)
+    return rc
 
 
 if __name__ == '__main__':
