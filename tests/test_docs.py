@@ -38,7 +38,7 @@ def test_there_are_runnable_blocks():
     assert len(list(runnable_blocks())) >= 3
 
 
-@pytest.mark.parametrize('script', runnable_blocks())
+@pytest.mark.parametrize('script', list(runnable_blocks()))
 def test_a_runnable_block_runs_as_written(script, tmp_path):
     env = dict(os.environ, PATH=f'{Path(sys.executable).parent}:{os.environ["PATH"]}',
                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')

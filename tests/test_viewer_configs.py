@@ -127,8 +127,8 @@ def test_the_rviz_config_shows_what_the_graph_publishes():
 
 def test_the_checks_see_a_topic_no_node_publishes():
     reference = REFERENCE.read_text()
-    assert 'points' in published(reference) and 'galvo/state' in published(reference)
-    assert 'points_typo' not in published(reference)
+    assert '/points' in published(reference) and '/galvo/state' in published(reference)
+    assert '/points_typo' not in published(reference)
     layout = {'configById': {'Image!x': {'imageMode': {'imageTopic': '/camera/image_typo'}}}}
     assert layout_topics(layout) == {'/camera/image_typo'}
     assert '/camera/image_typo' not in foxglove_channels()

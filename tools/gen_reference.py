@@ -104,7 +104,8 @@ def _fields(cls, part: str, comments) -> str:
 
 
 def _unit(description: str) -> str:
-    m = re.search(r'\[([^\[\]]+)\]\s*\.?\s*$', description)
+    """The first bracketed unit of a description (``[Hz]``, ``[m]``, ``[1]``), or ''."""
+    m = re.search(r'\[([^\[\]]{1,12})\]', description)
     return m.group(1) if m else ''
 
 
@@ -155,20 +156,21 @@ def node_section(node, script, note) -> list[str]:
         lines.append('')
     services, lifecycle = [], False
     for srv in node.services:
-        base = srv.srv_name.rsplit('/', 1)[-1]
-        if srv.srv_name.startswith(f'/{name}/') and base in STANDARD_SERVICES:
+        full = node.resolve_service_name(srv.srv_name)
+        own, _, base = full.rpartition('/')
+        if own == f'/{name}' and base in STANDARD_SERVICES:
             continue
-        if srv.srv_name.startswith(f'/{name}/') and base in LIFECYCLE_SERVICES:
+        if own == f'/{name}' and base in LIFECYCLE_SERVICES:
             lifecycle = True
             continue
-        services.append(srv)
+        services.append((full, srv))
     lines += ['**Services**', '']
     if services:
         lines += ['| service | type | request | response |', '|---|---|---|---|']
-        for srv in sorted(services, key=lambda s: s.srv_name):
+        for full, srv in sorted(services, key=lambda s: s[0]):
             tname = _type_name(srv.srv_type)
             comments = _srv_comments(tname)
-            lines.append(f'| `{srv.srv_name}` | `{tname}` | '
+            lines.append(f'| `{full}` | `{tname}` | '
                          f'{_fields(srv.srv_type.Request, "request", comments)} | '
                          f'{_fields(srv.srv_type.Response, "response", comments)} |')
     else:
