@@ -142,23 +142,48 @@ def test_the_reconstructor_starts_from_the_last_calibration_of_its_rig_or_design
     assert bringup.with_reconstructor_calibration(real, nodes, tmp_path / 'run') == real
 
 
-def test_a_nodes_warnings_and_errors_reach_the_console_and_the_log(tmp_path):
+def test_a_nodes_warnings_and_errors_reach_the_console(tmp_path):
     import io
-    import os
+    import threading
 
-    read_fd, write_fd = os.pipe()
-    with os.fdopen(write_fd, 'wb') as w:
-        w.write(b'[INFO] [1.0] [reconstructor]: loaded\n'
-                b'[ERROR] [1.1] [reconstructor]: no calibration_file given\n'
-                b'[WARN] [1.2] [reconstructor]: skipping frame: laser_off\n'
-                b'Traceback (most recent call last):\n  File "x.py", line 1\n')
+    log = tmp_path / 'reconstructor.log'
+    log.write_bytes(b'[INFO] [0.9] [reconstructor]: from an earlier run\n')
+    start = log.stat().st_size
+    done = threading.Event()
     console = io.StringIO()
-    log = open(tmp_path / 'reconstructor.log', 'wb')  # noqa: SIM115 - tee closes it
-    with os.fdopen(read_fd, 'rb') as r:
-        bringup.tee_output(r, log, 'reconstructor', console)
+    follower = threading.Thread(target=bringup.follow_log, args=(
+        log, start, 'reconstructor', done.is_set, console, 0.01))
+    follower.start()
+    with open(log, 'ab') as node:               # the node writes as it goes, half lines too
+        for chunk in (b'[INFO] [1.0] [reconstructor]: loaded\n[ERROR] [1.1] [recon',
+                      b'structor]: no calibration_file given\n',
+                      b'[WARN] [1.2] [reconstructor]: skipping frame: laser_off\n',
+                      b'Traceback (most recent call last):\n  File "x.py", line 1'):
+            node.write(chunk)
+            node.flush()
+            time.sleep(0.05)
+    done.set()
+    follower.join(5)
+    assert not follower.is_alive()
     assert console.getvalue().splitlines() == [
         '[reconstructor] [ERROR] [1.1] [reconstructor]: no calibration_file given',
         '[reconstructor] [WARN] [1.2] [reconstructor]: skipping frame: laser_off',
         '[reconstructor] Traceback (most recent call last):',
         '[reconstructor]   File "x.py", line 1']
-    assert (tmp_path / 'reconstructor.log').read_bytes().count(b'\n') == 5 and log.closed
+
+
+def test_galvoscan_run_prints_a_nodes_error_that_its_log_file_holds(spawn, tmp_path):
+    import yaml
+
+    params = tmp_path / 'params.yaml'
+    params.write_text(yaml.safe_dump({'reconstructor': {'ros__parameters': {
+        'calibration_file': str(tmp_path / 'no_such_calibration.yaml')}}}))
+    run = spawn([*GALVOSCAN, 'run', '--nodes', 'reconstructor', '--params', params,
+                 '--log-dir', tmp_path / 'logs'], name='galvoscan_run')
+    deadline = time.monotonic() + 60
+    line = re.compile(r'^\[reconstructor\] \[(ERROR|WARN)\].*no_such_calibration', re.M)
+    while not line.search(run.log_path.read_text()):
+        assert time.monotonic() < deadline and run.poll() is None, run.log_path.read_text()
+        time.sleep(0.2)
+    assert 'no_such_calibration' in (tmp_path / 'logs' / 'reconstructor.log').read_text()
+    assert '[reconstructor] [INFO]' not in run.log_path.read_text()

@@ -224,15 +224,17 @@ class Supervisor:
             out = open(self.log_dir / f'{child.name}.log', 'ab')  # noqa: SIM115
         # a supervisor killed with SIGKILL takes its nodes with it: each gets SIGTERM and
         # runs its safe-state shutdown (the driver leaves the galvos at 0 V, laser off)
-        child.proc = subprocess.Popen(child.argv, env=self.env,
-                                      stdout=subprocess.PIPE if out and self.echo else out,
+        start = out.tell() if out else 0
+        child.proc = subprocess.Popen(child.argv, env=self.env, stdout=out,
                                       stderr=subprocess.STDOUT if out else None,
                                       preexec_fn=die_with_parent(signal.SIGTERM))
-        if out and self.echo:
-            threading.Thread(target=tee_output, args=(child.proc.stdout, out, child.name),
-                             name=f'{child.name}_output', daemon=True).start()
-        elif out:
-            out.close()  # the child holds its own descriptor
+        if out:
+            out.close()  # the child writes to its own descriptor, whatever becomes of us
+            if self.echo:
+                proc = child.proc
+                threading.Thread(target=follow_log, name=f'{child.name}_log', daemon=True,
+                                 args=(out.name, start, child.name,
+                                       lambda: proc.poll() is not None)).start()
         child.started = time.monotonic()
         log.info('started %s (pid %d)', child.name, child.proc.pid)
 
@@ -295,25 +297,39 @@ class Supervisor:
 _QUIET_LEVEL = re.compile(rb'^\[(INFO|DEBUG)\]')
 
 
-def tee_output(stream, log_file, name, console=None):
-    """Copy a child's output to its log file; print every line but INFO and DEBUG to stderr.
+def follow_log(path, offset: int, name: str, finished, console=None, poll_s: float = 0.1):
+    """Print a node's log lines other than INFO and DEBUG to stderr as the node writes them.
 
-    A node's warnings, errors and anything it prints outside the ROS logger (a traceback)
-    reach the console of ``galvoscan run``, prefixed ``[name]``; its INFO lines stay in the
-    log file. Returns at the end of ``stream`` and closes ``log_file``.
+    The node writes its output straight into its log file (so nothing is lost if the
+    supervisor dies); this follows the file from ``offset`` and prints its warnings, errors
+    and anything written outside the ROS logger (a traceback), prefixed ``[name]``, until
+    ``finished()`` is true and the file has no more lines.
     """
     console = console or sys.stderr
+
+    def emit(line: bytes):
+        if line.strip() and not _QUIET_LEVEL.match(line):
+            text = line.decode('utf-8', 'replace').rstrip('\n')
+            print(f'[{name}] {text}', file=console, flush=True)
+
     try:
-        for line in iter(stream.readline, b''):
-            log_file.write(line)
-            log_file.flush()
-            if line.strip() and not _QUIET_LEVEL.match(line):
-                text = line.decode('utf-8', 'replace').rstrip('\n')
-                print(f'[{name}] {text}', file=console, flush=True)
+        with open(path, 'rb') as f:
+            f.seek(offset)
+            pending = b''
+            while True:
+                line = f.readline()
+                if line.endswith(b'\n'):
+                    emit(pending + line)
+                    pending = b''
+                    continue
+                pending += line               # end of the file so far: maybe half a line
+                if finished():
+                    for rest in (pending + f.read()).splitlines():
+                        emit(rest)
+                    return
+                time.sleep(poll_s)
     except (OSError, ValueError):
         pass  # the console or the log went away while stopping
-    finally:
-        log_file.close()
 
 
 def remove_zombies():
