@@ -172,13 +172,14 @@ def test_a_nodes_warnings_and_errors_reach_the_console(tmp_path):
         '[reconstructor]   File "x.py", line 1']
 
 
-def test_galvoscan_run_prints_a_nodes_error_that_its_log_file_holds(spawn, tmp_path):
+def test_a_nodes_error_reaches_the_console_and_the_scan_says_why_no_points_came(
+        spawn, ros_env, tmp_path):
     import yaml
 
     params = tmp_path / 'params.yaml'
     params.write_text(yaml.safe_dump({'reconstructor': {'ros__parameters': {
         'calibration_file': str(tmp_path / 'no_such_calibration.yaml')}}}))
-    run = spawn([*GALVOSCAN, 'run', '--nodes', 'reconstructor', '--params', params,
+    run = spawn([*GALVOSCAN, 'run', '--nodes', 'galvo_driver,reconstructor', '--params', params,
                  '--log-dir', tmp_path / 'logs'], name='galvoscan_run')
     deadline = time.monotonic() + 60
     line = re.compile(r'^\[reconstructor\] \[(ERROR|WARN)\].*no_such_calibration', re.M)
@@ -187,3 +188,10 @@ def test_galvoscan_run_prints_a_nodes_error_that_its_log_file_holds(spawn, tmp_p
         time.sleep(0.2)
     assert 'no_such_calibration' in (tmp_path / 'logs' / 'reconstructor.log').read_text()
     assert '[reconstructor] [INFO]' not in run.log_path.read_text()
+
+    scan = subprocess.run([*GALVOSCAN, 'scan', '--pattern', 'g2_sweep', '--steps-tilt', '3',
+                           '--cloud-timeout', '3'],
+                          env=ros_env, capture_output=True, text=True, timeout=120)
+    assert scan.returncode == 0, scan.stdout + scan.stderr
+    assert 'points/scan: no cloud came back within 3 s: the reconstructor has no calibration ' \
+        'loaded' in scan.stderr, scan.stderr + run.log_path.read_text()
