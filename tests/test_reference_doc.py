@@ -36,6 +36,12 @@ def generated():
 
 def test_the_reference_is_the_code(generated):
     committed = REFERENCE.read_text()
+    gen = _generator()
+    wrote_with = re.search(r'as Python (\d+\.\d+) prints it', committed)
+    if wrote_with is None or wrote_with.group(1) != gen.PYTHON:
+        # argparse words --help differently on another Python: compare the nodes' part only
+        committed = committed.split(gen.COMMANDS_HEADING)[0]
+        generated = generated.split(gen.COMMANDS_HEADING)[0]
     if committed != generated:
         diff = ''.join(list(difflib.unified_diff(
             committed.splitlines(True), generated.splitlines(True), 'docs/reference.md',

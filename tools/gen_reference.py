@@ -36,6 +36,9 @@ LIFECYCLE_SERVICES = ('change_state', 'get_available_states', 'get_available_tra
                       'get_state', 'get_transition_graph')
 STANDARD_TOPICS = ('/parameter_events', '/rosout')
 STANDARD_PARAMETERS = ('use_sim_time', 'start_type_description_service')
+#: the Python whose argparse wrote the commands section
+PYTHON = f'{sys.version_info.major}.{sys.version_info.minor}'
+COMMANDS_HEADING = '## The `galvoscan` command'
 
 #: (node name, console script, "module:Class", how it is started, note)
 NODES = (
@@ -245,7 +248,10 @@ def _help(argv) -> str:
 def commands_section() -> list[str]:
     from galvoscan.cli import DELEGATED
 
-    lines = ['## The `galvoscan` command', '', '```', _help(['--help']), '```', '']
+    lines = [COMMANDS_HEADING, '',
+             f'Each subcommand\'s `--help`, as Python {PYTHON} prints it (argparse words its help '
+             'a little differently from one Python version to the next).', '',
+             '```', _help(['--help']), '```', '']
     commands = ['run', *DELEGATED, 'demo']
     for cmd in commands:
         lines += [f'### `galvoscan {cmd}`', '', '```', _help([cmd, '--help']), '```', '']
@@ -257,8 +263,20 @@ def commands_section() -> list[str]:
 
 
 def generate() -> str:
+    saved = {k: os.environ.get(k) for k in ('COLUMNS', 'ROS_AUTOMATIC_DISCOVERY_RANGE')}
     os.environ['COLUMNS'] = '100'          # argparse wraps --help at the terminal's width
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    try:
+        return _generate()
+    finally:
+        for key, value in saved.items():
+            if value is None:
+                os.environ.pop(key, None)
+            else:
+                os.environ[key] = value
+
+
+def _generate() -> str:
     import random
 
     import rclpy
