@@ -192,8 +192,19 @@ def _benchmark_section(name: str, e: dict | None) -> list[str]:
     if 'error' in e:
         return lines + [f"Not measured: the run failed ({e['error']}).", '']
     lines += ['| figure | value |', '|---|---|']
-    lines += [f'| `{k}` | {_fmt(v)} |' for k, v in e['result'].items()]
+    lines += [f'| `{k}` | {_fmt(v)} |' for k, v in _flat(e['result']).items()]
     return lines + ['']
+
+
+def _flat(d: dict, prefix: str = '') -> dict:
+    """Nested figures as ``a.b.c`` keys, so that each gets a row of its own."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            out.update(_flat(v, f'{prefix}{k}.'))
+        else:
+            out[f'{prefix}{k}'] = v
+    return out
 
 
 def render(store: dict) -> None:
