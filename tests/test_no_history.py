@@ -17,8 +17,8 @@ ROOT = Path(__file__).resolve().parents[1]
 #: what must not appear (case-insensitive)
 HISTORY = re.compile(r'(first|second|third|[a-z]+th) session|issue [0-9]+', re.IGNORECASE)
 
-#: directory names never searched: environments, build output, generated or third-party files
-SKIP_DIRS = {'.venv', '.git', 'node_modules', 'build', 'install', 'log', '__pycache__',
+#: directory names never searched: environments, build and demo output, third-party files
+SKIP_DIRS = {'.venv', '.git', 'node_modules', 'build', 'install', 'log', 'out', '__pycache__',
              '.pytest_cache', '.ruff_cache', '.hypothesis', 'vendor', 'third_party',
              'third-party'}
 #: paths (relative to the root) of third-party files kept in the tree
