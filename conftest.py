@@ -26,6 +26,19 @@ settings.load_profile(os.environ.get('HYPOTHESIS_PROFILE', 'galvoscan'))
 
 
 @pytest.fixture(scope='session', autouse=True)
+def _private_state_dir(tmp_path_factory):
+    """The suite's own state directory: a calibration that a test's demo or calibrate records
+    must neither reach the user's ``galvoscan run`` nor another test's."""
+    previous = os.environ.get('GALVOSCAN_STATE_DIR')
+    os.environ['GALVOSCAN_STATE_DIR'] = str(tmp_path_factory.mktemp('galvoscan-state'))
+    yield
+    if previous is None:
+        os.environ.pop('GALVOSCAN_STATE_DIR', None)
+    else:
+        os.environ['GALVOSCAN_STATE_DIR'] = previous
+
+
+@pytest.fixture(scope='session', autouse=True)
 def _no_zombie_shm_segments():
     """Tests SIGKILL DDS processes on purpose; remove the shared-memory segments they leave."""
     yield
