@@ -29,6 +29,7 @@
  *   trig 0|1 | laser 0|1 | interlock open|closed | rx <hex> | tx <hex frame> | end
  */
 #define _GNU_SOURCE
+#include <dlfcn.h>
 #include <errno.h>
 #include <stdarg.h>
 #include <fcntl.h>
@@ -41,6 +42,7 @@
 #include <unistd.h>
 
 #include "avr_eeprom.h"
+#include "avr_extint.h"
 #include "avr_ioport.h"
 #include "avr_uart.h"
 #include "sim_avr.h"
@@ -567,6 +569,9 @@ int main(int argc, char **argv)
     avr_irq_register_notify(pin_irq('B', 5), trig_hook, NULL);
     avr_irq_register_notify(pin_irq('A', 0), laser_hook, NULL);
     interlock_irq = pin_irq('E', 4);
+    /* simavr polls a low INT pin every cycle while its "strict level trigger" is on, even
+     * after the firmware chose edge triggering: off (INT4 is an any-change interrupt). */
+    avr_extint_set_strict_lvl_trig(avr, 4, 0);
 
     uint32_t flags = 0;
     avr_ioctl(avr, AVR_IOCTL_UART_GET_FLAGS('0'), &flags);
@@ -635,6 +640,12 @@ int main(int argc, char **argv)
         }
     }
     logline("end");
+    if (getenv("GALVO_HARNESS_STATS"))
+        for (avr_cycle_timer_slot_p t = avr->cycle_timers.timer; t; t = t->next) {
+            Dl_info d;
+            dladdr((void *)t->timer, &d);
+            fprintf(stderr, "  %s %s+%lx when %llu now %llu\n", d.dli_fname, d.dli_sname ? d.dli_sname : "?", (unsigned long)((char *)(void *)t->timer - (char *)d.dli_fbase), (unsigned long long)t->when, (unsigned long long)avr->cycle);
+        }
     const char *dump = getenv("GALVO_HARNESS_DUMP");
     if (dump) {
         FILE *f = fopen(dump, "wb");

@@ -49,6 +49,8 @@ int16_t link_getc(void)
     return b;
 }
 
+uint8_t link_rx_pending(void) { return rx_head != rx_tail; }
+
 void link_write(const uint8_t *data, uint16_t n)
 {
     for (uint16_t i = 0; i < n; i++) {

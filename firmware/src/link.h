@@ -17,6 +17,8 @@
 void link_init(void);
 /* Next received byte, or -1 if none is waiting. */
 int16_t link_getc(void);
+/* 1 if a received byte is waiting. */
+uint8_t link_rx_pending(void);
 /* Queue bytes for transmission; waits while the transmit ring is full. */
 void link_write(const uint8_t *data, uint16_t n);
 

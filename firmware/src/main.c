@@ -22,6 +22,7 @@
 #include <avr/eeprom.h>
 #include <avr/interrupt.h>
 #include <avr/io.h>
+#include <avr/sleep.h>
 #include <string.h>
 
 #include "board.h"
@@ -705,6 +706,7 @@ int main(void)
         send(T_BOOT, info, pack_info(info));
     }
     uint8_t interlock_reported = 0;
+    set_sleep_mode(SLEEP_MODE_IDLE);
     for (;;) {
         poll_rx();
         send_events();
@@ -738,5 +740,15 @@ int main(void)
             send_fault(FAULT_WATCHDOG, 0);
             send_status();
         }
+        /* Idle until the next interrupt (a received byte, a trigger, the interlock, or the
+         * clock's overflow every 32.8 ms, which bounds the watchdog check's delay). */
+        cli();
+        if (!link_rx_pending() && ev_tail == ev_head && !scan_done && !overruns) {
+            sleep_enable();
+            sei();
+            sleep_cpu();
+            sleep_disable();
+        }
+        sei();
     }
 }
