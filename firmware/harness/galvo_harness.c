@@ -21,8 +21,9 @@
  *     outputs, as does a write while /LDAC is held low.
  *   - SPI bytes take 8 SPI clocks at the rate SPCR/SPSR select (simavr 1.6 clocks every
  *     byte in a fixed 100 us; this harness installs its own SPDR write handler).
- *   - camera trigger PB5 (OC1A), laser enable PA0 (pulled down), interlock PE4 (a switch to
- *     GND: closed drives it low, open lets the pull-up win).
+ *   - camera trigger PB5 (OC1A, driven as the chip drives it: see set_trig), laser enable
+ *     PA0 (pulled down), interlock PE4 (a switch to GND: closed drives it low, open lets
+ *     the pull-up win).
  *
  * Log lines ("<cycle> <what> ..."), cycle = AVR clock cycles at 16 MHz since power-up:
  *   boot | dac <24-bit word hex> | out <c0> <c1> <c2> <c3> <powered mask> <range code> |
@@ -209,14 +210,40 @@ static int trig_level, laser_level;
 static long long reset_after_event = -1;
 static int reset_requested;
 
-static void trig_hook(struct avr_irq_t *irq, uint32_t value, void *param)
+static void set_trig(int level)
+{
+    if (level == trig_level)
+        return;
+    trig_level = level;
+    logline("trig %d", level);
+}
+
+/* The trigger pin OC1A as the ATmega2560 drives it: while COM1A selects an output mode, the
+ * compare unit alone sets the pin, at each compare match; otherwise PORTB5 does. simavr 1.6
+ * also applies its PWM-mode "set/clear at overflow" to normal mode (and on every OCR1A
+ * write), so the pin's own IRQ is only believed while COM1A is disconnected, and the
+ * compare matches are taken from the compare interrupt's flag. */
+#define TCCR1A_ADDR 0x80
+static int com1a(void) { return (avr->data[TCCR1A_ADDR] >> 6) & 3; }
+
+static void trig_pin_hook(struct avr_irq_t *irq, uint32_t value, void *param)
 {
     (void)irq; (void)param;
-    value = value ? 1 : 0;
-    if ((int)value == trig_level)
+    if (com1a() == 0)
+        set_trig(value ? 1 : 0);
+}
+
+static void compa_hook(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+    (void)irq; (void)param;
+    if (!value)
         return;
-    trig_level = value;
-    logline("trig %u", value);
+    switch (com1a()) {
+    case 1: set_trig(!trig_level); break;
+    case 2: set_trig(0); break;
+    case 3: set_trig(1); break;
+    default: break;
+    }
 }
 
 static void laser_hook(struct avr_irq_t *irq, uint32_t value, void *param)
@@ -251,18 +278,9 @@ static size_t tx_len;
 static uint8_t to_host[1 << 16];
 static size_t to_host_len;
 
-static void xon_hook(struct avr_irq_t *irq, uint32_t value, void *param)
-{
-    (void)irq; (void)value; (void)param;
-    uart_xon = 1;
-}
-
-static void xoff_hook(struct avr_irq_t *irq, uint32_t value, void *param)
-{
-    (void)irq; (void)param;
-    if (value)
-        uart_xon = 0;
-}
+/* The UART's XOFF line: 1 while its receive FIFO is full or the receiver is off. Its level
+ * is read before each feed (its XON notifications are not a reliable edge to wait for). */
+static avr_irq_t *uart_xoff;
 
 /* The index of an EVENT frame (COBS-decoded), or -1. */
 static long long event_index(const uint8_t *f, size_t n)
@@ -307,9 +325,12 @@ static void uart_out_hook(struct avr_irq_t *irq, uint32_t value, void *param)
 static void feed_uart(avr_irq_t *uart_in)
 {
     size_t start = to_avr_tail;
+    uart_xon = avr_regbit_get(avr, (avr_regbit_t)AVR_IO_REGBIT(0xC1, 4)) /* RXEN0 */
+               && !uart_xoff->value;
     while (uart_xon && to_avr_tail != to_avr_head) {
         avr_raise_irq(uart_in, to_avr[to_avr_tail]);
         to_avr_tail = (to_avr_tail + 1) & (sizeof to_avr - 1);
+        uart_xon = !uart_xoff->value;
     }
     if (logf && to_avr_tail != start) {
         fprintf(logf, "%llu rx ", (unsigned long long)avr->cycle);
@@ -365,6 +386,16 @@ static void pty_poll(void)
     }
 }
 
+/* A sleeping core jumps to its next cycle timer (up to Timer1's overflow, 32.8 ms away);
+ * this timer bounds each jump to one I/O poll interval, so host bytes and pin changes reach
+ * the firmware on time. */
+#define POLL_CYCLES 800u /* 50 us */
+static avr_cycle_count_t poll_tick(avr_t *a, avr_cycle_count_t when, void *param)
+{
+    (void)a; (void)param;
+    return when + POLL_CYCLES;
+}
+
 /* ---- commands and script ----------------------------------------------------------------- */
 static int quit;
 
@@ -372,6 +403,7 @@ static void board_reset(void)
 {
     logline("reset");
     avr_reset(avr);
+    avr_cycle_timer_register(avr, POLL_CYCLES, poll_tick, NULL); /* reset cleared it */
     /* the board's pull-ups / pull-downs hold the lines while the pins float */
     dac.sync = 1;
     dac.ldac = 1;
@@ -481,6 +513,7 @@ static void script_run(void)
 /* ---- main ------------------------------------------------------------------------------------ */
 static void no_sleep(avr_t *a, avr_cycle_count_t how_long) { (void)a; (void)how_long; }
 
+
 static double wall_now(void)
 {
     struct timespec ts;
@@ -566,7 +599,9 @@ int main(int argc, char **argv)
 
     avr_irq_register_notify(pin_irq('L', 0), sync_hook, NULL);
     avr_irq_register_notify(pin_irq('L', 1), ldac_hook, NULL);
-    avr_irq_register_notify(pin_irq('B', 5), trig_hook, NULL);
+    avr_irq_register_notify(pin_irq('B', 5), trig_pin_hook, NULL);
+    avr_irq_register_notify(avr_get_interrupt_irq(avr, 17 /* TIMER1_COMPA */) + AVR_INT_IRQ_PENDING,
+                            compa_hook, NULL);
     avr_irq_register_notify(pin_irq('A', 0), laser_hook, NULL);
     interlock_irq = pin_irq('E', 4);
     /* simavr polls a low INT pin every cycle while its "strict level trigger" is on, even
@@ -580,10 +615,7 @@ int main(int argc, char **argv)
     avr_irq_t *uart_in = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_INPUT);
     avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUTPUT),
                             uart_out_hook, NULL);
-    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XON),
-                            xon_hook, NULL);
-    avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XOFF),
-                            xoff_hook, NULL);
+    uart_xoff = avr_io_getirq(avr, AVR_IOCTL_UART_GETIRQ('0'), UART_IRQ_OUT_XOFF);
 
     if (use_pty) {
         pty_open();
@@ -601,7 +633,8 @@ int main(int argc, char **argv)
     set_interlock(0);
 
     unsigned long long stop_cycle = seconds >= 0 ? (unsigned long long)(seconds * 16e6) : ~0ull;
-    const unsigned chunk = 800; /* 50 us of simulated time between I/O polls */
+    const unsigned chunk = POLL_CYCLES;
+    avr_cycle_timer_register(avr, POLL_CYCLES, poll_tick, NULL);
     double wall0 = wall_now(), last_flush = wall0;
     while (!quit && avr->cycle < stop_cycle) {
         unsigned long long target = avr->cycle + chunk;

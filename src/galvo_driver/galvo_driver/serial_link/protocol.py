@@ -176,6 +176,7 @@ NAK_VERSION = 3
 NAK_BUSY = 4
 NAK_BAD_ARGUMENT = 5
 NAK_TABLE_MISMATCH = 6
+NAK_INTERLOCK = 7
 NAK_REASONS = {
     NAK_BAD_MESSAGE: 'bad message',
     NAK_NO_SESSION: 'no session (HELLO first)',
@@ -183,6 +184,7 @@ NAK_REASONS = {
     NAK_BUSY: 'busy scanning',
     NAK_BAD_ARGUMENT: 'bad argument',
     NAK_TABLE_MISMATCH: 'scan table incomplete or CRC mismatch',
+    NAK_INTERLOCK: 'interlock open',
 }
 
 # Board states (BoardStatus.state).
@@ -193,12 +195,14 @@ STATE_DONE = 3
 STATE_NAMES = {STATE_IDLE: 'idle', STATE_LOADED: 'loaded', STATE_SCANNING: 'scanning',
                STATE_DONE: 'done'}
 FLAG_WATCHDOG = 0x01
+FLAG_INTERLOCK = 0x02
 
 # Fault codes.
 FAULT_WATCHDOG = 1
 FAULT_OVERRUN = 2
+FAULT_INTERLOCK = 3
 FAULT_NAMES = {FAULT_WATCHDOG: 'watchdog (heartbeats stopped)',
-               FAULT_OVERRUN: 'trigger overrun'}
+               FAULT_OVERRUN: 'trigger overrun', FAULT_INTERLOCK: 'interlock opened'}
 
 # Event status (same numbers as galvoscan_common.frame.STATUS_*).
 EVENT_SETTLED = 0
