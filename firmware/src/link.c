@@ -14,8 +14,9 @@ static volatile uint8_t tx_head, tx_tail;
 
 void link_init(void)
 {
-    UBRR0 = UART_UBRR;
+    /* U2X before the rate: simavr 1.6 derives the bit time when UBRR0 is written */
     UCSR0A = _BV(U2X0);
+    UBRR0 = UART_UBRR;
     UCSR0C = _BV(UCSZ01) | _BV(UCSZ00); /* 8 data bits, no parity, 1 stop bit */
     UCSR0B = _BV(RXEN0) | _BV(TXEN0) | _BV(RXCIE0);
 }

@@ -206,8 +206,8 @@ class Script:
     def upload_scan(self, t_us: float, scan_id: int, codes: np.ndarray, period_us: int,
                     laser: bool = True, gap_us: float = 8000.0) -> float:
         """SCAN_BEGIN, the SCAN_DATA chunks and SCAN_START from ``t_us``, one command every
-        ``gap_us`` (a full SCAN_DATA frame takes 5.5 ms through simavr 1.6's UART receiver,
-        which delivers a byte every 22 us at 1 Mbaud); returns the time of SCAN_START."""
+        ``gap_us`` (a full SCAN_DATA frame takes 2.7 ms at 1 Mbaud, 11 bits a byte in simavr
+        1.6, which always counts a parity bit); returns the time of SCAN_START."""
         codes = np.asarray(codes, dtype=np.uint16)
         self.send(t_us, p.ScanBegin(scan_id, len(codes)))
         for off in range(0, len(codes), p.ROWS_PER_CHUNK):
@@ -296,25 +296,29 @@ class SimavrBoard:
             [str(harness), '--pty', '--realtime', '--log', self.log_path,
              '--boot-count', str(self.boot_count), str(elf)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-            text=True)
+            bufsize=0)
+        # unbuffered reads: a buffered reader would swallow the pty line that select waits for
+        out = b''
+        fd = self._proc.stdout.fileno()
         deadline = time.monotonic() + 20.0
         while time.monotonic() < deadline:
-            ready, _, _ = select.select([self._proc.stdout], [], [], 0.5)
+            ready, _, _ = select.select([fd], [], [], 0.5)
             if ready:
-                line = self._proc.stdout.readline()
-                if not line:
+                chunk = os.read(fd, 4096)
+                if not chunk:
                     break
-                if line.startswith('pty '):
-                    self.port = line.split(None, 1)[1].strip()
-                    return self
+                out += chunk
+                for line in out.decode('ascii', 'replace').splitlines():
+                    if line.startswith('pty ') and out.endswith(b'\n'):
+                        self.port = line.split(None, 1)[1].strip()
+                        return self
         self.stop()
         raise RuntimeError('galvo_harness did not report its pty')
 
     def _command(self, line: str) -> None:
         if self._proc is None or self._proc.poll() is not None:
             raise RuntimeError('the harness is not running')
-        self._proc.stdin.write(line + '\n')
-        self._proc.stdin.flush()
+        self._proc.stdin.write((line + '\n').encode('ascii'))
 
     def set_interlock(self, is_open: bool) -> None:
         """Open or close the interlock loop."""
@@ -341,6 +345,18 @@ class SimavrBoard:
         log = self.log()
         return [log.codes_at(int(c)) for c in log.rising_edges()]
 
+    def output_codes(self) -> tuple:
+        """The DAC output codes now."""
+        return self.log().outputs[-1][1]
+
+    def laser_on(self) -> bool:
+        log = self.log()
+        return bool(log.laser[-1][1]) if log.laser else False
+
+    def faults(self) -> list[int]:
+        """Codes of the FAULT messages the board has sent."""
+        return [pk.msg.code for _, pk in self.log().packets() if isinstance(pk.msg, p.Fault)]
+
     def is_safe(self) -> bool:
         """All channels at code 32768 (0 V) and the laser off, now."""
         log = self.log()
@@ -360,8 +376,7 @@ class SimavrBoard:
         proc, self._proc = self._proc, None
         if proc is not None:
             try:
-                proc.stdin.write('quit\n')
-                proc.stdin.flush()
+                proc.stdin.write(b'quit\n')
             except (BrokenPipeError, ValueError, OSError):
                 pass
             try:
