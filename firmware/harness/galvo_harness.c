@@ -6,9 +6,11 @@
  *     --pty             serve the firmware's UART0 on a new pty; its path is the first line
  *                       on stdout. Commands on stdin, one per line:
  *                         interlock open | interlock closed | reset | reset-after-event N |
- *                         unplug | replug | quit
+ *                         unplug | replug | sync (flush the log, answer "sync <cycle>") |
+ *                         quit
  *     --realtime        lock simulated time to the wall clock (16 Mcycles per second), as a
  *                       host with its own timers (heartbeat, ACK timeouts) needs
+ *     --rate R          with --realtime: simulated seconds per wall-clock second (default 1)
  *     --script FILE     scripted host, in simulated time: lines "<t_us> tx <hex bytes>",
  *                       "<t_us> interlock open|closed", "<t_us> reset", "<t_us> end"
  *     --seconds S       stop after S simulated seconds
@@ -59,6 +61,7 @@ static FILE *logf;
 static int pty_master = -1, pty_slave = -1;
 static int unplugged;
 static int realtime;
+static double rate = 1.0;
 
 /* ---- log ------------------------------------------------------------------------------ */
 static void logline(const char *fmt, ...) __attribute__((format(printf, 1, 2)));
@@ -439,6 +442,12 @@ static void command(const char *line)
     } else if (!strncmp(line, "replug", 6)) {
         unplugged = 0;
         logline("replug");
+    } else if (!strncmp(line, "sync", 4)) {
+        /* everything so far is in the log file: answer on stdout */
+        if (logf)
+            fflush(logf);
+        printf("sync %llu\n", (unsigned long long)avr->cycle);
+        fflush(stdout);
     } else if (!strncmp(line, "quit", 4))
         quit = 1;
 }
@@ -539,6 +548,8 @@ int main(int argc, char **argv)
             use_pty = 1;
         else if (!strcmp(argv[i], "--realtime"))
             realtime = 1;
+        else if (!strcmp(argv[i], "--rate") && i + 1 < argc)
+            rate = atof(argv[++i]);
         else if (!strcmp(argv[i], "--script") && i + 1 < argc)
             script_path = argv[++i];
         else if (!strcmp(argv[i], "--seconds") && i + 1 < argc)
@@ -552,7 +563,7 @@ int main(int argc, char **argv)
             return 2;
         }
     }
-    if (!elf) {
+    if (!elf || !(rate > 0)) {
         fprintf(stderr, "usage: galvo_harness [--log F] [--pty] [--realtime] [--script F] "
                         "[--seconds S] [--boot-count N] firmware.elf\n");
         return 2;
@@ -658,7 +669,7 @@ int main(int argc, char **argv)
         }
         feed_uart(uart_in);
         if (realtime) {
-            double ahead = avr->cycle / 16e6 - (wall_now() - wall0);
+            double ahead = avr->cycle / 16e6 / rate - (wall_now() - wall0);
             if (ahead > 0.0005) {
                 struct timespec ts = {0, (long)(ahead * 1e9)};
                 nanosleep(&ts, NULL);

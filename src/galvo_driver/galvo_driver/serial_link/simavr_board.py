@@ -277,9 +277,16 @@ class SimavrBoard:
         Where the harness writes its log (default: a temporary file).
     boot_count : int
         EEPROM boot counter before power-up (so that runs differ in their boot id).
+    rate : float
+        Simulated seconds per wall-clock second (1: real time). Below 1 the board's
+        watchdog (150 ms of board time) gives a host that a loaded machine stalls more
+        wall-clock time; board times (trigger stamps) stay exact.
     """
 
-    def __init__(self, log_path: str | None = None, boot_count: int = 1):
+    def __init__(self, log_path: str | None = None, boot_count: int = 1, rate: float = 1.0):
+        if not (np.isfinite(rate) and 0 < rate <= 1):
+            raise ValueError(f'rate: expected 0 < rate <= 1, got {rate}')
+        self.rate = float(rate)
         self._tmp = None
         if log_path is None:
             self._tmp = tempfile.TemporaryDirectory()
@@ -288,12 +295,14 @@ class SimavrBoard:
         self.boot_count = int(boot_count)
         self.port: str | None = None
         self._proc: subprocess.Popen | None = None
+        self._out = b''
 
     def start(self) -> SimavrBoard:
         """Start the harness; :attr:`port` is the pty to open."""
         harness, elf = build()
         self._proc = subprocess.Popen(
-            [str(harness), '--pty', '--realtime', '--log', self.log_path,
+            [str(harness), '--pty', '--realtime', '--rate', repr(self.rate), '--log',
+             self.log_path,
              '--boot-count', str(self.boot_count), str(elf)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
             bufsize=0)
@@ -337,7 +346,22 @@ class SimavrBoard:
         self._command('replug')
 
     def log(self) -> HarnessLog:
-        """The log so far (the harness flushes it every 20 ms)."""
+        """The log up to now (the harness flushes it on request first)."""
+        self._command('sync')
+        fd = self._proc.stdout.fileno()
+        deadline = time.monotonic() + 10.0
+        while time.monotonic() < deadline:
+            if b'sync ' in self._out:
+                self._out = self._out[self._out.index(b'sync ') + 5:]
+                break
+            ready, _, _ = select.select([fd], [], [], 0.5)
+            if ready:
+                chunk = os.read(fd, 4096)
+                if not chunk:
+                    raise RuntimeError('the harness exited')
+                self._out += chunk
+        else:
+            raise RuntimeError('the harness did not answer sync')
         return parse_log(self.log_path)
 
     def trigger_codes(self) -> list[tuple]:
