@@ -137,7 +137,7 @@ static void dac_init(void)
     dac_ldac();             /* 0 V in the DAC registers before the outputs power up */
     for (uint8_t ch = 0; ch < 4; ch++)
         out_codes[ch] = CODE_ZERO;
-    dac_word(0x10, 0x000F); /* power control: channels A-D up */
+    dac_word(0x10, 0x001F); /* power control: internal reference and channels A-D up */
 }
 
 /* ---- state -------------------------------------------------------------------------- */

@@ -4,6 +4,10 @@ Everything here is measured in the simulated CPU's cycles (16 MHz) from the harn
 the results do not depend on the load of the machine running the tests.
 """
 
+import importlib.util
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -259,3 +263,52 @@ def test_every_malformed_frame_is_refused_and_changes_nothing():
     assert status.codes == (40000, 41000, 42000, 43000) and not status.laser_on
     assert status.state == p.STATE_IDLE and status.rx_errors == len(frames)
     assert not log.trigger and all(v == 0 for _, v in log.laser)
+
+
+def test_protocol_fuzz_against_the_firmware():
+    """benchmarks/protocol_fuzz.py's firmware fuzz, shortened: random, truncated,
+    bit-flipped and payload-mangled frames; the firmware neither crashes nor resets,
+    answers every canary, sends only frames the host decodes, and drops exactly the frames
+    the host-side decoder rejects."""
+    path = Path(__file__).resolve().parents[3] / 'benchmarks' / 'protocol_fuzz.py'
+    spec = importlib.util.spec_from_file_location('protocol_fuzz_bench', path)
+    fuzz = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(fuzz)
+    res = fuzz.fuzz_firmware(1500, seed=3)
+    assert res['fw_rx_errors_expected'] > 1000
+    for key in ('fw_crashes', 'fw_resets', 'fw_canaries_unanswered', 'fw_undecodable_output',
+                'fw_rx_error_mismatch'):
+        assert res[key] == 0, res
+
+
+def test_the_emulator_refuses_the_same_malformed_frames():
+    """The Python emulator answers the same malformed frames as the firmware (the
+    reference): NAK BAD_MESSAGE for the same seqs, the same rx_errors count."""
+    import serial
+
+    from galvo_driver.serial_link.emulator import FirmwareEmulator
+
+    frames = malformed_frames()
+    with FirmwareEmulator('pty', seed=1, watchdog=5.0) as emu:
+        ser = serial.serial_for_url(emu.port, timeout=0.2)
+        try:
+            dec = p.FrameDecoder()
+            ser.write(p.encode_frame(1, p.Hello(p.PROTOCOL_VERSION)))
+            for _, frame, _ in frames:
+                ser.write(frame)
+            ser.write(p.encode_frame(99, p.GetStatus()))
+            got = []
+            deadline = time.monotonic() + 5
+            while time.monotonic() < deadline:
+                got += dec.feed(ser.read(4096))
+                if any(isinstance(pk.msg, p.Ack) and pk.msg.acked_seq == 99 for pk in got):
+                    break
+        finally:
+            ser.close()
+    naks = {pk.msg.acked_seq: pk.msg.reason for pk in got if isinstance(pk.msg, p.Nak)}
+    expected = {int.from_bytes(p.cobs_decode(f[:-1])[1:3], 'little'): p.NAK_BAD_MESSAGE
+                for _, f, answered in frames if answered}
+    assert naks == expected
+    status = next(p.BoardStatus.unpack(pk.msg.data) for pk in got
+                  if isinstance(pk.msg, p.Ack) and pk.msg.acked_seq == 99)
+    assert status.rx_errors == len(frames)
