@@ -87,6 +87,9 @@ class EmulatorBoard:
     def unplug(self) -> None:
         self.emu.unplug()
 
+    def set_interlock(self, is_open: bool) -> None:
+        self.emu.set_interlock(is_open)
+
     def wait_until(self, predicate, timeout: float = 2.0) -> bool:
         return self.emu.wait_until(lambda e: predicate(self), timeout)
 
@@ -485,3 +488,31 @@ def test_frame_stamps_follow_a_drifting_board_clock(backend_on, drift_ppm):
             assert abs(trend) * 1e6 < limit, f'scan {k}: stamps drift {trend * 1e6:.1f} ppm'
             assert np.ptp(err) < 0.4e-3, (k, np.ptp(err))
         be.close()  # before the board goes
+
+
+def test_interlock_opening_mid_scan_faults_and_refuses_the_laser(board, backend_on, caplog):
+    caplog.set_level(logging.INFO, logger=LOGGER)
+    be = backend_on(board)
+    volts = scan_volts(300, seed=14)
+    be.start(volts, 500.0, laser_on=True)
+    frames = []
+    end = time.monotonic() + 10
+    while len(frames) < 5 and be.running and time.monotonic() < end:
+        frames += be.poll(0.1)
+    board.set_interlock(True)
+    frames += collect(be)
+    assert 5 <= len(frames) < 300
+    assert_frames_truthful(frames, volts)
+    assert be.status == STATUS_FAULT and 'interlock' in be.fault
+    assert board.wait_until(lambda b: b.is_safe())
+    be.arm()
+    with pytest.raises(BackendError, match='interlock'):
+        be.set_output([1.0, 0.0, 0.0, 0.0], laser_on=True)
+    end = time.monotonic() + 2  # the STATUS answering the next heartbeat says so too
+    while time.monotonic() < end and not (be.board_status.flags & p.FLAG_INTERLOCK):
+        time.sleep(0.02)
+    assert be.board_status.flags & p.FLAG_INTERLOCK and not be.board_status.laser_on
+    board.set_interlock(False)
+    time.sleep(0.05)
+    be.set_output([1.0, 0.0, 0.0, 0.0], laser_on=True)
+    assert board.wait_until(lambda b: b.laser_on())
