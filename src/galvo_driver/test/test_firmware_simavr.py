@@ -312,3 +312,29 @@ def test_the_emulator_refuses_the_same_malformed_frames():
     status = next(p.BoardStatus.unpack(pk.msg.data) for pk in got
                   if isinstance(pk.msg, p.Ack) and pk.msg.acked_seq == 99)
     assert status.rx_errors == len(frames)
+
+
+@pytest.mark.parametrize('period_us', [500, 33_000, 250_000])
+def test_trigger_period_from_the_shortest_to_beyond_the_timer_range(period_us):
+    """500 us (the board's minimum), and periods longer than Timer1's 16-bit range
+    (32.8 ms), which the firmware counts in whole timer wraps before arming the compare."""
+    rng = np.random.default_rng(period_us)
+    n = 40 if period_us < 100_000 else 6
+    codes = rng.integers(1, 65536, (n, 4)).astype(np.uint16)
+    script = sb.Script()
+    session(script)
+    t0 = script.upload_scan(3000.0, 1, codes, period_us)
+    end = t0 + (n + 2) * period_us + 20_000
+    script.heartbeats(1000.0, end)
+    log = sb.run_script(script, end)
+    acked(log, script)
+    edges = log.rising_edges()
+    events = log.events()
+    assert len(edges) == len(events) == n
+    assert np.abs(np.diff(edges) - period_us * 16).max() <= 4
+    for edge, (_, ev) in zip(edges, events, strict=True):
+        assert log.codes_at(int(edge)) == ev.codes == tuple(int(c) for c in codes[ev.index])
+    assert np.all(np.diff([ev.timestamp_us for _, ev in events]) == period_us)
+    # one pulse per row, each 20 us
+    falls = np.array([c for c, v in log.trigger if not v])
+    assert len(falls) == n and np.all(np.abs(falls - edges - 320) <= 4)
