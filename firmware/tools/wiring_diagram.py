@@ -26,7 +26,8 @@ BOXES = {
     'g2': (14.0, 5.6, 2.8, 1.3, 'Galvo driver G2\n(laser pair: pan, tilt)', '#e8dcf0'),
     'cam': (9.4, 2.6, 2.9, 1.3, 'Camera\n(trigger input, Line0)', '#dde7f3'),
     'laser': (9.4, 0.7, 2.9, 1.3, 'Line laser\n(TTL enable)', '#f6d5d5'),
-    'ilk': (0.2, 1.0, 2.6, 1.6, 'Interlock loop\n(door switch, key switch,\nE-stop in series)', '#f6d5d5'),
+    'ilk': (0.2, 1.0, 2.6, 1.6,
+            'Interlock loop\n(door switch, key switch,\nE-stop in series)', '#f6d5d5'),
 }
 
 
@@ -42,7 +43,7 @@ def wire(ax, pts, label, colour='black', label_at=0, dy=0.08, ha='left', style='
     xs, ys = zip(*pts, strict=True)
     ax.plot(xs, ys, style, color=colour, lw=1.6, solid_capstyle='round')
     ax.plot([xs[0], xs[-1]], [ys[0], ys[-1]], 'o', color=colour, ms=3.5)
-    (x0, y0), (x1, y1) = pts[label_at], pts[label_at + 1]
+    (x0, y0), (x1, _) = pts[label_at], pts[label_at + 1]
     ax.text((x0 + x1) / 2 if ha == 'center' else x0 + 0.1, y0 + dy, label, fontsize=7.2,
             color=colour, ha=ha, va='bottom')
 
@@ -64,8 +65,8 @@ def main(argv=None) -> None:
         wire(ax, [(mx1, y), (9.4, y)], label, '#8a5a00')
     wire(ax, [(mx1, 6.7), (9.4, 6.7)], '5V -> DVcc,  GND -> DGND', '#555555')
     wire(ax, [(mx1, 6.3), (9.4, 6.3)], 'D53 (SS): output, unconnected', '#999999', style=':')
-    ax.text(12.4, 3.25, '20 us high pulse per row;\nexposure must end within\nhalf a period', fontsize=6.8,
-            va='center')
+    ax.text(12.4, 3.25, '20 us high pulse per row;\nexposure must end within\nhalf a period',
+            fontsize=6.8, va='center')
     ax.text(10.85, 5.75, 'BIN/2sCOMP -> DGND (offset binary)\n/CLR -> DVcc, REFIN/REFOUT\n'
             '(internal 2.5 V ref)', fontsize=6.8, ha='center', va='bottom')
     # supply
