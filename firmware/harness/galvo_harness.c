@@ -32,7 +32,6 @@
  *   trig 0|1 | laser 0|1 | interlock open|closed | rx <hex> | tx <hex frame> | end
  */
 #define _GNU_SOURCE
-#include <dlfcn.h>
 #include <errno.h>
 #include <stdarg.h>
 #include <fcntl.h>
@@ -684,18 +683,6 @@ int main(int argc, char **argv)
         }
     }
     logline("end");
-    if (getenv("GALVO_HARNESS_STATS"))
-        for (avr_cycle_timer_slot_p t = avr->cycle_timers.timer; t; t = t->next) {
-            Dl_info d;
-            dladdr((void *)t->timer, &d);
-            fprintf(stderr, "  %s %s+%lx when %llu now %llu\n", d.dli_fname, d.dli_sname ? d.dli_sname : "?", (unsigned long)((char *)(void *)t->timer - (char *)d.dli_fbase), (unsigned long long)t->when, (unsigned long long)avr->cycle);
-        }
-    const char *dump = getenv("GALVO_HARNESS_DUMP");
-    if (dump) {
-        FILE *f = fopen(dump, "wb");
-        fwrite(avr->data, 1, avr->ramend + 1, f);
-        fclose(f);
-    }
     if (logf)
         fclose(logf);
     return 0;
