@@ -6,6 +6,8 @@
  *     --pty             serve the firmware's UART0 on a new pty; its path is the first line
  *                       on stdout. Commands on stdin, one per line:
  *                         interlock open | interlock closed | reset | reset-after-event N |
+ *                         hold-reset MS (reset, then hold the MCU in reset for MS wall-clock
+ *                         milliseconds, as a bootloader keeps the firmware from starting) |
  *                         unplug | replug | sync (flush the log, answer "sync <cycle>") |
  *                         quit
  *     --realtime        lock simulated time to the wall clock (16 Mcycles per second), as a
@@ -400,6 +402,8 @@ static avr_cycle_count_t poll_tick(avr_t *a, avr_cycle_count_t when, void *param
 
 /* ---- commands and script ----------------------------------------------------------------- */
 static int quit;
+static double hold_until; /* wall-clock time until which the MCU is held in reset */
+static double wall_now(void);
 
 static void board_reset(void)
 {
@@ -430,7 +434,11 @@ static void command(const char *line)
         set_interlock(1);
     else if (!strncmp(line, "interlock closed", 16))
         set_interlock(0);
-    else if (sscanf(line, "reset-after-event %lld", &n) == 1)
+    else if (sscanf(line, "hold-reset %lld", &n) == 1) {
+        logline("hold-reset %lld", n);
+        board_reset();
+        hold_until = wall_now() + n * 1e-3;
+    } else if (sscanf(line, "reset-after-event %lld", &n) == 1)
         reset_after_event = n;
     else if (!strncmp(line, "reset", 5))
         reset_requested = 1;
@@ -647,6 +655,22 @@ int main(int argc, char **argv)
     avr_cycle_timer_register(avr, POLL_CYCLES, poll_tick, NULL);
     double wall0 = wall_now(), last_flush = wall0;
     while (!quit && avr->cycle < stop_cycle) {
+        if (hold_until > 0) {
+            /* held in reset: nothing runs; the host's bytes are lost, as a bootloader
+             * waiting for a programmer would not pass them on */
+            if (wall_now() < hold_until) {
+                struct timespec ts = {0, 1000000};
+                nanosleep(&ts, NULL);
+                if (use_pty) {
+                    pty_poll();
+                    stdin_poll();
+                }
+                to_avr_tail = to_avr_head;
+                continue;
+            }
+            hold_until = 0;
+            wall0 = wall_now() - avr->cycle / 16e6 / rate;
+        }
         unsigned long long target = avr->cycle + chunk;
         while (avr->cycle < target) {
             int st = avr_run(avr);

@@ -516,3 +516,25 @@ def test_interlock_opening_mid_scan_faults_and_refuses_the_laser(board, backend_
     time.sleep(0.05)
     be.set_output([1.0, 0.0, 0.0, 0.0], laser_on=True)
     assert board.wait_until(lambda b: b.laser_on())
+
+
+def test_open_waits_for_a_board_that_the_port_opening_reset():
+    """An Arduino Mega resets when its port opens and its bootloader holds the firmware for
+    about a second: open() waits for the BOOT and handshakes then."""
+    with FirmwareBoard(boot_count=5) as fw:
+        fw.reset(hold_s=1.2)  # the reset the port's DTR line causes, then the bootloader
+        be = SerialBackend(fw.port)
+        t0 = time.monotonic()
+        be.open()
+        try:
+            assert time.monotonic() - t0 > 0.5  # the first HELLO went unanswered
+            assert be.board_info.firmware_id == 'galvoscan-m2560'
+            volts = scan_volts(10, seed=2)
+            be.start(volts, 500.0)
+            assert_frames_truthful(collect(be), volts)
+        finally:
+            be.close()
+    with FirmwareBoard(boot_count=6) as fw:
+        fw.reset(hold_s=2.0)
+        with pytest.raises(BackendError, match='not acknowledged'):
+            SerialBackend(fw.port, boot_wait=0.0).open()

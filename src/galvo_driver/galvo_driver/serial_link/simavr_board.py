@@ -333,10 +333,15 @@ class SimavrBoard:
         """Open or close the interlock loop."""
         self._command('interlock open' if is_open else 'interlock closed')
 
-    def reset(self, after_event: int | None = None) -> None:
+    def reset(self, after_event: int | None = None, hold_s: float = 0.0) -> None:
         """Reset the MCU now, or right after it has sent the EVENT of trigger index
-        ``after_event``."""
-        self._command('reset' if after_event is None else f'reset-after-event {after_event}')
+        ``after_event``; ``hold_s`` [s of wall-clock time] keeps it in reset that long first
+        (as the Mega's bootloader delays the firmware after a reset)."""
+        if hold_s > 0:
+            self._command(f'hold-reset {round(hold_s * 1e3)}')
+        else:
+            self._command('reset' if after_event is None
+                          else f'reset-after-event {after_event}')
 
     def unplug(self) -> None:
         """Cut the serial link both ways (the board runs on)."""
