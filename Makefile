@@ -1,6 +1,7 @@
 # galvoscan: two commands on a fresh machine.
 #   make demo   set up .venv if needed, then run the main job on the simulated rig
 #   make test   set up .venv if needed, then lint and run every test
+#   make firmware  build the galvo board firmware (.hex) and its simavr harness (firmware/)
 #
 # Setup is split into stamped steps so that a second run with nothing changed only checks.
 
@@ -20,7 +21,7 @@ SRC_META := $(wildcard src/*/setup.py src/*/setup.cfg src/*/package.xml)
 DEMO_OUT ?= out
 PYTEST_ARGS ?=
 
-.PHONY: setup test-deps test lint pytest explore demo results clean distclean
+.PHONY: setup test-deps test lint pytest explore demo results firmware clean distclean
 
 setup: $(STAMP_SRC) $(STAMP_WEB)
 	@$(PY) -c 'import rclpy, galvoscan_msgs.msg, galvoscan_msgs.srv, tf2_msgs.msg, galvoscan_common, galvoscan_sim, galvoscan_bag, galvo_driver, stripe_extractor, reconstructor, calibration_tools, galvoscan_view, galvoscan' \
@@ -48,11 +49,15 @@ $(STAMP_APT): tools/apt-packages.txt tools/setup_venv.sh | $(STAMP_DEPS)
 
 test-deps: setup $(STAMP_APT)
 
+# gcc-avr, avr-libc and libsimavr come from tools/apt-packages.txt (the apt step)
+firmware: $(STAMP_APT)
+	$(MAKE) -C firmware all
+
 lint: setup
 	$(VENV)/bin/ruff check .
 
 # pytest exits 5 when it collects no tests; that is a failure here, and says so.
-pytest: test-deps
+pytest: test-deps firmware
 	@$(PY) -m pytest $(PYTEST_ARGS); rc=$$?; \
 	  if [ $$rc -eq 5 ]; then echo "ERROR: pytest collected no tests"; fi; exit $$rc
 
@@ -73,7 +78,7 @@ results: setup
 	$(PY) tools/gen_results.py
 
 clean:
-	rm -rf build $(DEMO_OUT) .pytest_cache .ruff_cache
+	rm -rf build $(DEMO_OUT) .pytest_cache .ruff_cache firmware/build
 
 distclean: clean
 	rm -rf $(VENV)

@@ -13,9 +13,19 @@ overruns counts as a hang. A mutated frame that decodes to a packet differing fr
 original counts as an undetected corruption; a packet accepted from a mangled payload (with
 a valid CRC) must re-encode to the same bytes, or it counts as a re-encode mismatch.
 
+With ``--firmware N`` it also fuzzes the board firmware in simavr (``firmware/``): N fuzz
+frames of the same kinds, with HELLO first, a HEARTBEAT every 50 ms and a GET_STATUS
+"canary" after every 8th frame, sent at the line rate in simulated time. Counted:
+``fw_crashes`` (the simulated CPU stopped), ``fw_resets`` (a BOOT after the first),
+``fw_canaries_unanswered``, ``fw_undecodable_output`` (board frames the host's decoder
+rejects) and ``fw_rx_error_mismatch``: the firmware's own count of dropped host frames
+(``rx_errors`` in its last canary's status) against what this module's decoder rejects
+in the same byte stream (board-type packets aside, which the board ignores); all must be 0.
+
 Usage::
 
     python benchmarks/protocol_fuzz.py [--frames 1000000] [--chunk 10000] [--seed 1]
+                                       [--firmware 20000]
 
 The last stdout line is one JSON object with ``frames``, ``unexpected_exceptions``,
 ``hangs`` and further counters.
@@ -199,6 +209,72 @@ def run(n_frames: int, chunk: int, seed: int, chunk_timeout: float) -> dict:
     return counts
 
 
+def fuzz_firmware(n_frames: int, seed: int) -> dict:
+    """Fuzz the board firmware in simavr (module docstring); returns the ``fw_*`` counters."""
+    from galvo_driver.serial_link import simavr_board as sb
+
+    rng = random.Random(seed)
+    script = sb.Script()
+    script.send(1000.0, p.Hello(p.PROTOCOL_VERSION))
+    stream = bytearray(p.encode_frame(1, p.Hello(p.PROTOCOL_VERSION)))
+    t = 3000.0
+    canary_seqs = []
+    byte_us = 11.0  # 1 Mbaud, 11 bits a byte in simavr
+    for i in range(n_frames):
+        msg = random_message(rng)
+        frame = p.encode_frame(rng.getrandbits(16), msg)[:-1]
+        _, fuzz = mutate(rng, frame)
+        data = fuzz + b'\x00'
+        script.raw(t, data)
+        stream += data
+        t += len(data) * byte_us + 300.0
+        if i % 8 == 7:
+            seq = 0xC000 + len(canary_seqs) % 0x3FFF
+            canary_seqs.append(seq)
+            data = p.encode_frame(seq, p.GetStatus())
+            script.raw(t, data)
+            stream += data
+            t += len(data) * byte_us + 2000.0
+    seq = 0xBFFF
+    data = p.encode_frame(seq, p.GetStatus())
+    script.raw(t, data)
+    stream += data
+    canary_seqs.append(seq)
+    end = t + 20_000
+    hb = p.encode_frame(0, p.Heartbeat())
+    # heartbeats between frames, never inside one (the board would see a broken frame)
+    times = sorted(x[0] for x in script.lines)
+    for t_hb in range(10_000, int(end), 50_000):
+        gap = next((tt for tt in times if tt >= t_hb), end)
+        script.raw(gap - 50.0 - len(hb) * byte_us, hb)
+    log = sb.run_script(script, end, boot_count=seed)
+    # what the host-side decoder rejects in the same bytes, board types aside
+    board_type_errors = [0]
+
+    def count(err):
+        if err.seq is not None and err.msg_type is not None and err.msg_type >= 0x80:
+            board_type_errors[0] += 1
+
+    dec = p.FrameDecoder(on_error=count)
+    dec.feed(bytes(stream))
+    expected_rx_errors = dec.error_count - board_type_errors[0]
+    packets = log.packets()
+    answers = {}
+    for _, pk in packets:
+        if isinstance(pk.msg, p.Ack):
+            answers.setdefault(pk.msg.acked_seq, pk.msg)
+    unanswered = sum(1 for s in canary_seqs if s not in answers)
+    last = answers.get(0xBFFF)
+    rx_errors = p.BoardStatus.unpack(last.data).rx_errors if last is not None else -1
+    boots = sum(1 for _, pk in packets if isinstance(pk.msg, p.Boot))
+    return {'fw_frames': n_frames, 'fw_crashes': int(log.crashed),
+            'fw_resets': max(0, boots - 1), 'fw_canaries_unanswered': unanswered,
+            'fw_undecodable_output': log.decode_errors,
+            'fw_rx_errors': rx_errors, 'fw_rx_errors_expected': expected_rx_errors,
+            'fw_rx_error_mismatch': abs(rx_errors - expected_rx_errors),
+            'fw_sim_seconds': round(log.end / sb.F_CPU, 2)}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     parser.add_argument('--frames', type=int, default=1_000_000)
@@ -206,8 +282,12 @@ def main(argv=None) -> None:
     parser.add_argument('--seed', type=int, default=1)
     parser.add_argument('--chunk-timeout', type=float, default=60.0,
                         help='watchdog per chunk [s]; an overrun counts as a hang')
+    parser.add_argument('--firmware', type=int, default=0,
+                        help='also fuzz the board firmware in simavr with this many frames')
     args = parser.parse_args(argv)
     result = run(args.frames, args.chunk, args.seed, args.chunk_timeout)
+    if args.firmware:
+        result.update(fuzz_firmware(args.firmware, args.seed))
     print(json.dumps(result))
 
 

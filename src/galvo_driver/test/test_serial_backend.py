@@ -1,7 +1,12 @@
-"""SerialBackend against the firmware emulator over a real pty / TCP socket, with faults."""
+"""SerialBackend against a board: the firmware emulator over a real pty / TCP socket (with
+injected faults), and the board firmware itself in simavr behind a pty (real time).
+
+The tests taking the ``board`` fixture run against all three; those that inject faults
+only the emulator can produce take ``emu``."""
 
 import logging
 import time
+import zlib
 
 import numpy as np
 import pytest
@@ -10,6 +15,7 @@ from galvo_driver.backend import BackendError
 from galvo_driver.serial_link import protocol as p
 from galvo_driver.serial_link.backend import SerialBackend
 from galvo_driver.serial_link.emulator import FirmwareEmulator
+from galvo_driver.serial_link.simavr_board import F_CPU, SimavrBoard
 from galvoscan_common.frame import STATUS_FAULT, STATUS_SETTLED
 
 LOGGER = 'galvo_driver.serial_link.backend'
@@ -50,6 +56,69 @@ def assert_frames_truthful(frames, volts, seq_base=0):
         assert f.image is None
 
 
+class EmulatorBoard:
+    """The emulator seen through the board interface the firmware in simavr also offers."""
+
+    def __init__(self, emu: FirmwareEmulator):
+        self.emu = emu
+        self.port = emu.port
+
+    def trigger_codes(self) -> list:
+        return [r.codes for r in self.emu.triggers()]
+
+    def trigger_times(self) -> np.ndarray:
+        return np.array([r.t for r in self.emu.triggers()])
+
+    def output_codes(self) -> tuple:
+        return self.emu.last_applied().codes
+
+    def laser_on(self) -> bool:
+        return self.emu.last_applied().laser_on
+
+    def is_safe(self) -> bool:
+        return self.emu.last_applied().is_safe
+
+    def watchdog_tripped(self) -> bool:
+        return bool(self.emu.watchdog_trips)
+
+    def reset(self, after_event=None) -> None:
+        self.emu.reset(at_trigger=after_event)
+
+    def unplug(self) -> None:
+        self.emu.unplug()
+
+    def set_interlock(self, is_open: bool) -> None:
+        self.emu.set_interlock(is_open)
+
+    def wait_until(self, predicate, timeout: float = 2.0) -> bool:
+        return self.emu.wait_until(lambda e: predicate(self), timeout)
+
+
+class FirmwareBoard(SimavrBoard):
+    """The board firmware in simavr, through the same interface."""
+
+    def trigger_times(self) -> np.ndarray:
+        return self.log().rising_edges() / F_CPU
+
+    def watchdog_tripped(self) -> bool:
+        return p.FAULT_WATCHDOG in self.faults()
+
+
+@pytest.fixture(params=['emulator-pty', 'emulator-tcp', 'firmware'])
+def board(request):
+    # A loaded test machine can stall the host's heartbeat thread longer than the boards'
+    # 150 ms watchdog, which is not what these tests are about: the emulator gets a 0.5 s
+    # watchdog, and the firmware (whose watchdog is fixed) runs at half of real time, so
+    # that its 150 ms are 300 ms of the host's time. Board times stay exact.
+    if request.param == 'firmware':
+        with FirmwareBoard(boot_count=zlib.crc32(request.node.name.encode()) & 0xFFFF,
+                           rate=0.5) as fw:
+            yield fw
+        return
+    with FirmwareEmulator(request.param.split('-')[1], seed=7, watchdog=0.5) as emulator:
+        yield EmulatorBoard(emulator)
+
+
 @pytest.fixture(params=['pty', 'tcp'])
 def emu(request):
     # a 0.5 s watchdog (firmware default 0.15 s): a test machine loaded by other jobs can
@@ -79,8 +148,8 @@ def backend_on():
         b.close()
 
 
-def test_scan_completes_with_correct_voltages(emu, backend_on):
-    be = backend_on(emu)
+def test_scan_completes_with_correct_voltages(board, backend_on):
+    be = backend_on(board)
     assert be.name == 'serial'
     assert be.board_info.version == p.PROTOCOL_VERSION and be.board_info.dac_bits == 16
     be.arm()
@@ -91,13 +160,14 @@ def test_scan_completes_with_correct_voltages(emu, backend_on):
     assert_frames_truthful(frames, volts)
     assert all(f.laser_on and f.status == STATUS_SETTLED for f in frames)
     assert be.stats['lost_events'] == 0 and be.status == STATUS_SETTLED
-    # the board's own log says the same, and the frame stamps follow its trigger times
-    triggers = [a for a in emu.applied() if a.reason == 'trigger']
-    assert len(triggers) == 60
-    np.testing.assert_allclose([a.voltages for a in triggers], quantised(volts), atol=1e-12)
+    # the board's own record says the same, and the frame stamps follow its trigger times
+    codes = board.trigger_codes()
+    assert len(codes) == 60
+    np.testing.assert_allclose(p.codes_to_volts(np.array(codes)), quantised(volts),
+                               atol=1e-12)
     np.testing.assert_allclose(np.diff([f.stamp for f in frames]),
-                               np.diff([a.t for a in triggers]), atol=5e-6)
-    assert emu.last_applied().reason == 'scan_done' and not emu.last_applied().laser_on
+                               np.diff(board.trigger_times()), atol=5e-6)
+    assert board.wait_until(lambda b: not b.laser_on())  # off after the last exposure
     # a second scan continues the sequence numbers
     volts2 = scan_volts(30, seed=1)
     be.start(volts2, 1000.0, laser_on=False)
@@ -107,8 +177,8 @@ def test_scan_completes_with_correct_voltages(emu, backend_on):
     assert not any(f.laser_on for f in frames2)
 
 
-def test_scan_longer_than_many_chunks(emu_pty, backend_on):
-    be = backend_on(emu_pty)
+def test_scan_longer_than_many_chunks(board, backend_on):
+    be = backend_on(board)
     volts = scan_volts(3 * p.ROWS_PER_CHUNK + 5, seed=3)
     volts[0] = [10.0, -10.0, 0.0, 5.0]
     be.start(volts, 2000.0)
@@ -174,13 +244,19 @@ def test_corrupted_and_shortened_commands_are_retried(emu_pty, backend_on):
     assert emu_pty.stats['rx_errors'] >= 1
 
 
-@pytest.mark.parametrize('lose_boot', [False, True])
-def test_reset_mid_scan_stops_in_safe_state(emu, backend_on, caplog, lose_boot):
+def test_reset_mid_scan_stops_in_safe_state(board, backend_on, caplog):
+    reset_mid_scan(board, backend_on, caplog)
+
+
+def test_reset_mid_scan_with_boot_lost(emu, backend_on, caplog):
+    emu.corrupt_frames(1, kind='boot')  # the reset must be noticed from STATUS's boot id
+    reset_mid_scan(EmulatorBoard(emu), backend_on, caplog)
+
+
+def reset_mid_scan(board, backend_on, caplog):
     caplog.set_level(logging.INFO, logger=LOGGER)
-    be = backend_on(emu)
-    if lose_boot:  # the reset must then be noticed from the boot id in STATUS
-        emu.corrupt_frames(1, kind='boot')
-    emu.reset(at_trigger=9)
+    be = backend_on(board)
+    board.reset(after_event=9)
     volts = scan_volts(50, seed=4)
     be.start(volts, 250.0)
     frames = collect(be)
@@ -192,8 +268,7 @@ def test_reset_mid_scan_stops_in_safe_state(emu, backend_on, caplog, lose_boot):
     # nothing is tagged afterwards, and the board ends safe (its boot state, then SAFE)
     time.sleep(0.1)
     assert be.poll() == []
-    assert emu.wait_until(lambda e: e.last_applied().reason == 'safe')
-    assert emu.last_applied().is_safe
+    assert board.wait_until(lambda b: b.is_safe())
     with pytest.raises(BackendError, match='FAULT'):
         be.start(volts, 250.0)
     # arm() re-establishes the session; numbering continues after the aborted scan
@@ -205,9 +280,9 @@ def test_reset_mid_scan_stops_in_safe_state(emu, backend_on, caplog, lose_boot):
     assert_frames_truthful(frames2, volts[:15], seq_base=10)
 
 
-def test_reset_while_idle_reconnects(emu_pty, backend_on, caplog):
-    be = backend_on(emu_pty)
-    emu_pty.reset()
+def test_reset_while_idle_reconnects(board, backend_on, caplog):
+    be = backend_on(board)
+    board.reset()
     time.sleep(0.15)
     assert be.status == STATUS_SETTLED
     volts = scan_volts(10)
@@ -217,16 +292,16 @@ def test_reset_while_idle_reconnects(emu_pty, backend_on, caplog):
     assert len(frames) == 10
 
 
-def test_unplug_mid_scan(emu, backend_on, caplog):
+def test_unplug_mid_scan(board, backend_on, caplog):
     caplog.set_level(logging.INFO, logger=LOGGER)
-    be = backend_on(emu)
+    be = backend_on(board)
     volts = scan_volts(200, seed=6)
     be.start(volts, 200.0, laser_on=True)
     frames = []
     end = time.monotonic() + 5
     while len(frames) < 8 and time.monotonic() < end:
         frames += be.poll(0.05)
-    emu.unplug()
+    board.unplug()
     frames += collect(be)
     assert 8 <= len(frames) < 200
     assert_frames_truthful(frames, volts)
@@ -234,8 +309,8 @@ def test_unplug_mid_scan(emu, backend_on, caplog):
     assert any(r.levelno == logging.ERROR and 'link' in r.getMessage()
                for r in caplog.records)
     # the board, cut off from its host, makes itself safe
-    assert emu.wait_until(lambda e: e.watchdog_trips, timeout=3.0)
-    assert emu.last_applied().is_safe and emu.last_applied().reason == 'watchdog'
+    assert board.wait_until(lambda b: b.watchdog_tripped(), timeout=3.0)
+    assert board.wait_until(lambda b: b.is_safe())
     with pytest.raises(BackendError):
         be.start(volts, 200.0)
     with pytest.raises(BackendError):
@@ -259,39 +334,42 @@ def test_open_missing_port():
         SerialBackend('/dev/galvoscan-no-such-port').open()
 
 
-def test_safe_and_close_leave_board_safe(emu, backend_on):
-    be = backend_on(emu)
+def test_safe_and_close_leave_board_safe(board, backend_on):
+    be = backend_on(board)
     volts = np.full((400, 4), 3.0)
     be.start(volts, 500.0, laser_on=True)
-    assert emu.wait_until(lambda e: e.last_applied().laser_on)
+    assert board.wait_until(lambda b: b.laser_on())
     be.safe()
     assert not be.running
-    last = emu.last_applied()
-    assert last.reason == 'safe' and last.is_safe
-    np.testing.assert_array_equal(last.voltages, np.zeros(4))
-    n = emu.snapshot()['triggers']
+    assert board.wait_until(lambda b: b.is_safe())
+    np.testing.assert_array_equal(p.codes_to_volts(np.array(board.output_codes())),
+                                  np.zeros(4))
+    n = len(board.trigger_codes())
     time.sleep(0.05)
-    assert emu.snapshot()['triggers'] == n  # the board stopped triggering
+    assert len(board.trigger_codes()) == n  # the board stopped triggering
     be.start(volts, 500.0, laser_on=True)
-    assert emu.wait_until(lambda e: e.last_applied().laser_on)
+    assert board.wait_until(lambda b: b.laser_on())
     be.close()
-    safe_entries = [a for a in emu.applied() if a.reason == 'safe']
-    assert safe_entries[-1].is_safe
-    assert all(a.is_safe for a in emu.applied() if a.t >= safe_entries[-1].t)
+    assert board.wait_until(lambda b: b.is_safe())
+    n = len(board.trigger_codes())
+    time.sleep(0.05)
+    assert len(board.trigger_codes()) == n and board.is_safe()
     be.close()  # idempotent
 
 
-def test_stop_mid_scan(emu_pty, backend_on):
-    be = backend_on(emu_pty)
+def test_stop_mid_scan(board, backend_on):
+    be = backend_on(board)
     volts = scan_volts(300, seed=12)
     be.start(volts, 500.0)
     frames = []
-    while len(frames) < 5:
+    end = time.monotonic() + 10
+    while len(frames) < 5 and be.running and time.monotonic() < end:
         frames += be.poll(0.1)
+    assert len(frames) >= 5, be.fault
     be.stop()
     assert not be.running
     frames += be.poll()
-    assert emu_pty.last_applied().is_safe
+    assert board.wait_until(lambda b: b.is_safe())
     assert_frames_truthful(frames, volts)
     time.sleep(0.05)
     assert be.poll() == []  # events in flight when stop() ran are not tagged
@@ -332,21 +410,21 @@ def test_not_open_errors():
         SerialBackend('/dev/null', ack_timeout=0)
 
 
-def test_set_output_and_reopen(emu, backend_on):
-    be = backend_on(emu)
+def test_set_output_and_reopen(board, backend_on):
+    be = backend_on(board)
     out = be.set_output([1.0, -2.0, 0.0, 9.99], laser_on=True)
     np.testing.assert_allclose(out, quantised([1.0, -2.0, 0.0, 9.99]), atol=1e-12)
-    last = emu.last_applied()
-    assert last.laser_on and last.reason == 'laser'
-    np.testing.assert_allclose(last.voltages, out, atol=1e-12)
+    assert board.wait_until(lambda b: b.laser_on())
+    np.testing.assert_allclose(p.codes_to_volts(np.array(board.output_codes())), out,
+                               atol=1e-12)
     with pytest.raises(ValueError, match='voltages'):
         be.set_output([1.0, 2.0, 3.0])
     with pytest.raises(ValueError, match='voltages'):
         be.set_output([0.0, 0.0, 0.0, -11.0])
     be.close()
-    assert emu.last_applied().is_safe
+    assert board.wait_until(lambda b: b.is_safe())
     # the same board, a new host session
-    be2 = backend_on(emu)
+    be2 = backend_on(board)
     volts = scan_volts(8, seed=21)
     be2.start(volts, 500.0)
     frames = collect(be2)
@@ -410,3 +488,53 @@ def test_frame_stamps_follow_a_drifting_board_clock(backend_on, drift_ppm):
             assert abs(trend) * 1e6 < limit, f'scan {k}: stamps drift {trend * 1e6:.1f} ppm'
             assert np.ptp(err) < 0.4e-3, (k, np.ptp(err))
         be.close()  # before the board goes
+
+
+def test_interlock_opening_mid_scan_faults_and_refuses_the_laser(board, backend_on, caplog):
+    caplog.set_level(logging.INFO, logger=LOGGER)
+    be = backend_on(board)
+    volts = scan_volts(300, seed=14)
+    be.start(volts, 500.0, laser_on=True)
+    frames = []
+    end = time.monotonic() + 10
+    while len(frames) < 5 and be.running and time.monotonic() < end:
+        frames += be.poll(0.1)
+    board.set_interlock(True)
+    frames += collect(be)
+    assert 5 <= len(frames) < 300
+    assert_frames_truthful(frames, volts)
+    assert be.status == STATUS_FAULT and 'interlock' in be.fault
+    assert board.wait_until(lambda b: b.is_safe())
+    be.arm()
+    with pytest.raises(BackendError, match='interlock'):
+        be.set_output([1.0, 0.0, 0.0, 0.0], laser_on=True)
+    end = time.monotonic() + 2  # the STATUS answering the next heartbeat says so too
+    while time.monotonic() < end and not (be.board_status.flags & p.FLAG_INTERLOCK):
+        time.sleep(0.02)
+    assert be.board_status.flags & p.FLAG_INTERLOCK and not be.board_status.laser_on
+    board.set_interlock(False)
+    time.sleep(0.05)
+    be.set_output([1.0, 0.0, 0.0, 0.0], laser_on=True)
+    assert board.wait_until(lambda b: b.laser_on())
+
+
+def test_open_waits_for_a_board_that_the_port_opening_reset():
+    """An Arduino Mega resets when its port opens and its bootloader holds the firmware for
+    about a second: open() waits for the BOOT and handshakes then."""
+    with FirmwareBoard(boot_count=5) as fw:
+        fw.reset(hold_s=1.2)  # the reset the port's DTR line causes, then the bootloader
+        be = SerialBackend(fw.port)
+        t0 = time.monotonic()
+        be.open()
+        try:
+            assert time.monotonic() - t0 > 0.5  # the first HELLO went unanswered
+            assert be.board_info.firmware_id == 'galvoscan-m2560'
+            volts = scan_volts(10, seed=2)
+            be.start(volts, 500.0)
+            assert_frames_truthful(collect(be), volts)
+        finally:
+            be.close()
+    with FirmwareBoard(boot_count=6) as fw:
+        fw.reset(hold_s=2.0)
+        with pytest.raises(BackendError, match='not acknowledged'):
+            SerialBackend(fw.port, boot_wait=0.0).open()

@@ -5,6 +5,10 @@
 * :mod:`.emulator` - the board firmware in a thread on a pty or TCP socket, with fault
   injection; ``python -m galvo_driver.serial_link.emulator --pty`` runs it as a process.
 * :mod:`.backend` - :class:`SerialBackend`, the driver backend named 'serial'.
+* :mod:`.simavr_board` - the board firmware (``firmware/``) in simavr: behind a pty in real
+  time, or against a scripted host in simulated time, with its cycle-stamped log.
+
+The protocol is specified in ``docs/board-protocol.md``.
 
 No rclpy here.
 """

@@ -56,6 +56,10 @@ from galvoscan_common.frame import STATUS_FAULT, STATUS_SETTLED, Frame, check_vo
 log = logging.getLogger(__name__)
 
 
+class _NoAnswerError(BackendError):
+    """A command went unanswered through all its retries."""
+
+
 class _Aborted:
     def __init__(self, reason: str):
         self.reason = reason
@@ -102,19 +106,27 @@ class SerialBackend(GalvoBackend):
         The link counts as lost when the board sends nothing for this long [s].
     exposure : float
         Camera exposure time [s]; frame stamps are trigger time + exposure / 2.
+    boot_wait : float
+        When the board does not answer the first HELLO, wait this long for its BOOT and
+        try once more [s]: an Arduino Mega resets when its port is opened (DTR) and spends
+        about a second in its bootloader first. 0: fail at once.
     """
 
     name = 'serial'
 
     def __init__(self, port: str, *, baudrate: int = 921600, ack_timeout: float = 0.05,
                  retries: int = 10, heartbeat_period: float = 0.05, link_timeout: float = 1.0,
-                 exposure: float = 0.0):
+                 exposure: float = 0.0, boot_wait: float = 3.0):
         for arg, value in (('ack_timeout', ack_timeout), ('heartbeat_period', heartbeat_period),
                            ('link_timeout', link_timeout)):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f'{arg}: must be a positive time in s, got {value}')
         if not (math.isfinite(exposure) and exposure >= 0):
             raise ValueError(f'exposure: must be >= 0 s, got {exposure}')
+        if not (math.isfinite(boot_wait) and boot_wait >= 0):
+            raise ValueError(f'boot_wait: must be >= 0 s, got {boot_wait}')
+        self.boot_wait = float(boot_wait)
+        self._boot_seen = threading.Event()
         if int(retries) < 0:
             raise ValueError(f'retries: must be >= 0, got {retries}')
         if not isinstance(port, str) or not port:
@@ -271,11 +283,19 @@ class SerialBackend(GalvoBackend):
         self._session_lost = False
         self._last_board_seq = None
         self._last_rx = time.monotonic()
+        self._boot_seen.clear()
         self._reader_thread = threading.Thread(target=self._reader, args=(ser, fd),
                                                name='galvo-serial-reader', daemon=True)
         self._reader_thread.start()
         try:
-            self._handshake()
+            try:
+                self._handshake()
+            except _NoAnswerError:
+                # opening the port may have reset the board into its bootloader
+                if not self._boot_seen.wait(self.boot_wait) or self._link_error is not None:
+                    raise
+                log.info('the board booted after its port was opened; handshaking again')
+                self._handshake()
         except BaseException:
             self._shutdown()
             raise
@@ -579,8 +599,8 @@ class SerialBackend(GalvoBackend):
                     if slot.event.wait(self.ack_timeout):
                         break
                 else:
-                    raise BackendError(f'{name} (seq {seq}) not acknowledged after '
-                                       f'{attempts} attempts')
+                    raise _NoAnswerError(f'{name} (seq {seq}) not acknowledged after '
+                                    f'{attempts} attempts')
             finally:
                 self._pending.pop(seq, None)
         resp = slot.response
@@ -703,6 +723,7 @@ class SerialBackend(GalvoBackend):
             elif isinstance(msg, p.Status):
                 self._on_status(msg.status)
             elif isinstance(msg, p.Boot):
+                self._boot_seen.set()
                 if self._boot_id is not None and msg.info.boot_id != self._boot_id:
                     self._board_reset(msg.info.boot_id, 'BOOT received')
             elif isinstance(msg, p.Fault):

@@ -14,7 +14,13 @@ did, and it injects faults on demand: lost bytes and corrupted bits in outgoing 
 (by message kind), corrupted or shortened incoming frames, lost ACKs, a DAC glitch (a row
 output one LSB off), a reset (at once or right after a given trigger), an unplug (the
 transport is closed; the board keeps running and its watchdog makes it safe), duplicated
-trigger events, a drifting microsecond clock (ppm) and a clock step.
+trigger events, a drifting microsecond clock (ppm) and a clock step. Its interlock input
+opens and closes on demand (:meth:`FirmwareEmulator.set_interlock`).
+
+It follows ``docs/board-protocol.md`` as the board firmware (``firmware/``) does; where the
+two could differ, the firmware is the reference and the emulator follows it (the scan
+timing included: first edge half a period after SCAN_START, laser off and STATUS DONE half
+a period after the last edge).
 
 Every trigger is also recorded with its boot id, scan id, index and board timestamp
 (:meth:`FirmwareEmulator.triggers`), and an ``on_trigger`` hook is called at each trigger
@@ -59,6 +65,8 @@ TX_KINDS = {'any': None, 'ack': p.ACK, 'nak': p.NAK, 'event': p.EVENT, 'boot': p
             'status': p.STATUS, 'fault': p.FAULT}
 
 _ZERO_CODES = (p.CODE_ZERO,) * p.N_CHANNELS
+#: Longest trigger period a board accepts [us] (docs/board-protocol.md).
+MAX_PERIOD_US = 60_000_000
 
 
 @dataclass(frozen=True)
@@ -73,7 +81,8 @@ class AppliedOutput:
         DAC codes of (U1_pan, U1_tilt, U2_pan, U2_tilt).
     laser_on : bool
     reason : str
-        'boot', 'reset', 'set', 'laser', 'trigger', 'scan_done', 'stop', 'safe', 'watchdog'.
+        'boot', 'reset', 'set', 'laser', 'trigger', 'scan_done', 'stop', 'safe', 'watchdog',
+        'interlock'.
     """
 
     t: float
@@ -293,6 +302,9 @@ class FirmwareEmulator:
         self._reset_request = False
         self._reset_at_trigger: int | None = None
         self._unplug_request = False
+        self._interlock = False  # the input's level survives resets: it is wiring
+        self._interlock_request: bool | None = None
+        self._ignored_rx = 0  # board-type packets sent to the board (not rx errors)
         # statistics
         self.stats = {'rx_frames': 0, 'rx_errors': 0, 'tx_frames': 0, 'tx_dropped_bytes': 0,
                       'duplicates': 0, 'late_triggers': 0, 'resets': 0, 'hook_errors': 0,
@@ -414,6 +426,13 @@ class FirmwareEmulator:
             self._unplug_request = True
         self._wake()
 
+    def set_interlock(self, is_open: bool) -> None:
+        """Open (True) or close the interlock loop. Opening switches the laser off, stops any
+        scan, parks the galvos at 0 V and sends FAULT INTERLOCK and STATUS."""
+        with self._lock:
+            self._interlock_request = bool(is_open)
+        self._wake()
+
     def duplicate_events(self, n: int = 1, skip: int = 0) -> None:
         """Send each of the next ``n`` trigger EVENTs twice (the copy with the next frame
         sequence number, as a firmware that re-emits an event), after letting ``skip``
@@ -506,6 +525,7 @@ class FirmwareEmulator:
         self._index = 0
         self._triggers = 0
         self._next_trigger = 0.0
+        self._end_at: float | None = None
         self._last_rx: float | None = None
         self._wd_armed = False
         self._wd_flag = False
@@ -529,10 +549,11 @@ class FirmwareEmulator:
                            self.min_period_us)
 
     def _status(self) -> p.BoardStatus:
-        return p.BoardStatus(self._boot_id, self._uptime_us(), self._state,
-                             p.FLAG_WATCHDOG if self._wd_flag else 0, self._laser,
+        flags = ((p.FLAG_WATCHDOG if self._wd_flag else 0)
+                 | (p.FLAG_INTERLOCK if self._interlock else 0))
+        return p.BoardStatus(self._boot_id, self._uptime_us(), self._state, flags, self._laser,
                              self._codes, self._scan_id, self._triggers,
-                             self._decoder.error_count)
+                             self._decoder.error_count - self._ignored_rx)
 
     def _send(self, msg: p.Message) -> None:
         frame = bytearray(p.encode_frame(self._tx_seq, msg))
@@ -572,6 +593,9 @@ class FirmwareEmulator:
             sent += n
 
     def _on_rx_error(self, err: p.ProtocolError) -> None:
+        if err.seq is not None and err.msg_type is not None and err.msg_type >= 0x80:
+            self._ignored_rx += 1  # a board-type packet: ignored, not a receive error
+            return
         self.stats['rx_errors'] += 1
         if err.seq is not None and err.msg_type is not None and err.msg_type < 0x80:
             self._respond(err.seq, p.Nak(err.seq, p.NAK_BAD_MESSAGE))
@@ -607,11 +631,11 @@ class FirmwareEmulator:
 
     def _handle(self, pkt: p.Packet) -> None:
         msg, seq = pkt.msg, pkt.seq
+        if msg.TYPE >= 0x80:  # a board message sent back to the board: ignored
+            return
         self.stats['rx_frames'] += 1
         self._last_rx = time.monotonic()
         self._wd_armed = True
-        if msg.TYPE >= 0x80:  # a board message echoed back: ignore
-            return
         if isinstance(msg, p.Heartbeat):
             self._send(p.Status(self._status()))
             self._wd_flag = False
@@ -650,11 +674,15 @@ class FirmwareEmulator:
         if isinstance(msg, p.Laser):
             if msg.on and scanning:
                 return nak(p.NAK_BUSY)
+            if msg.on and self._interlock:
+                return nak(p.NAK_INTERLOCK)
             self._apply(self._codes, msg.on, 'laser')
             return p.Ack(seq)
         if scanning:
             return nak(p.NAK_BUSY)
         if isinstance(msg, p.SetVolts):
+            if self._interlock:
+                return nak(p.NAK_INTERLOCK)
             self._apply(msg.codes, self._laser, 'set')
             return p.Ack(seq)
         if isinstance(msg, p.ScanBegin):
@@ -678,14 +706,17 @@ class FirmwareEmulator:
                     or msg.n_rows != len(self._table) or not self._filled.all()
                     or p.table_crc(self._table) != msg.table_crc):
                 return nak(p.NAK_TABLE_MISMATCH)
-            if msg.period_us < self.min_period_us:
+            if not self.min_period_us <= msg.period_us <= MAX_PERIOD_US:
                 return nak(p.NAK_BAD_ARGUMENT)
+            if msg.laser_on and self._interlock:
+                return nak(p.NAK_INTERLOCK)
             self._period = msg.period_us * 1e-6
             self._scan_laser = msg.laser_on
             self._index = 0
             self._triggers = 0
             self._state = p.STATE_SCANNING
-            self._next_trigger = time.monotonic()
+            self._end_at = None
+            self._next_trigger = time.monotonic() + 0.5 * self._period  # as the firmware
             return p.Ack(seq)
         return nak(p.NAK_BAD_MESSAGE)
 
@@ -724,8 +755,23 @@ class FirmwareEmulator:
             self._reset()
             return
         if self._index >= len(self._table):
-            self._state = p.STATE_DONE
-            self._apply(self._codes, False, 'scan_done')
+            # the laser stays on through the last exposure: off half a period later
+            self._end_at = t + 0.5 * self._period
+
+    def _end_scan(self) -> None:
+        self._end_at = None
+        self._state = p.STATE_DONE
+        self._apply(self._codes, False, 'scan_done')
+        self._send(p.Status(self._status()))
+
+    def _interlock_change(self, is_open: bool) -> None:
+        was = self._interlock
+        self._interlock = is_open
+        if is_open and not was:
+            self._end_at = None
+            self._state = p.STATE_IDLE
+            self._apply(_ZERO_CODES, False, 'interlock')
+            self._send(p.Fault(p.FAULT_INTERLOCK, self._uptime_us()))
             self._send(p.Status(self._status()))
 
     def _call_hook(self, index: int, t: float) -> None:
@@ -765,7 +811,8 @@ class FirmwareEmulator:
                 now = time.monotonic()
                 timeout = 0.05
                 if self._state == p.STATE_SCANNING:
-                    timeout = min(timeout, self._next_trigger - now)
+                    timeout = min(timeout, (self._next_trigger if self._end_at is None
+                                            else self._end_at) - now)
                 if self._wd_armed:
                     timeout = min(timeout, self._last_rx + self.watchdog - now + 0.001)
                 fds = [] if self._unplugged else self._transport.fds()
@@ -788,6 +835,9 @@ class FirmwareEmulator:
                 if self._reset_request:
                     self._reset_request = False
                     self._reset()
+                if self._interlock_request is not None:
+                    self._interlock_change(self._interlock_request)
+                    self._interlock_request = None
                 for fd in readable:
                     if fd == self._wake_r or self._unplugged:
                         continue
@@ -795,7 +845,11 @@ class FirmwareEmulator:
                     for pkt in self._decoder.feed(data):
                         self._handle(pkt)
                 now = time.monotonic()
-                if self._state == p.STATE_SCANNING and now >= self._next_trigger:
+                if (self._state == p.STATE_SCANNING and self._end_at is not None
+                        and now >= self._end_at):
+                    self._end_scan()
+                elif (self._state == p.STATE_SCANNING and self._end_at is None
+                        and now >= self._next_trigger):
                     if now - self._next_trigger > self._period:
                         self.stats['late_triggers'] += 1
                     self._trigger()

@@ -1,121 +1,23 @@
 """Wire protocol between the host and the galvo DAC board (protocol version 1).
 
-Pure Python, no rclpy. The same module is used by the host backend
-(:mod:`galvo_driver.serial_link.backend`) and by the firmware emulator
-(:mod:`galvo_driver.serial_link.emulator`).
+The protocol is specified in ``docs/board-protocol.md``; this module and the board
+firmware (``firmware/src``) both implement that document byte for byte. Pure Python, no
+rclpy: used by the host backend (:mod:`galvo_driver.serial_link.backend`) and by the
+firmware emulator (:mod:`galvo_driver.serial_link.emulator`).
 
-Framing
--------
-Every message is one *packet*, CRC-protected, COBS-encoded and terminated by a single
-``0x00`` byte. COBS (Consistent Overhead Byte Stuffing, Cheshire & Baker 1999) removes every
-zero from the packet, so ``0x00`` only ever appears as the frame delimiter and a receiver
-that lost sync recovers at the next ``0x00``.
+In short:
 
-Wire frame::
-
-    COBS( packet ) 0x00
-
-Packet (before COBS; all integers little-endian):
-
-======  ======  ==========  ===============================================================
-offset  size    field       meaning
-======  ======  ==========  ===============================================================
-0       1       type        message type (table below)
-1       2       seq         sequence number (u16); 0 for HEARTBEAT, 1..65535 for commands
-3       n       payload     0..240 bytes, layout per type
-3+n     4       crc         CRC-32 (IEEE 802.3, as ``binascii.crc32``) of bytes 0..3+n
-======  ======  ==========  ===============================================================
-
-A packet is at most 247 bytes, its COBS encoding at most 248 bytes; a receiver discards any
-frame longer than :data:`MAX_ENCODED_FRAME` (256 bytes) without buffering it.
-
-Sequence numbers, ACK/NAK and retry
------------------------------------
-* The host numbers its *commands* 1, 2, ..., 65535, 1, ... (0 is skipped); it sends one
-  command at a time and waits for an ACK or NAK carrying that number (stop-and-wait).
-  Without an answer within the ACK timeout (default 50 ms) it resends the *same* bytes with
-  the *same* seq, up to a retry limit, then gives up (``BackendError``).
-* The board remembers the seq of the last command it executed and the answer it gave. A
-  command whose seq equals that one is a retransmission: the board repeats the stored
-  answer and does not execute the command again (so a lost ACK never starts a scan twice).
-  HELLO is always executed and resets this memory.
-* Every board packet carries the board's own seq (u16, +1 per packet, restarts at 0 on boot).
-  Lost board packets show up as gaps; trigger events also carry their own 32-bit index, and
-  the host counts missing indices as lost events (never fills them in).
-* A packet with a bad CRC or bad COBS is dropped and counted. A packet with a good CRC but a
-  bad payload (unknown type, wrong length, out-of-range field) is a :class:`ProtocolError`
-  that knows its seq; the board answers a command like that with NAK ``BAD_MESSAGE``.
-
-Message types
--------------
-Host to board:
-
-====  ===========  ===========================================================  ==========
-type  name         payload                                                      answer
-====  ===========  ===========================================================  ==========
-0x01  HELLO        version u16 (host protocol version; layout frozen forever)   ACK+info
-0x02  HEARTBEAT    (empty); seq 0                                               STATUS
-0x03  SET_VOLTS    codes 4 x u16                                                ACK/NAK
-0x04  LASER        on u8 (0 or 1)                                               ACK/NAK
-0x05  SCAN_BEGIN   scan_id u16, n_rows u32                                      ACK/NAK
-0x06  SCAN_DATA    scan_id u16, offset u32, count u8 (1..29), count x 4 x u16   ACK/NAK
-0x07  SCAN_START   scan_id u16, n_rows u32, period_us u32, laser u8,            ACK/NAK
-                   table_crc u32 (CRC-32 of all rows' codes as LE u16)
-0x08  SCAN_STOP    (empty): stop triggering, laser off                          ACK
-0x09  SAFE         (empty): stop, all channels to code 32768 (0 V), laser off   ACK
-0x0A  GET_STATUS   (empty)                                                      ACK+status
-====  ===========  ===========================================================  ==========
-
-Board to host:
-
-====  ======  ===================================================================
-type  name    payload
-====  ======  ===================================================================
-0x80  ACK     acked_seq u16, then data: BoardInfo after HELLO, BoardStatus after
-              GET_STATUS, nothing otherwise
-0x81  NAK     acked_seq u16, reason u8 (``NAK_*``)
-0x82  EVENT   one per trigger: boot_id u32, scan_id u16, index u32 (trigger/frame index
-              = row index), timestamp_us u64 (board clock at the trigger), codes 4 x u16
-              (DAC codes actually output), laser u8, status u8 (0 settled, 1 moving,
-              2 fault)
-0x83  BOOT    BoardInfo; sent unprompted after every power-up or reset
-0x84  STATUS  BoardStatus; answer to HEARTBEAT, and sent when a scan ends or the
-              watchdog trips
-0x85  FAULT   code u8 (``FAULT_*``), timestamp_us u64, detail u32
-====  ======  ===================================================================
-
-BoardInfo (40 bytes): version u16, firmware_id 16 bytes ASCII (NUL padded), dac_bits u8
-(16), channels u8 (4), boot_id u32 (random, new on every boot), uptime_us u64,
-max_scan_rows u32, min_period_us u32.
-
-BoardStatus (33 bytes): boot_id u32, uptime_us u64, state u8 (``STATE_*``), flags u8
-(bit 0: the watchdog tripped since the last host packet), laser u8, codes 4 x u16 (the
-output now), scan_id u16, triggers u32 (events emitted in the current/last scan),
-rx_errors u32 (host frames dropped for bad COBS/CRC).
-
-Sessions, heartbeat and watchdog
---------------------------------
-After boot the board is safe (all channels at code 32768 = 0 V, laser off) and accepts only
-HELLO, HEARTBEAT, SAFE and GET_STATUS until a HELLO with its own protocol version arrives;
-other commands get NAK ``NO_SESSION`` (or ``VERSION`` after a HELLO with another version).
-So a board reset always ends the session and the host has to notice it: the BOOT packet
-says so at once, and the boot_id in every EVENT and STATUS says so even if BOOT was lost.
-
-The host sends HEARTBEAT every 50 ms. Any valid host packet feeds the firmware watchdog;
-when none has arrived for the watchdog time (150 ms by default), the board stops any scan,
-drives all channels to code 32768 and the laser off, and sends FAULT ``WATCHDOG`` and
-STATUS. A scan that reaches its last row also switches the laser off (the galvos stay at
-the last row) and sends STATUS with state DONE.
-
-DAC codes
----------
-16-bit DAC, 4 channels in the order (U1_pan, U1_tilt, U2_pan, U2_tilt), symmetric
-bipolar code::
-
-    U = (code - 32768) * 10 V / 32767          code = 32768 + floor(U / LSB + 1/2)
-
-so code 32768 is exactly 0 V, code 1 is exactly -10 V, code 65535 exactly +10 V, the LSB is
-305.2 uV and the rounding error at most LSB/2. Code 0 is reserved and rejected on the wire.
+* wire frame ``COBS(packet) 0x00``; packet = type u8, seq u16, payload (0..240 bytes),
+  CRC-32 (zlib) of the rest; all integers little-endian; frames over 256 bytes are dropped;
+* host commands (types 0x01..0x0A: HELLO, HEARTBEAT, SET_VOLTS, LASER, SCAN_BEGIN,
+  SCAN_DATA, SCAN_START, SCAN_STOP, SAFE, GET_STATUS) are numbered 1..65535 and answered
+  stop-and-wait with ACK or NAK under their seq; the board repeats its stored answer to a
+  retransmission instead of executing it twice;
+* board messages (0x80..0x85: ACK, NAK, EVENT, BOOT, STATUS, FAULT) carry the board's own
+  seq; one EVENT per trigger with the codes in the DAC outputs at the edge;
+* the board goes safe (0 V, laser off) when no host packet arrives for 150 ms (HEARTBEAT
+  every 50 ms), and when its interlock opens;
+* DAC code ``U = (code - 32768) * 10 V / 32767``, code 0 reserved.
 """
 
 from __future__ import annotations
@@ -176,6 +78,7 @@ NAK_VERSION = 3
 NAK_BUSY = 4
 NAK_BAD_ARGUMENT = 5
 NAK_TABLE_MISMATCH = 6
+NAK_INTERLOCK = 7
 NAK_REASONS = {
     NAK_BAD_MESSAGE: 'bad message',
     NAK_NO_SESSION: 'no session (HELLO first)',
@@ -183,6 +86,7 @@ NAK_REASONS = {
     NAK_BUSY: 'busy scanning',
     NAK_BAD_ARGUMENT: 'bad argument',
     NAK_TABLE_MISMATCH: 'scan table incomplete or CRC mismatch',
+    NAK_INTERLOCK: 'interlock open',
 }
 
 # Board states (BoardStatus.state).
@@ -193,12 +97,14 @@ STATE_DONE = 3
 STATE_NAMES = {STATE_IDLE: 'idle', STATE_LOADED: 'loaded', STATE_SCANNING: 'scanning',
                STATE_DONE: 'done'}
 FLAG_WATCHDOG = 0x01
+FLAG_INTERLOCK = 0x02
 
 # Fault codes.
 FAULT_WATCHDOG = 1
 FAULT_OVERRUN = 2
+FAULT_INTERLOCK = 3
 FAULT_NAMES = {FAULT_WATCHDOG: 'watchdog (heartbeats stopped)',
-               FAULT_OVERRUN: 'trigger overrun'}
+               FAULT_OVERRUN: 'trigger overrun', FAULT_INTERLOCK: 'interlock opened'}
 
 # Event status (same numbers as galvoscan_common.frame.STATUS_*).
 EVENT_SETTLED = 0
