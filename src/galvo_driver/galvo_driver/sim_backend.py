@@ -12,21 +12,81 @@ the requested rate; when rendering is slower than that rate, they come out as fa
 simulator renders them, stamps unchanged. One frame is handed out per poll by default:
 a burst of 720x540 images overflows Fast DDS's default shared-memory segment and a
 best-effort subscriber then loses frames. Sequence numbers run on across scans.
+
+Exposure: laser frames use ``exposure`` [s] (0: the rig's) and ``laser_power`` (relative to
+the rig's laser). With ``auto_exposure`` a laser scan first renders a short pre-scan of
+``auto_exposure_frames`` frames spread over its voltages (not published) and sets the
+scan's exposure from their stripe level (:func:`pre_scan_exposure`), within the camera's
+shortest exposure and the frame period.
 """
 
 from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from galvo_driver.backend import BackendError, GalvoBackend
 from galvoscan_common.frame import STATUS_SETTLED, Frame, check_voltages
+
+#: Shortest exposure of the simulated camera [s] (assumed for a global-shutter industrial
+#: camera of the rig's class, whose GenICam ExposureTime minimum is a few tens of us).
+MIN_EXPOSURE = 20e-6
+#: Share of the frame period an exposure may take (the rest: the sensor's transfer and
+#: the trigger's jitter).
+MAX_EXPOSURE_SHARE = 0.9
+
+
+def exposure_limits(frame_rate: float) -> tuple[float, float]:
+    """(shortest, longest) exposure [s] at ``frame_rate`` [Hz]."""
+    return MIN_EXPOSURE, max(MIN_EXPOSURE, MAX_EXPOSURE_SHARE / float(frame_rate))
+
+
+def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
+                      exposure: float | None = None, laser_power: float = 1.0,
+                      index0: int = 10_000_000) -> tuple[float, list]:
+    """The exposure [s] a scan over ``voltages`` (n, 4) should use, from ``frames``
+    pre-scan frames spread over it (rendered at ``exposure``, the rig's by default), and
+    their (saturated fraction, peak level) pairs. A clipped pre-scan is repeated once at
+    the exposure it suggests."""
+    from stripe_extractor.exposure import auto_exposure, frame_levels
+
+    v = np.asarray(voltages, dtype=np.float64)
+    idx = np.unique(np.linspace(0, len(v) - 1, max(int(frames), 1)).round().astype(int))
+    t = sim.rig.image.exposure if exposure is None else float(exposure)
+    limits = exposure_limits(frame_rate)
+    bg = sim.rig.image.black_level / float((1 << sim.rig.image.bit_depth) - 1)
+    levels = []
+    for attempt in range(2):
+        imgs = [sim.render(v[i], exposure=t, laser_power=laser_power,
+                           frame_index=index0 + 100 * attempt + k).image
+                for k, i in enumerate(idx)]
+        levels = [frame_levels(im) for im in imgs]
+        new = auto_exposure(imgs, t, limits, background=bg)
+        clipped = max(s for s, _ in levels) > 0.01
+        t = new
+        if not clipped:
+            break
+    return t, levels
 
 
 class SimBackend(GalvoBackend):
     name = 'sim'
 
-    def __init__(self, rig='reference', scene='stair_block', seed=0, max_frames_per_poll=1):
+    def __init__(self, rig='reference', scene='stair_block', seed=0, max_frames_per_poll=1,
+                 exposure=0.0, laser_power=1.0, auto_exposure=False, auto_exposure_frames=5):
         self.rig_name, self.scene_name, self.seed = rig, scene, int(seed)
+        if not (exposure >= 0 and laser_power >= 0 and int(auto_exposure_frames) >= 1):
+            raise ValueError(f'exposure {exposure} s, laser_power {laser_power}, '
+                             f'auto_exposure_frames {auto_exposure_frames}: out of range')
+        self.exposure = float(exposure) or None
+        self.laser_power = float(laser_power)
+        self.auto_exposure = bool(auto_exposure)
+        self.auto_exposure_frames = int(auto_exposure_frames)
+        #: The laser-frame exposure of the running (last) scan [s] and the pre-scan's
+        #: (saturated fraction, peak level) per frame.
+        self.scan_exposure = None
+        self.pre_scan_levels = []
         self.max_frames_per_poll = int(max_frames_per_poll)
         self.sim = None
         self._volts = None
@@ -68,7 +128,18 @@ class SimBackend(GalvoBackend):
         volts = check_voltages(voltages)
         if not frame_rate > 0:
             raise ValueError(f'frame_rate: must be > 0 Hz, got {frame_rate}')
-        self._volts = self.sim.rig.dac.quantize(volts)
+        quantized = self.sim.rig.dac.quantize(volts)
+        exposure = self.exposure or self.sim.rig.image.exposure
+        lo, hi = exposure_limits(frame_rate)
+        if laser_on and self.auto_exposure:
+            exposure, self.pre_scan_levels = pre_scan_exposure(
+                self.sim, quantized, frame_rate, self.auto_exposure_frames, exposure,
+                self.laser_power)
+        elif laser_on and self.exposure is not None and not lo <= exposure <= hi:
+            raise ValueError(f'exposure {exposure * 1e6:.0f} us outside [{lo * 1e6:.0f}, '
+                             f'{hi * 1e6:.0f}] us at {frame_rate:g} Hz')
+        self.scan_exposure = exposure
+        self._volts = quantized
         self._index, self._laser = 0, bool(laser_on)
         self._period = 1.0 / float(frame_rate)
         self._t_wall, self._t_mono = time.time(), time.monotonic()
@@ -83,11 +154,17 @@ class SimBackend(GalvoBackend):
         if not self.running:
             return out
         due = int((time.monotonic() - self._t_mono) / self._period) + 1
-        exposure = self.sim.rig.image.exposure
+        exposure = self.scan_exposure if self._laser else self.sim.rig.image.exposure
+        custom = self.scan_exposure != self.sim.rig.image.exposure or self.laser_power != 1.0
         while self.running and self._index < due and len(out) < self.max_frames_per_poll:
             i = self._index
-            frame = (self.sim.render(self._volts[i]) if self._laser
-                     else self.sim.calibration_frame(self._volts[i]))
+            if not self._laser:
+                frame = self.sim.calibration_frame(self._volts[i])
+            elif custom:
+                frame = self.sim.render(self._volts[i], exposure=exposure,
+                                        laser_power=self.laser_power)
+            else:
+                frame = self.sim.render(self._volts[i])
             out.append(Frame(seq=self._seq, stamp=self._t_wall + i * self._period + exposure / 2,
                              voltages=self._volts[i].copy(), laser_on=self._laser,
                              status=STATUS_SETTLED, image=frame.image,

@@ -1,0 +1,67 @@
+"""The sim backend's exposure: fixed, limited by the frame period, and set by a pre-scan."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+
+from galvo_driver.sim_backend import SimBackend, exposure_limits, pre_scan_exposure
+from stripe_extractor.exposure import frame_levels
+
+
+def _sweep(n=5):
+    v = np.zeros((n, 4))
+    v[:, 3] = np.linspace(-0.2, 0.1, n)
+    return v
+
+
+def _frames(backend, n):
+    out = []
+    t_end = time.monotonic() + 30
+    while len(out) < n and time.monotonic() < t_end:
+        out += backend.poll()
+    return out
+
+
+def test_auto_exposure_brings_a_black_part_to_the_target():
+    dark = SimBackend(scene='stair_block_black_anodised', seed=1)
+    dark.open()
+    dark.start(_sweep(), 500.0)
+    base = [frame_levels(f.image)[1] for f in _frames(dark, 5)]
+    auto = SimBackend(scene='stair_block_black_anodised', seed=1, auto_exposure=True)
+    auto.open()
+    auto.start(_sweep(), 500.0)
+    lo, hi = exposure_limits(500.0)
+    assert auto.scan_exposure > 2 * auto.sim.rig.image.exposure
+    assert lo <= auto.scan_exposure <= hi
+    frames = _frames(auto, 5)
+    peaks = [frame_levels(f.image)[1] for f in frames]
+    # at the rig's exposure the stripe is dim; the pre-scan's exposure (here capped by the
+    # 2 ms frame period) raises it in proportion
+    assert np.median(peaks) > 2.0 * np.median(base), (base, peaks)
+    ratio = auto.scan_exposure / auto.sim.rig.image.exposure
+    assert np.median(peaks) == pytest.approx(np.median(base) * ratio, rel=0.25)
+    assert auto.scan_exposure == pytest.approx(hi) or 0.5 < np.median(peaks) < 0.95
+    assert len(auto.pre_scan_levels) == 5
+
+
+def test_auto_exposure_shortens_a_clipping_exposure():
+    b = SimBackend(scene='stair_block', seed=1, exposure=1.5e-3, auto_exposure=True)
+    b.open()
+    clipped = [frame_levels(b.sim.render(v, exposure=1.5e-3).image)[0] for v in _sweep(3)]
+    t, levels = pre_scan_exposure(b.sim, _sweep(), 500.0, 3, 1.5e-3)
+    assert min(clipped) > 0.2 and t <= 0.75e-3
+    after = [frame_levels(b.sim.render(v, exposure=t).image)[0] for v in _sweep(3)]
+    assert max(after) <= 0.01, after
+
+
+def test_exposure_outside_the_frame_period_is_refused():
+    b = SimBackend(exposure=3e-3)
+    b.open()
+    with pytest.raises(ValueError, match='exposure'):
+        b.start(_sweep(), 500.0)
+    assert not b.running
+    with pytest.raises(ValueError):
+        SimBackend(exposure=-1.0)
