@@ -49,7 +49,7 @@ def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
     pre-scan frames spread over it (rendered at ``exposure``, the rig's by default), and
     their (saturated fraction, peak level) pairs. A clipped pre-scan is repeated once at
     the exposure it suggests."""
-    from stripe_extractor.exposure import auto_exposure, frame_levels
+    from stripe_extractor.exposure import CLIPPED_SHARE, auto_exposure, frame_levels
 
     v = np.asarray(voltages, dtype=np.float64)
     idx = np.unique(np.linspace(0, len(v) - 1, max(int(frames), 1)).round().astype(int))
@@ -63,7 +63,7 @@ def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
                 for k, i in enumerate(idx)]
         levels = [frame_levels(im) for im in imgs]
         new = auto_exposure(imgs, t, limits, background=bg)
-        clipped = max(s for s, _ in levels) > 0.01
+        clipped = max(s for s, _ in levels) > CLIPPED_SHARE
         t = new
         if not clipped:
             break

@@ -58,3 +58,23 @@ def test_two_view_sweep_and_bad_input():
         agreeing(np.zeros((2, 2)), np.zeros((1, 3)), 1e-3)
     ka, kb = agreeing(np.zeros((0, 3)), np.zeros((2, 3)), 1e-3)
     assert ka.shape == (0,) and not kb.any()
+
+
+def test_expected_rows_put_the_stripe_on_the_nominal_face():
+    """A face's expected rows, triangulated back with the same model, lie on the face."""
+    from reconstructor.planning import expected_rows
+
+    model = nominal_example_rig()
+    c = np.array([0.0, 0.0, 0.66])
+    R = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(0.3), -math.sin(0.3)],
+                  [0.0, math.sin(0.3), math.cos(0.3)]])
+    e1, e2 = R[:, 0], R[:, 1]
+    volts = np.array([0.1, -0.05, 0.0, 0.02])
+    rows = expected_rows(model, [(c, e1, e2, (0.02, 0.5))], volts, 720)
+    cols = np.flatnonzero(np.isfinite(rows))
+    assert 100 < len(cols) < 720  # the face is 40 mm wide: part of the 60 mm view
+    res = triangulate(model, np.column_stack((cols, rows[cols])), *volts[[0, 1, 3]])
+    n = np.cross(e1, e2)
+    assert np.max(np.abs((res.p_v0[res.valid] - c) @ n)) < 2e-6
+    with pytest.raises(ValueError, match='voltages'):
+        expected_rows(model, [], np.array([0.0, math.nan, 0.0, 0.0]), 720)

@@ -17,9 +17,14 @@ from .extractor import StripeResult
 #: The stripe peak that auto exposure aims at, as a share of full scale: headroom for
 #: speckle (contrast ~0.1-0.3) above the mean peak, and well above min_strength.
 TARGET_PEAK = 0.7
-#: Percentile of the columns' peaks that auto exposure sets to the target: the bright end
-#: of the stripe, not its single brightest glint.
-PEAK_PERCENTILE = 90.0
+#: Percentile of the columns' peaks that auto exposure sets to the target: the median
+#: column, so that a glint or a reflection's bright glow in a few columns does not keep
+#: the rest of the stripe dark.
+PEAK_PERCENTILE = 50.0
+#: A pre-scan frame counts as clipped when more than this share of its columns are: a
+#: glint (the specular corner of a shiny part) may clip a few columns and still leave the
+#: rest of the stripe well exposed.
+CLIPPED_SHARE = 0.1
 
 
 def _full_scale(img: np.ndarray) -> int:
@@ -31,7 +36,8 @@ def frame_levels(image: np.ndarray) -> tuple[float, float]:
 
     The saturated fraction is the share of columns whose brightest pixel is at full scale;
     the peak level the :data:`PEAK_PERCENTILE` percentile of the columns' brightest pixels
-    over full scale [1] (a horizontal stripe: one peak per column).
+    over full scale [1] (a horizontal stripe: one peak per column; a stripe across the
+    whole image).
 
     Parameters
     ----------
@@ -51,8 +57,8 @@ def auto_exposure(images, exposure: float, limits: tuple[float, float],
     """The exposure [s] that puts the pre-scan frames' stripe peak at ``target``.
 
     The signal is proportional to the exposure (the sensor is linear below full well);
-    clipped frames give a lower bound on their true level, so the exposure falls by at
-    least half for each until a pre-scan sees unclipped peaks (the driver repeats the
+    a frame with more than :data:`CLIPPED_SHARE` of its columns clipped gives only a lower
+    bound on its level, so the exposure falls by at least half (the driver repeats the
     pre-scan once when it was clipped).
 
     Parameters
@@ -82,7 +88,7 @@ def auto_exposure(images, exposure: float, limits: tuple[float, float],
         raise ValueError('auto_exposure: no pre-scan frames')
     sat = max(s for s, _ in levels)
     peak = max(p for _, p in levels)
-    if sat > 0.01:
+    if sat > CLIPPED_SHARE:
         new = exposure * min(0.5, target / max(peak, 1e-6))
     elif peak - background <= 1e-3:
         new = hi

@@ -117,6 +117,20 @@ def _expected_rows(expected, n: int) -> np.ndarray:
     return np.ascontiguousarray(e)
 
 
+def _prior_offset(img, config, columns, method_arg, rows) -> np.float32:
+    """The prior's own error (calibration, the part's placement): the median offset from the
+    expected rows of the peaks nearest them, over the columns that have both (0 if none).
+    The prior need only be nearer the stripe than the reflections are."""
+    out = np.empty((4, img.shape[1]), np.float32)
+    counts = np.zeros(len(COUNT_NAMES), np.int64)
+    n, _ = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
+                   config.min_strength, out, MODE_CODES['nearest'], rows,
+                   config.ambiguity_ratio, counts)
+    d = out[1, :n] - rows[np.clip(np.rint(out[0, :n]).astype(np.int64), 0, len(rows) - 1)]
+    d = d[np.isfinite(d)]
+    return np.float32(np.median(d)) if d.size else np.float32(0.0)
+
+
 def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
     """Centres of a checked image, one per column at most, by the method of ``config``.
 
@@ -127,7 +141,9 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
         the rows.
     config : ExtractorConfig
     expected : array_like, shape (W,) or scalar, px, optional
-        Expected row of the stripe per column (``peak_mode='nearest'``; NaN: none).
+        Expected row of the stripe per column (``peak_mode='nearest'``; NaN: none). It is
+        first moved by the median offset of the peaks nearest it (the prior's own error,
+        e.g. of the calibration or the part's placement).
 
     Returns
     -------
@@ -141,9 +157,11 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
         columns, method_arg = steger_columns, config.sigma
     else:
         columns, method_arg = cog_columns, cog_half_window(config.line_width_px)
+    rows = _expected_rows(expected, img.shape[1])
+    if config.peak_mode == 'nearest' and np.any(np.isfinite(rows)):
+        rows = rows + _prior_offset(img, config, columns, method_arg, rows)
     out = np.empty((4, img.shape[1]), np.float32)
     counts = np.zeros(len(COUNT_NAMES), np.int64)
-    rows = _expected_rows(expected, img.shape[1])
     n, nsec = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
                       config.min_strength, out, MODE_CODES[config.peak_mode], rows,
                       config.ambiguity_ratio, counts)
