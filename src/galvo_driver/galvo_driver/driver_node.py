@@ -81,7 +81,8 @@ CAMERA_PARAMS = {
 PIXEL_FORMATS = ('Mono8', 'Mono10', 'Mono12', 'Mono16')
 #: Parameters that only change while unconfigured.
 _CONFIGURE_ONLY = ('rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_exposure',
-                   'auto_exposure_frames', 'backend', 'serial_port', 'replay_bag',
+                   'auto_exposure_frames', 'max_laser_power', 'backend', 'serial_port',
+                   'replay_bag',
                    'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
                    'calibration_file')
 #: Poll period of the backend while a scan runs [s] (frames at up to 1 kHz).
@@ -99,7 +100,8 @@ def make_backend(name: str, params: dict):
                           exposure=params.get('exposure', 0.0),
                           laser_power=params.get('laser_power', 1.0),
                           auto_exposure=params.get('auto_exposure', False),
-                          auto_exposure_frames=params.get('auto_exposure_frames', 5))
+                          auto_exposure_frames=params.get('auto_exposure_frames', 5),
+                          max_laser_power=params.get('max_laser_power', 1.0))
     if name == 'serial':
         from galvo_driver.serial_link.backend import SerialBackend
         return SerialBackend(params['serial_port'])
@@ -143,6 +145,9 @@ class GalvoDriverNode(LifecycleNode):
           'frame period)')
         d('auto_exposure_frames', 5, 'sim: pre-scan frames of auto_exposure [1]',
           ints=(1, 100))
+        d('max_laser_power', 1.0, 'sim: auto_exposure may raise the laser power up to this '
+          "(relative to the rig's) where the longest exposure within the frame period is "
+          'too short [1]', floats=(0.0, 100.0))
         d('serial_port', '', 'serial, rig: pyserial port or URL of the DAC board')
         d('camera_serial', '', 'rig: DeviceSerialNumber of the camera (arv-tool-0.8 lists it)')
         d('camera_user_id', '', 'rig: DeviceUserID of the camera')
@@ -247,7 +252,7 @@ class GalvoDriverNode(LifecycleNode):
     def _params(self):
         return {n: self.get_parameter(n).value for n in (
             'backend', 'rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_exposure',
-            'auto_exposure_frames', 'serial_port', 'replay_bag', 'replay_rate',
+            'auto_exposure_frames', 'max_laser_power', 'serial_port', 'replay_bag', 'replay_rate',
             'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
             *CAMERA_PARAMS)}
 
@@ -391,6 +396,7 @@ class GalvoDriverNode(LifecycleNode):
         elif getattr(self.backend, 'name', '') == 'sim' and self.backend.scan_exposure:
             levels = self.backend.pre_scan_levels
             out['sim'] = {'scan_exposure_s': self.backend.scan_exposure,
+                          'scan_laser_power': self.backend.scan_laser_power,
                           'pre_scan_saturated_fraction': max((s for s, _ in levels),
                                                              default=0.0),
                           'pre_scan_peak_level': max((p for _, p in levels), default=0.0)}

@@ -17,7 +17,9 @@ Exposure: laser frames use ``exposure`` [s] (0: the rig's) and ``laser_power`` (
 the rig's laser). With ``auto_exposure`` a laser scan first renders a short pre-scan of
 ``auto_exposure_frames`` frames spread over its voltages (not published) and sets the
 scan's exposure from their stripe level (:func:`pre_scan_exposure`), within the camera's
-shortest exposure and the frame period.
+shortest exposure and the frame period; where even the longest is too short, the laser
+power is raised up to ``max_laser_power`` (relative to the rig's; at most what the
+laser is rated for; the default 1 never raises it).
 """
 
 from __future__ import annotations
@@ -44,11 +46,16 @@ def exposure_limits(frame_rate: float) -> tuple[float, float]:
 
 def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
                       exposure: float | None = None, laser_power: float = 1.0,
-                      index0: int = 10_000_000) -> tuple[float, list]:
+                      index0: int = 10_000_000, max_laser_power: float | None = None):
     """The exposure [s] a scan over ``voltages`` (n, 4) should use, from ``frames``
-    pre-scan frames spread over it (rendered at ``exposure``, the rig's by default), and
-    their (saturated fraction, peak level) pairs. A clipped pre-scan is repeated once at
-    the exposure it suggests."""
+    pre-scan frames spread over it (rendered at ``exposure``, the rig's by default, and
+    ``laser_power``), and their (saturated fraction, peak level) pairs. A clipped pre-scan
+    is repeated once at the exposure it suggests.
+
+    With ``max_laser_power`` (> ``laser_power``) the third value returned is the laser
+    power for the scan: raised, up to that, by what the exposure could not give within the
+    frame period. Returns (exposure, levels) without it, (exposure, levels, power) with.
+    """
     from stripe_extractor.exposure import CLIPPED_SHARE, auto_exposure, frame_levels
 
     v = np.asarray(voltages, dtype=np.float64)
@@ -64,21 +71,34 @@ def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
         levels = [frame_levels(im) for im in imgs]
         new = auto_exposure(imgs, t, limits, background=bg)
         clipped = max(s for s, _ in levels) > CLIPPED_SHARE
-        t = new
+        measured_at, t = t, new
         if not clipped:
             break
-    return t, levels
+    if max_laser_power is None:
+        return t, levels
+    power = laser_power
+    if t >= limits[1] * (1 - 1e-9) and max_laser_power > laser_power:
+        from stripe_extractor.exposure import TARGET_PEAK
+
+        peak = max(p for _, p in levels)  # as auto_exposure reads the pre-scan
+        ideal = measured_at * (TARGET_PEAK - bg) / max(peak - bg, 1e-6)
+        power = float(min(max_laser_power, laser_power * ideal / t))
+    return t, levels, power
 
 
 class SimBackend(GalvoBackend):
     name = 'sim'
 
     def __init__(self, rig='reference', scene='stair_block', seed=0, max_frames_per_poll=1,
-                 exposure=0.0, laser_power=1.0, auto_exposure=False, auto_exposure_frames=5):
+                 exposure=0.0, laser_power=1.0, auto_exposure=False, auto_exposure_frames=5,
+                 max_laser_power=1.0):
         self.rig_name, self.scene_name, self.seed = rig, scene, int(seed)
-        if not (exposure >= 0 and laser_power >= 0 and int(auto_exposure_frames) >= 1):
+        if not (exposure >= 0 and laser_power >= 0 and int(auto_exposure_frames) >= 1
+                and max_laser_power >= 0):
             raise ValueError(f'exposure {exposure} s, laser_power {laser_power}, '
-                             f'auto_exposure_frames {auto_exposure_frames}: out of range')
+                             f'auto_exposure_frames {auto_exposure_frames}, max_laser_power '
+                             f'{max_laser_power}: out of range')
+        self.max_laser_power = float(max_laser_power)
         self.exposure = float(exposure) or None
         self.laser_power = float(laser_power)
         self.auto_exposure = bool(auto_exposure)
@@ -86,6 +106,7 @@ class SimBackend(GalvoBackend):
         #: The laser-frame exposure of the running (last) scan [s] and the pre-scan's
         #: (saturated fraction, peak level) per frame.
         self.scan_exposure = None
+        self.scan_laser_power = self.laser_power
         self.pre_scan_levels = []
         self.max_frames_per_poll = int(max_frames_per_poll)
         self.sim = None
@@ -132,12 +153,14 @@ class SimBackend(GalvoBackend):
         exposure = self.exposure or self.sim.rig.image.exposure
         lo, hi = exposure_limits(frame_rate)
         if laser_on and self.auto_exposure:
-            exposure, self.pre_scan_levels = pre_scan_exposure(
+            exposure, self.pre_scan_levels, self.scan_laser_power = pre_scan_exposure(
                 self.sim, quantized, frame_rate, self.auto_exposure_frames, exposure,
-                self.laser_power)
+                self.laser_power, max_laser_power=self.max_laser_power)
         elif laser_on and self.exposure is not None and not lo <= exposure <= hi:
             raise ValueError(f'exposure {exposure * 1e6:.0f} us outside [{lo * 1e6:.0f}, '
                              f'{hi * 1e6:.0f}] us at {frame_rate:g} Hz')
+        if not (laser_on and self.auto_exposure):
+            self.scan_laser_power = self.laser_power
         self.scan_exposure = exposure
         self._volts = quantized
         self._index, self._laser = 0, bool(laser_on)
@@ -155,14 +178,15 @@ class SimBackend(GalvoBackend):
             return out
         due = int((time.monotonic() - self._t_mono) / self._period) + 1
         exposure = self.scan_exposure if self._laser else self.sim.rig.image.exposure
-        custom = self.scan_exposure != self.sim.rig.image.exposure or self.laser_power != 1.0
+        custom = (self.scan_exposure != self.sim.rig.image.exposure
+                  or self.scan_laser_power != 1.0)
         while self.running and self._index < due and len(out) < self.max_frames_per_poll:
             i = self._index
             if not self._laser:
                 frame = self.sim.calibration_frame(self._volts[i])
             elif custom:
                 frame = self.sim.render(self._volts[i], exposure=exposure,
-                                        laser_power=self.laser_power)
+                                        laser_power=self.scan_laser_power)
             else:
                 frame = self.sim.render(self._volts[i])
             out.append(Frame(seq=self._seq, stamp=self._t_wall + i * self._period + exposure / 2,

@@ -65,3 +65,19 @@ def test_exposure_outside_the_frame_period_is_refused():
     assert not b.running
     with pytest.raises(ValueError):
         SimBackend(exposure=-1.0)
+
+
+def test_auto_exposure_raises_the_laser_power_when_the_frame_period_caps_the_exposure():
+    b = SimBackend(scene='stair_block_black_anodised', seed=1, auto_exposure=True,
+                   max_laser_power=3.0)
+    b.open()
+    b.start(_sweep(), 500.0)
+    assert b.scan_exposure == pytest.approx(exposure_limits(500.0)[1])
+    assert 1.0 < b.scan_laser_power <= 3.0
+    plain = SimBackend(scene='stair_block_black_anodised', seed=1, auto_exposure=True)
+    plain.open()
+    plain.start(_sweep(), 500.0)
+    assert plain.scan_laser_power == 1.0
+    peaks = [frame_levels(f.image)[1] for f in _frames(b, 5)]
+    peaks_plain = [frame_levels(f.image)[1] for f in _frames(plain, 5)]
+    assert np.median(peaks) > 1.3 * np.median(peaks_plain)
