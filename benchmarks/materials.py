@@ -23,8 +23,9 @@ distance to the true surface) is reported, and compensated with the along-ray of
 measured on the plate of the same material.
 
 The calibration is not redone per material: ``--calibration FILE`` (e.g. a demo run's
-``out/.../calibration.yaml``); without it, ``galvoscan calibrate all --sim --quick`` runs
-once into ``out/materials_calibration.yaml`` (reused afterwards).
+calibration); without it, ``galvoscan calibrate all --sim`` runs once into
+``out/materials_calibration.yaml`` (about 6 min on the shared machine, 75 s of CPU) and is
+reused afterwards.
 
     .venv/bin/python benchmarks/materials.py [--calibration FILE] [--quick]
 
@@ -76,7 +77,7 @@ def _calibration(path):
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
             subprocess.run([str(Path(sys.executable).with_name('galvoscan')), 'calibrate',
-                            'all', '--sim', '--quick', '--calibration', str(path)],
+                            'all', '--sim', '--calibration', str(path)],
                            check=True, stdout=subprocess.DEVNULL)
     return calibration_file.load(path), str(path)
 
