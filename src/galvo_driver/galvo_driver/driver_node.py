@@ -81,7 +81,8 @@ CAMERA_PARAMS = {
 PIXEL_FORMATS = ('Mono8', 'Mono10', 'Mono12', 'Mono16')
 #: Parameters that only change while unconfigured.
 _CONFIGURE_ONLY = ('rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_exposure',
-                   'auto_exposure_frames', 'max_laser_power', 'backend', 'serial_port',
+                   'auto_exposure_frames', 'max_laser_power', 'hdr_ratio', 'backend',
+                   'serial_port',
                    'replay_bag',
                    'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
                    'calibration_file')
@@ -101,7 +102,8 @@ def make_backend(name: str, params: dict):
                           laser_power=params.get('laser_power', 1.0),
                           auto_exposure=params.get('auto_exposure', False),
                           auto_exposure_frames=params.get('auto_exposure_frames', 5),
-                          max_laser_power=params.get('max_laser_power', 1.0))
+                          max_laser_power=params.get('max_laser_power', 1.0),
+                          hdr_ratio=params.get('hdr_ratio', 1.0))
     if name == 'serial':
         from galvo_driver.serial_link.backend import SerialBackend
         return SerialBackend(params['serial_port'])
@@ -148,6 +150,9 @@ class GalvoDriverNode(LifecycleNode):
         d('max_laser_power', 1.0, 'sim: auto_exposure may raise the laser power up to this '
           "(relative to the rig's) where the longest exposure within the frame period is "
           'too short [1]', floats=(0.0, 100.0))
+        d('hdr_ratio', 1.0, 'sim: HDR, every laser-scan position taken twice, at the exposure '
+          'and at the exposure over this (1: off; the extractor\'s hdr_pairs merges them) [1]',
+          floats=(1.0, 1000.0))
         d('serial_port', '', 'serial, rig: pyserial port or URL of the DAC board')
         d('camera_serial', '', 'rig: DeviceSerialNumber of the camera (arv-tool-0.8 lists it)')
         d('camera_user_id', '', 'rig: DeviceUserID of the camera')
@@ -252,7 +257,8 @@ class GalvoDriverNode(LifecycleNode):
     def _params(self):
         return {n: self.get_parameter(n).value for n in (
             'backend', 'rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_exposure',
-            'auto_exposure_frames', 'max_laser_power', 'serial_port', 'replay_bag', 'replay_rate',
+            'auto_exposure_frames', 'max_laser_power', 'hdr_ratio', 'serial_port',
+            'replay_bag', 'replay_rate',
             'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
             *CAMERA_PARAMS)}
 

@@ -19,7 +19,9 @@ the rig's laser). With ``auto_exposure`` a laser scan first renders a short pre-
 scan's exposure from their stripe level (:func:`pre_scan_exposure`), within the camera's
 shortest exposure and the frame period; where even the longest is too short, the laser
 power is raised up to ``max_laser_power`` (relative to the rig's; at most what the
-laser is rated for; the default 1 never raises it).
+laser is rated for; the default 1 never raises it). With ``hdr_ratio`` > 1 every position
+of a laser scan is taken twice, at the scan's exposure and at that over ``hdr_ratio``
+(twice the frames; the extractor's ``hdr_pairs`` merges each pair into one stripe).
 """
 
 from __future__ import annotations
@@ -91,7 +93,7 @@ class SimBackend(GalvoBackend):
 
     def __init__(self, rig='reference', scene='stair_block', seed=0, max_frames_per_poll=1,
                  exposure=0.0, laser_power=1.0, auto_exposure=False, auto_exposure_frames=5,
-                 max_laser_power=1.0):
+                 max_laser_power=1.0, hdr_ratio=1.0):
         self.rig_name, self.scene_name, self.seed = rig, scene, int(seed)
         if not (exposure >= 0 and laser_power >= 0 and int(auto_exposure_frames) >= 1
                 and max_laser_power >= 0):
@@ -99,6 +101,10 @@ class SimBackend(GalvoBackend):
                              f'auto_exposure_frames {auto_exposure_frames}, max_laser_power '
                              f'{max_laser_power}: out of range')
         self.max_laser_power = float(max_laser_power)
+        if not (hdr_ratio >= 1.0 and hdr_ratio <= 1000.0):
+            raise ValueError(f'hdr_ratio: expected 1 (off) .. 1000, got {hdr_ratio}')
+        self.hdr_ratio = float(hdr_ratio)
+        self._hdr = False
         self.exposure = float(exposure) or None
         self.laser_power = float(laser_power)
         self.auto_exposure = bool(auto_exposure)
@@ -162,11 +168,13 @@ class SimBackend(GalvoBackend):
         if not (laser_on and self.auto_exposure):
             self.scan_laser_power = self.laser_power
         self.scan_exposure = exposure
-        self._volts = quantized
+        self._hdr = bool(laser_on) and self.hdr_ratio > 1.0
+        # HDR: every position twice, the long exposure, then the short one
+        self._volts = np.repeat(quantized, 2, axis=0) if self._hdr else quantized
         self._index, self._laser = 0, bool(laser_on)
         self._period = 1.0 / float(frame_rate)
         self._t_wall, self._t_mono = time.time(), time.monotonic()
-        return volts.shape[0]
+        return self._volts.shape[0]
 
     @property
     def running(self) -> bool:
@@ -179,13 +187,16 @@ class SimBackend(GalvoBackend):
         due = int((time.monotonic() - self._t_mono) / self._period) + 1
         exposure = self.scan_exposure if self._laser else self.sim.rig.image.exposure
         custom = (self.scan_exposure != self.sim.rig.image.exposure
-                  or self.scan_laser_power != 1.0)
+                  or self.scan_laser_power != 1.0 or self._hdr)
         while self.running and self._index < due and len(out) < self.max_frames_per_poll:
             i = self._index
             if not self._laser:
                 frame = self.sim.calibration_frame(self._volts[i])
             elif custom:
-                frame = self.sim.render(self._volts[i], exposure=exposure,
+                t = exposure
+                if self._hdr and i % 2:
+                    t = max(exposure / self.hdr_ratio, MIN_EXPOSURE)
+                frame = self.sim.render(self._volts[i], exposure=t,
                                         laser_power=self.scan_laser_power)
             else:
                 frame = self.sim.render(self._volts[i])

@@ -81,3 +81,18 @@ def test_auto_exposure_raises_the_laser_power_when_the_frame_period_caps_the_exp
     peaks = [frame_levels(f.image)[1] for f in _frames(b, 5)]
     peaks_plain = [frame_levels(f.image)[1] for f in _frames(plain, 5)]
     assert np.median(peaks) > 1.3 * np.median(peaks_plain)
+
+
+def test_hdr_takes_every_position_twice_long_then_short():
+    b = SimBackend(scene='stair_block', seed=1, hdr_ratio=4.0)
+    b.open()
+    assert b.start(_sweep(3), 500.0) == 6
+    frames = _frames(b, 6)
+    assert len(frames) == 6
+    for long, short in zip(frames[0::2], frames[1::2], strict=True):
+        assert np.array_equal(long.voltages, short.voltages)
+        assert short.seq == long.seq + 1
+        a, c = (float(np.percentile(f.image.max(axis=0), 50)) - 8 for f in (long, short))
+        assert a / c == pytest.approx(4.0, rel=0.35)
+    with pytest.raises(ValueError, match='hdr_ratio'):
+        SimBackend(hdr_ratio=0.5)

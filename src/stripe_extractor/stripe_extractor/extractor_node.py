@@ -50,6 +50,7 @@ publishers in its own process, on the executor that serves them. ``galvoscan run
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -87,7 +88,7 @@ from .config import (
     ROI_HALF_HEIGHT_RANGE_PX,
     ExtractorConfig,
 )
-from .exposure import frame_levels
+from .exposure import frame_levels, merge_hdr
 from .extractor import extract, warm_up
 from .pairing import StampPairer
 from .selection import COUNT_NAMES
@@ -95,6 +96,14 @@ from .worker import OffloadPolicy, SerialWorker
 
 PAIRING_BUFFER_RANGE = (1, 1000)
 DIAGNOSTICS_PERIOD_RANGE_S = (0.1, 60.0)
+
+
+def _same_position(first: cdr.GalvoState, second: cdr.GalvoState) -> bool:
+    """The second state is the next in sequence at the same voltages (an HDR pair)."""
+    return (second.seq == first.seq + 1 and first.laser_on and second.laser_on
+            and (first.g1_pan_voltage, first.g1_tilt_voltage, first.g2_pan_voltage,
+                 first.g2_tilt_voltage) == (second.g1_pan_voltage, second.g1_tilt_voltage,
+                                           second.g2_pan_voltage, second.g2_tilt_voltage))
 
 
 def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result) -> bytes:
@@ -144,6 +153,9 @@ class StripeExtractorNode(Node):
         # frame's saturated fraction and peak level
         self._previous_rows = None
         self._levels = (0.0, 0.0)
+        self._extract_counts.update(hdr_merged=0, hdr_unpaired=0, hdr_from_short=0)
+        #: hdr_pairs: the long exposure waiting for its short one (raw, image, state, result)
+        self._hdr_held = None
         self._logged_causes: set[str] = set()
         self._extract_s = 0.0
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -218,6 +230,12 @@ class StripeExtractorNode(Node):
                         'expected row [px]; 0: no limit',
             floating_point_range=[FloatingPointRange(
                 from_value=MAX_OFFSET_RANGE_PX[0], to_value=MAX_OFFSET_RANGE_PX[1])]))
+        self.declare_parameter('hdr_pairs', False, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='HDR: a frame followed by the next in sequence at the same voltages '
+                        '(the driver\'s hdr_ratio: long, then short exposure) gives one '
+                        'stripe, the long one\'s centres where its stripe is not clipped, '
+                        'else the short one\'s'))
         self.declare_parameter('expected_row', -1.0, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
             description='peak_mode nearest: the row where the stripe is expected [px] '
@@ -415,6 +433,24 @@ class StripeExtractorNode(Node):
             prev = np.full(w if config.orientation == 'horizontal' else h, np.nan, np.float32)
             prev[np.rint(along).astype(np.int64)] = across
             self._previous_rows = prev
+        if self.get_parameter('hdr_pairs').value:
+            held, self._hdr_held = self._hdr_held, None
+            if held is not None and _same_position(held[2], state):
+                u, v, w, s, n_short = merge_hdr(held[3], result, held[1])
+                counts['hdr_merged'] += 1
+                counts['hdr_from_short'] += n_short
+                result = dataclasses.replace(held[3], u=u, v=v, width=w, strength=s)
+                raw, state = held[0], held[2]
+            else:
+                self._hdr_held = (raw, img, state, result)
+                if held is None:
+                    return
+                counts['hdr_unpaired'] += 1
+                raw, state, result = held[0], held[2], held[3]
+        self._publish_centers(raw, state, result)
+
+    def _publish_centers(self, raw, state, result) -> None:
+        counts = self._extract_counts
         header = cdr.Header(raw.stamp_sec, raw.stamp_nanosec, raw.frame_id)
         try:
             self._pub.publish(centers_cdr(header, state, result))
