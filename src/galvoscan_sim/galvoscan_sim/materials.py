@@ -91,7 +91,7 @@ class Material:
         """Fresnel reflectance at normal incidence [1]."""
         return fresnel(1.0, self.n, self.k)
 
-    def packed(self, albedo: float | None = None) -> np.ndarray:
+    def packed(self) -> np.ndarray:
         """Row (PACK_WIDTH,) for the compiled tracer."""
         row = np.zeros(PACK_WIDTH)
         row[:7] = (KINDS[self.kind], self.alpha, self.n, self.k, self.scattering_length,
