@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 from .config import PEAK_MODES
-from .profile import is_secondary, smooth_column
+from .profile import is_secondary, roi_profile_peak, smooth_column
 
 MODE_CODES = {m: i for i, m in enumerate(PEAK_MODES)}
 #: ``counts`` entries.
@@ -43,15 +43,7 @@ def _peak_and_width(img, r, c, K, g0, bg, H):
     """Smoothed height above ``bg`` of column c at its local maximum near row r, that
     row, and its full width at half height [px] (walked on the smoothed profile)."""
     lo_lim, hi_lim = K + 1, H - 2 - K
-    r = min(max(r, lo_lim), hi_lim)
-    best = smooth_column(img, r, c, K, g0)
-    for step in (1, -1):
-        while lo_lim <= r + step <= hi_lim:
-            nv = smooth_column(img, r + step, c, K, g0)
-            if nv <= best:
-                break
-            best = nv
-            r += step
+    r, best, _ = roi_profile_peak(img, c, r, lo_lim, hi_lim, K, g0)
     height = best - bg
     half = bg + 0.5 * height
     a = r
