@@ -83,25 +83,34 @@ class _Harness:
         return {kv.key: kv.value for kv in self.diags[-1].status[0].values}
 
 
+def _start(spawn, ros_env, params, name):
+    """The extractor process with ``params`` and a test node that has discovered it:
+    (context, node, executor, harness)."""
+    exe = Path(sys.executable).with_name('stripe_extractor')
+    args = [exe, '--ros-args', '-p', 'diagnostics_period:=0.2']
+    for p in params:
+        args += ['-p', p]
+    proc = spawn(args, name=name)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
+    node = Node(f'{name}_test', context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    t = _Harness(node, executor, proc)
+    t.spin_until(lambda: t.img_pub.get_subscription_count() > 0
+                 and t.state_pub.get_subscription_count() > 0
+                 and node.count_publishers('stripe/centers') > 0 and t.diags,
+                 25, 'discovery of the node')
+    return context, node, executor, t
+
+
 @pytest.mark.parametrize('thread', [True, False, 'auto'],
                          ids=['extraction_thread', 'executor_thread', 'auto'])
 def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, thread):
-    exe = Path(sys.executable).with_name('stripe_extractor')
-    proc = spawn([exe, '--ros-args', '-p', 'diagnostics_period:=0.2',
-                  '-p', 'line_width_px:=4.7', '-p', 'min_strength:=20.0',
-                  '-p', f'extraction_thread:={str(thread).lower()}'],
-                 name='stripe_extractor')
-    context = rclpy.Context()
-    rclpy.init(context=context, domain_id=int(ros_env['ROS_DOMAIN_ID']))
-    node = Node('extractor_dds_test', context=context)
-    executor = SingleThreadedExecutor(context=context)
-    executor.add_node(node)
+    context, node, executor, t = _start(
+        spawn, ros_env, ['line_width_px:=4.7', 'min_strength:=20.0',
+                         f'extraction_thread:={str(thread).lower()}'], 'stripe_extractor')
     try:
-        t = _Harness(node, executor, proc)
-        t.spin_until(lambda: t.img_pub.get_subscription_count() > 0
-                     and t.state_pub.get_subscription_count() > 0
-                     and node.count_publishers('stripe/centers') > 0 and t.diags,
-                     25, 'discovery of the node')
 
         # 1. Good frames; the state arrives before the image for even frames, after for odd.
         rng = np.random.default_rng(5)
@@ -195,13 +204,53 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, th
                      'a frame after the parameter change')
         last = [m for m in t.centers if m.header.stamp.sec == 301][0]
         assert last.method == 'center_of_gravity'
-        assert proc.poll() is None
+        assert t.proc.poll() is None
     finally:
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=context)
-    log = proc.log_path.read_text()
+    log = t.proc.log_path.read_text()
     # Logged once per cause although the cause occurred twice.
     assert log.count('skipped unsupported_encoding') == 1, log
     for cause in ('data_length', 'zero_size', 'step_too_small'):
         assert f'skipped {cause}' in log, log
+
+
+def test_hdr_pairs_merge_two_exposures_of_one_position(spawn, ros_env):
+    """hdr_pairs: a long exposure whose stripe clips in the left half and the short one of
+    the same position (next seq, same voltages) give one StripeCenters, stamped as the
+    long one, with centres on the truth everywhere; a frame at other voltages that found no
+    partner is published alone when the next frame arrives."""
+    context, node, executor, t = _start(
+        spawn, ros_env, ['hdr_pairs:=true', 'extraction_thread:=false'], 'extractor_hdr')
+    try:
+        rng = np.random.default_rng(9)
+        spec = StripeSpec(v0=120.3, slope=0.02, amplitude=150.0)
+        short = render((H, W), spec, noise_dn=2.0, rng=rng)
+        long = render((H, W), StripeSpec(v0=120.3, slope=0.02, amplitude=150.0 * 4),
+                      noise_dn=2.0, rng=rng)
+        long[:, W // 2:] = render((H, W), spec, noise_dn=2.0, rng=rng)[:, W // 2:]
+        assert (long[:, :W // 2].max(axis=0) == 255).all()
+        s0, s1 = _state(300, 40), _state(301, 41)
+        s2 = _state(302, 42)                     # other voltages: no partner
+        s1.g1_pan_voltage, s1.g1_tilt_voltage = s0.g1_pan_voltage, s0.g1_tilt_voltage
+        s1.g2_tilt_voltage = s0.g2_tilt_voltage
+        for img, st in ((long, s0), (short, s1), (short, s2), (short, _state(303, 50))):
+            t.state_pub.publish(st)
+            t.img_pub.publish(_image(st.header.stamp.sec, img))
+            t.spin_for(0.05)
+        t.spin_until(lambda: len(t.centers) >= 2, 15, '2 StripeCenters')
+        t.spin_for(0.3)
+        assert [m.header.stamp.sec for m in t.centers] == [300, 302]
+        m = t.centers[0]
+        assert m.galvo.seq == 40
+        u, v = np.asarray(m.u), np.asarray(m.v)
+        rms, cov, _ = score(u, v, spec, W)
+        assert cov >= 0.99 and rms <= 0.05
+        t.spin_until(lambda: t.counters().get('hdr_merged') == '1', 5, 'hdr counters')
+        c = t.counters()
+        assert int(c['hdr_from_short']) >= 0.4 * W and c['hdr_unpaired'] == '1', c
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)

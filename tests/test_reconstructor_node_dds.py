@@ -312,3 +312,29 @@ def test_alternating_broken_and_good_reloads(rig, tmp_path):
     np.testing.assert_allclose(np.column_stack([got['x'], got['y'], got['z']]), pts, atol=2e-5)
     assert r.proc.poll() is None
     assert 'Logger severity' not in r.log() and 'Traceback' not in r.log()
+
+
+def test_multi_view_filter_drops_a_reflection_and_keeps_the_stripe(rig):
+    """Two views of one stripe (same G2 tilt, G1 pan -0.3 / +0.3 V): the stripe's points
+    triangulate to the same place in both and are kept; light reflected 10 mm off the laser
+    plane triangulates to places ~0.13 mm apart and is dropped from both. A frame without
+    a second view is published unfiltered when the scan ends."""
+    r = rig('multi_view_tolerance:=0.00005')
+    model = r.model
+    a, b = (-0.3, 0.0, 0.0, 0.0), (0.3, 0.0, 0.0, 0.0)
+    true = stripe_points(model, (0.0, 0.0, 0.0, 0.0), n=20, depth=0.65)
+    plane = laser_plane_v0(model, 0.0)
+    ghost = true[10] + 0.010 * plane[:3] / np.linalg.norm(plane[:3])  # lit, off the plane
+    pts = np.vstack([true, ghost])
+    r.pub.publish(centers_msg(model, a, 0, pts))
+    r.pub.publish(centers_msg(model, b, 1, pts))
+    single = (0.0, 0.0, 0.0, 0.3)
+    r.pub.publish(centers_msg(model, single, 2, stripe_points(model, single, n=15)))
+    r.spin_until(lambda: len(r.clouds) >= 3, 15)
+    assert len(r.clouds) == 3, r.log()
+    for msg in r.clouds[:2]:
+        got = cloud_points(msg)
+        assert got.shape[0] == len(true)                    # the ghost is gone
+        np.testing.assert_allclose(np.column_stack([got['x'], got['y'], got['z']]), true,
+                                   atol=2e-5)
+    assert cloud_points(r.clouds[2]).shape[0] == 15         # unpaired: kept as it is

@@ -80,7 +80,10 @@ CAMERA_PARAMS = {
 }
 PIXEL_FORMATS = ('Mono8', 'Mono10', 'Mono12', 'Mono16')
 #: Parameters that only change while unconfigured.
-_CONFIGURE_ONLY = ('rig', 'scene', 'seed', 'backend', 'serial_port', 'replay_bag',
+_CONFIGURE_ONLY = ('rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_exposure',
+                   'auto_exposure_frames', 'max_laser_power', 'hdr_ratio', 'backend',
+                   'serial_port',
+                   'replay_bag',
                    'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
                    'calibration_file')
 #: Poll period of the backend while a scan runs [s] (frames at up to 1 kHz).
@@ -94,7 +97,13 @@ def make_backend(name: str, params: dict):
     """Instantiate a backend by name from the node's parameter values."""
     if name == 'sim':
         from galvo_driver.sim_backend import SimBackend
-        return SimBackend(rig=params['rig'], scene=params['scene'], seed=params['seed'])
+        return SimBackend(rig=params['rig'], scene=params['scene'], seed=params['seed'],
+                          exposure=params.get('exposure', 0.0),
+                          laser_power=params.get('laser_power', 1.0),
+                          auto_exposure=params.get('auto_exposure', False),
+                          auto_exposure_frames=params.get('auto_exposure_frames', 5),
+                          max_laser_power=params.get('max_laser_power', 1.0),
+                          hdr_ratio=params.get('hdr_ratio', 1.0))
     if name == 'serial':
         from galvo_driver.serial_link.backend import SerialBackend
         return SerialBackend(params['serial_port'])
@@ -130,6 +139,20 @@ class GalvoDriverNode(LifecycleNode):
         d('rig', 'reference', 'sim: rig description (name of a shipped rig or a YAML path)')
         d('scene', 'stair_block', 'sim: scene (name of a shipped scene or a YAML path)')
         d('seed', 0, 'sim: random seed for noise and jitter', ints=(0, 2 ** 31 - 1))
+        d('exposure', 0.0, "sim: laser-frame exposure [s] (0: the rig's)", floats=(0.0, 1.0))
+        d('laser_power', 1.0, "sim: laser power relative to the rig's [1]",
+          floats=(0.0, 100.0))
+        d('auto_exposure', False, 'sim: set each laser scan\'s exposure from a short '
+          'pre-scan (stripe peak at 0.7 of full scale, within the camera\'s limits and the '
+          'frame period)')
+        d('auto_exposure_frames', 5, 'sim: pre-scan frames of auto_exposure [1]',
+          ints=(1, 100))
+        d('max_laser_power', 1.0, 'sim: auto_exposure may raise the laser power up to this '
+          "(relative to the rig's) where the longest exposure within the frame period is "
+          'too short [1]', floats=(0.0, 100.0))
+        d('hdr_ratio', 1.0, 'sim: HDR, every laser-scan position taken twice, at the exposure '
+          'and at the exposure over this (1: off; the extractor\'s hdr_pairs merges them) [1]',
+          floats=(1.0, 1000.0))
         d('serial_port', '', 'serial, rig: pyserial port or URL of the DAC board')
         d('camera_serial', '', 'rig: DeviceSerialNumber of the camera (arv-tool-0.8 lists it)')
         d('camera_user_id', '', 'rig: DeviceUserID of the camera')
@@ -233,7 +256,9 @@ class GalvoDriverNode(LifecycleNode):
 
     def _params(self):
         return {n: self.get_parameter(n).value for n in (
-            'backend', 'rig', 'scene', 'seed', 'serial_port', 'replay_bag', 'replay_rate',
+            'backend', 'rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_exposure',
+            'auto_exposure_frames', 'max_laser_power', 'hdr_ratio', 'serial_port',
+            'replay_bag', 'replay_rate',
             'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
             *CAMERA_PARAMS)}
 
@@ -374,6 +399,13 @@ class GalvoDriverNode(LifecycleNode):
             out['rig'] = self.backend.stats  # pairing/<drop kind>, drift_ppm, camera, board
         elif getattr(self.backend, 'name', '') == 'serial':
             out['serial'] = self.backend.stats  # lost_events, ..., clock_drift_ppm
+        elif getattr(self.backend, 'name', '') == 'sim' and self.backend.scan_exposure:
+            levels = self.backend.pre_scan_levels
+            out['sim'] = {'scan_exposure_s': self.backend.scan_exposure,
+                          'scan_laser_power': self.backend.scan_laser_power,
+                          'pre_scan_saturated_fraction': max((s for s, _ in levels),
+                                                             default=0.0),
+                          'pre_scan_peak_level': max((p for _, p in levels), default=0.0)}
         return out
 
     def _tick_boundary(self):

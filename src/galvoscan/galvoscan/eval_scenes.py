@@ -180,11 +180,20 @@ def facing(position, tilt=(0.0, 0.0, 0.0)) -> Rotation:
     return R_face * Rotation.from_rotvec(tilt)
 
 
-def stair(position) -> tuple[str, dict]:
+def _surface(material: str | None, albedo: float) -> str:
+    """The scene-file lines of an object's surface: a named material (its own diffuse
+    reflectance) or the Lambertian ``albedo``."""
+    if material is None:
+        return f'    albedo: {albedo}\n'
+    return f'    material: {material}\n'
+
+
+def stair(position, material: str | None = None) -> tuple[str, dict]:
     """The 30 mm stair block with its upper face near ``position`` [m], facing the scanner.
 
-    Returns the scene text and ``{'W_T_O', 'size', 'step_height', 'aim_W'}``; ``aim_W`` is
-    the middle of the riser, where the view should be centred.
+    ``material``: a name of ``galvoscan_sim.materials.MATERIALS`` (default: Lambertian,
+    albedo 0.6). Returns the scene text and ``{'W_T_O', 'size', 'step_height', 'aim_W'}``;
+    ``aim_W`` is the middle of the riser, where the view should be centred.
     """
     p = np.asarray(position, dtype=np.float64)
     R = facing(p, STAIR_TILT)
@@ -201,12 +210,12 @@ objects:
     pose: {{translation: {_fmt(t)}, rotation_vector: {_fmt(R.as_rotvec())}}}
     size: {_fmt(STAIR_SIZE)}
     step_height: {STAIR_STEP}
-    albedo: 0.6
-"""
+{_surface(material, 0.6)}"""
     return text, {'W_T_O': W_T_O, 'size': STAIR_SIZE, 'step_height': STAIR_STEP, 'aim_W': aim}
 
 
-def plate(index: int, site: Site = PAPER_SITE, *, grow: bool = False) -> tuple[str, dict]:
+def plate(index: int, site: Site = PAPER_SITE, *, grow: bool = False,
+          material: str | None = None) -> tuple[str, dict]:
     """The flat plate centred at ``site``'s working point, in pose ``index`` of PLATE_POSES.
 
     By default it is the paper's 740 x 740 mm plate, a physical artefact like the stair
@@ -232,8 +241,7 @@ objects:
     pose: {{translation: {_fmt(t)}, rotation_vector: {_fmt(R.as_rotvec())}}}
     size: [{size:.9g}, {size:.9g}]
     thickness: 0.02
-    albedo: 0.5
-"""
+{_surface(material, 0.5)}"""
     return text, {'W_T_O': _pose(R, t), 'size': (size, size)}
 
 
@@ -318,6 +326,52 @@ def plate_coverage(points_O, size: float, cells: int = PLATE_CELLS) -> float:
     ij = np.floor((p[:, :2] + size / 2.0) / (size / cells)).astype(np.int64)
     ok = np.all((ij >= 0) & (ij < cells), axis=1)
     return float(np.unique(ij[ok, 0] * cells + ij[ok, 1]).size) / cells ** 2
+
+
+#: The V-groove (:func:`v_groove`): an inside corner of two faces, each this wide [m]
+#: across the groove and ``GROOVE_LENGTH`` along it, meeting at ``GROOVE_ANGLE`` [rad].
+GROOVE_FACE = 0.04
+GROOVE_LENGTH = 0.08
+GROOVE_ANGLE = math.pi / 2
+GROOVE_THICKNESS = 0.01
+
+
+def v_groove(position, material: str | None = 'machined_aluminium',
+             wall_distance: float = 0.05) -> tuple[str, dict]:
+    """An inside corner: two faces meeting along a line through ``position`` [m] (the
+    groove's bottom, its axis along W's y), opening towards the scanner, and a matt wall
+    ``wall_distance`` [m] behind. A specular material throws the stripe from each face
+    onto the other.
+
+    Returns the scene text and ``{'faces': [(n (3,), point (3,))] * 2, 'axis_W'}``: the
+    faces' planes (outward unit normal and a point) in W and the groove's bottom point.
+    """
+    p = np.asarray(position, dtype=np.float64)
+    half = GROOVE_ANGLE / 2.0
+    faces, objects = [], []
+    for sign, name in ((-1.0, 'left'), (1.0, 'right')):
+        # the face runs from the axis out to x = sign * ..., towards the scanner (-z)
+        out = np.array([sign * math.sin(half), 0.0, -math.cos(half)])   # along the face
+        n = np.array([-sign * math.cos(half), 0.0, -math.sin(half)])    # outward normal
+        R = Rotation.align_vectors([n, out], [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])[0]
+        centre = p + out * GROOVE_FACE / 2 - n * GROOVE_THICKNESS / 2
+        faces.append((n, p.copy()))
+        objects.append(f"""  - type: box
+    name: {name}_face
+    pose: {{translation: {_fmt(centre)}, rotation_vector: {_fmt(R.as_rotvec())}}}
+    size: [{GROOVE_FACE:.9g}, {GROOVE_LENGTH:.9g}, {GROOVE_THICKNESS:.9g}]
+{_surface(material, 0.6)}""")
+    text = f"""format_version: 1
+name: eval_v_groove
+description: inside corner ({math.degrees(GROOVE_ANGLE):.0f} deg) at {_fmt(p)} m
+objects:
+{''.join(objects)}  - type: plane
+    name: wall
+    pose: {{translation: [0, 0, {p[2] + wall_distance:.9g}], rotation_vector: [0, 0, 0]}}
+    size: [2.0, 2.0]
+    albedo: 0.35
+"""
+    return text, {'faces': faces, 'axis_W': p}
 
 
 def sphere(position, radius: float = SPHERE_RADIUS) -> tuple[str, dict]:

@@ -4,7 +4,10 @@
   faces and the riser, room light on;
 - ``sim_stair_laser_frame.png``: the same as a real 500 us laser frame (dark image);
 - ``sim_sphere.png``: the calibration sphere with the stripe;
-- ``sim_circle_board.png``: one G1 view of the 740 mm circle board with the stripe.
+- ``sim_circle_board.png``: one G1 view of the 740 mm circle board with the stripe;
+- ``sim_v_groove.png``: a laser frame of the machined-aluminium V-groove, each face
+  throwing the stripe onto the other (4x the rig's laser power: the exposure auto
+  exposure gives this part).
 
 All with the reference rig (every imperfection on) and a fixed seed.
 """
@@ -34,6 +37,8 @@ def save_examples(out_dir) -> list[Path]:
         ('sim_sphere.png', 'sphere', [0.0, -0.2, 0.0, -0.1], lit),
         ('sim_circle_board.png', 'circle_board', [0.3, -0.2, 0.0, 0.05],
          dict(background='full', exposure=0.006, laser_power=0.1)),
+        ('sim_v_groove.png', 'v_groove_machined_aluminium', [0.0, 0.0, 0.0, -0.12],
+         dict(laser_power=4.0)),
     ]
     written = []
     for name, scene, volts, kwargs in jobs:

@@ -10,6 +10,7 @@ compare them); they exist because a laser frame needs ~15 000 traced rays in a f
 
 from __future__ import annotations
 
+import cmath
 import math
 
 import numpy as np
@@ -788,26 +789,89 @@ def _window_pixels(grid, cols, v0, half):
 
 
 @njit(cache=True, inline='always')
-def _lit_candidates(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet, sigma,
-                    scale):
-    """Traced pixels whose hit point the laser may reach (within 5 sigma of the sheet,
+def _fresnel(cos_i, n, k):
+    """Unpolarised Fresnel reflectance from air onto index n + ik (materials.fresnel)."""
+    c = min(max(cos_i, 0.0), 1.0)
+    eta = complex(n, k)
+    ct = cmath.sqrt(eta * eta - (1.0 - c * c)) / eta
+    rs = (c - eta * ct) / (c + eta * ct)
+    rp = (eta * c - ct) / (eta * c + ct)
+    return 0.5 * (abs(rs) ** 2 + abs(rp) ** 2)
+
+
+@njit(cache=True, inline='always')
+def _smith_g1(cv, a):
+    t2 = (1.0 - cv * cv) / (cv * cv)
+    return 2.0 / (1.0 + math.sqrt(1.0 + a * a * t2))
+
+
+@njit(cache=True, inline='always')
+def specular_term(mat, nx, ny, nz, lx, ly, lz, vx, vy, vz):
+    """pi times the GGX Cook-Torrance BRDF (materials.specular_reflectance) of the packed
+    material row ``mat`` for unit normal n, light direction l and view direction v."""
+    if mat[6] <= 0.0:
+        return 0.0
+    ci = nx * lx + ny * ly + nz * lz
+    co = nx * vx + ny * vy + nz * vz
+    if ci <= 0.0 or co <= 0.0:
+        return 0.0
+    hx, hy, hz = lx + vx, ly + vy, lz + vz
+    hn = math.sqrt(hx * hx + hy * hy + hz * hz)
+    hx, hy, hz = hx / hn, hy / hn, hz / hn
+    a = mat[1]
+    ch = nx * hx + ny * hy + nz * hz
+    if ch <= 0.0:
+        return 0.0
+    a2 = a * a
+    den = ch * ch * (a2 - 1.0) + 1.0
+    d = a2 / (math.pi * den * den)
+    f = _fresnel(lx * hx + ly * hy + lz * hz, mat[2], mat[3])
+    g = _smith_g1(ci, a) * _smith_g1(co, a)
+    return math.pi * d * f * g / (4.0 * ci * co)
+
+
+@njit(cache=True, inline='always')
+def _subsurface(mat, sigma, nx, ny, nz, ux, uy, uz, sheet):
+    """(share, sigma, shift) of a material's subsurface glow (materials.subsurface_shift):
+    u is the unit direction from the surface to the light."""
+    ell = mat[4]
+    if ell <= 0.0 or mat[5] <= 0.0:
+        return 0.0, sigma, 0.0
+    dn = -(ux * nx + uy * ny + uz * nz)  # incident d = -u
+    tx, ty, tz = -ux - dn * nx, -uy - dn * ny, -uz - dn * nz
+    shift = ell / mat[2] * (tx * sheet[0] + ty * sheet[1] + tz * sheet[2])
+    return mat[5], math.sqrt(sigma * sigma + ell * ell), shift
+
+
+@njit(cache=True, inline='always')
+def reach_of(mat, sigma):
+    """Distance from the sheet's centre plane beyond which a material's stripe is dark."""
+    if mat[4] > 0.0 and mat[5] > 0.0:
+        return 5.0 * math.sqrt(sigma * sigma + mat[4] * mat[4]) + mat[4]
+    return 5.0 * sigma
+
+
+@njit(cache=True, inline='always')
+def _lit_candidates(ptype, R, T, prm, pobj, mats, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet,
+                    sigma, scale):
+    """Traced pixels whose hit point the laser may reach (within reach of the sheet,
     facing the apex, inside the fan), with their shadow segments towards the last G2
     mirror. Returns (m, pixel index, segment start x, y, z, unit direction x, y, z, length,
-    stripe value before speckle and albedo); the arrays are valid up to m."""
+    stripe value before speckle and albedo, normal x, y, z); the arrays are valid up to m."""
     n = ox.shape[0]
     m = 0
     idx = np.empty(n, np.int64)
     sx_, sy_, sz_, ux_, uy_, uz_ = _ray_arrays(n)
-    tm_ = np.empty(n)
-    val_ = np.empty(n)
+    nx_, ny_, nz_, tm_, val_, _ = _ray_arrays(n)
     for i in range(n):
         p = pb[i]
         if p < 0:
             continue
         t = tb[i]
+        mat = mats[pobj[p]]
         px, py, pz = ox[i] + t * dx[i], oy[i] + t * dy[i], oz[i] + t * dz[i]
         delta = sheet[0] * px + sheet[1] * py + sheet[2] * pz + sheet[3]
-        if abs(delta) >= 5.0 * sigma:
+        if abs(delta) >= reach_of(mat, sigma):
             continue
         nx, ny, nzz = _hit_normal(ptype, R, T, prm, p, ab[i], px, py, pz, dx[i], dy[i], dz[i])
         sx, sy, sz = sheet[4] - px, sheet[5] - py, sheet[6] - pz
@@ -823,18 +887,26 @@ def _lit_candidates(ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet,
         idx[m] = i
         sx_[m], sy_[m], sz_[m] = px, py, pz
         ux_[m], uy_[m], uz_[m] = ux, uy, uz
+        nx_[m], ny_[m], nz_[m] = nx, ny, nzz
         tm_[m] = tm - EPS
-        val_[m] = scale * cos_i / dist * math.exp(-0.5 * (delta / sigma) ** 2)
+        share, sig_s, shift = _subsurface(mat, sigma, nx, ny, nzz, ux, uy, uz, sheet)
+        if share > 0.0:
+            val_[m] = scale * cos_i / dist * (
+                (1.0 - share) * math.exp(-0.5 * (delta / sigma) ** 2)
+                + share * sigma / sig_s * math.exp(-0.5 * ((delta - shift) / sig_s) ** 2))
+        else:
+            val_[m] = scale * cos_i / dist * math.exp(-0.5 * (delta / sigma) ** 2)
         m += 1
-    return m, idx, sx_, sy_, sz_, ux_, uy_, uz_, tm_, val_
+    return m, idx, sx_, sy_, sz_, ux_, uy_, uz_, tm_, val_, nx_, ny_, nz_
 
 
 @njit(cache=True, inline='always')
-def _draw_lit(pobj, albedo, tex, oR, oT, cam, pb, rows, cc, idx, px_, py_, pz_, val_,
-              blocked, speckle, z, zoff, band, b0, foot_scale):
+def _draw_lit(pobj, albedo, tex, oR, oT, mats, cam, pb, rows, cc, idx, px_, py_, pz_, ux_,
+              uy_, uz_, nx_, ny_, nz_, val_, blocked, speckle, z, zoff, band, b0, foot_scale):
     """Write the unblocked candidates into ``band``: value times the speckle factor (draws
-    from ``z`` cyclically from ``zoff``) times the albedo at the point. Returns the count."""
-    nz_ = z.shape[0]
+    from ``z`` cyclically from ``zoff``) times the albedo at the point, plus the material's
+    specular term towards the camera. Returns the count."""
+    nz_draws = z.shape[0]
     kz = zoff
     drawn = 0
     for q in range(blocked.shape[0]):
@@ -843,7 +915,7 @@ def _draw_lit(pobj, albedo, tex, oR, oT, cam, pb, rows, cc, idx, px_, py_, pz_, 
         i = idx[q]
         val = val_[q]
         if speckle > 0.0:
-            f = 1.0 + speckle * z[kz % nz_]
+            f = 1.0 + speckle * z[kz % nz_draws]
             kz += 1
             val *= f if f > 0.0 else 0.0
         o = pobj[pb[i]]
@@ -853,14 +925,19 @@ def _draw_lit(pobj, albedo, tex, oR, oT, cam, pb, rows, cc, idx, px_, py_, pz_, 
             vx, vy, vz = px - cam[32], py - cam[33], pz - cam[34]
             foot = math.sqrt(vx * vx + vy * vy + vz * vz) * foot_scale
             a = albedo_at(tex, oR, oT, albedo, o, px, py, pz, foot)
+        if mats[o, 6] > 0.0:
+            vx, vy, vz = cam[32] - px_[q], cam[33] - py_[q], cam[34] - pz_[q]
+            vn = math.sqrt(vx * vx + vy * vy + vz * vz)
+            a = a + specular_term(mats[o], nx_[q], ny_[q], nz_[q], ux_[q], uy_[q], uz_[q],
+                                  vx / vn, vy / vn, vz / vn)
         band[rows[i] - b0, cc[i]] = val * a
         drawn += 1
     return drawn
 
 
 @njit(cache=True)
-def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, v0, half, sheet,
-                  sigma, scale, speckle, z, zoff, band, b0, foot_scale):
+def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, mats, cam, grid, cols, v0, half,
+                  sheet, sigma, scale, speckle, z, zoff, band, b0, foot_scale):
     """Render the laser stripe into ``band`` (rows b0.. of the image), window by window.
 
     Window j covers rows v0[j] - half[j] .. v0[j] + half[j] of column cols[j]. A pixel's
@@ -870,17 +947,100 @@ def laser_windows(ptype, R, T, prm, pobj, albedo, tex, oR, oT, cam, grid, cols, 
     faces the fan's apex, lies inside the fan, and the segment to the last G2 mirror is
     free), else the pixel is left alone. ``sheet`` packs: [0:4] centre plane, [4:7]
     virtual apex, [7:10] and [10:13] inward edge normals, [13:17] last G2 mirror plane.
+    Objects with a material (``mats``, materials.pack) add their specular term to the
+    albedo and, if translucent, their subsurface glow to the profile.
     Returns the number of pixels drawn.
     """
     rows, cc, xs, ys = _window_pixels(grid, cols, v0, half)
     ox, oy, oz, dx, dy, dz, tb, pb, ab = _trace_closest(ptype, R, T, prm, cam, xs, ys)
-    m, idx, sx_, sy_, sz_, ux_, uy_, uz_, tm_, val_ = _lit_candidates(
-        ptype, R, T, prm, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet, sigma, scale)
+    m, idx, sx_, sy_, sz_, ux_, uy_, uz_, tm_, val_, nx_, ny_, nz_ = _lit_candidates(
+        ptype, R, T, prm, pobj, mats, ox, oy, oz, dx, dy, dz, tb, pb, ab, sheet, sigma, scale)
     blocked = np.empty(m, np.bool_)
     soa_blocked(ptype, R, T, prm, sx_[:m], sy_[:m], sz_[:m], ux_[:m], uy_[:m], uz_[:m],
                 tm_[:m], blocked)
-    return _draw_lit(pobj, albedo, tex, oR, oT, cam, pb, rows, cc, idx, sx_, sy_, sz_, val_,
-                     blocked, speckle, z, zoff, band, b0, foot_scale)
+    return _draw_lit(pobj, albedo, tex, oR, oT, mats, cam, pb, rows, cc, idx, sx_, sy_, sz_,
+                     ux_, uy_, uz_, nx_, ny_, nz_, val_, blocked, speckle, z, zoff, band, b0,
+                     foot_scale)
+
+
+@njit(cache=True)
+def reflection_windows(ptype, R, T, prm, pobj, albedo, mats, cam, grid, cols, v0, half, vsheet,
+                       face, fmat, light, sigma, scale, band, b0):
+    """Render the stripe that one specular face throws onto the scene (one bounce).
+
+    ``vsheet`` is the laser sheet mirrored through the face's plane (layout of
+    :func:`laser_windows`; [13:17] is the face's plane). ``face`` packs the face: centre
+    (3), axes e1 (3), e2 (3), half sizes (2), outward normal (3); ``fmat`` its packed
+    material; ``light`` the real sheet (its apex and last G2 mirror). A window pixel's hit
+    Y is lit if the segment from Y towards the mirrored apex crosses the face at a point Z
+    inside it, Y lies in front of the face, faces the mirrored apex and lies inside the
+    mirrored fan, nothing blocks Y-Z, and Z is lit by the laser (faces the apex, nothing
+    on the segment to the last G2 mirror). Its value is ``scale * a(Y) * cos(incidence) /
+    distance * F(theta_Z) * sigma/sigma_r * exp(-delta^2 / 2 sigma_r^2)``: the face's
+    Fresnel reflectance at Z, the sheet widened by the lobe (angular spread sqrt(2) alpha
+    over the distance L = |YZ|: ``sigma_r^2 = sigma^2 + 2 alpha^2 L^2``, the energy kept),
+    delta the distance of Y from the mirrored sheet's centre plane. Pixels are assigned
+    (not added) in ``band``. Returns the number drawn.
+    """
+    rows, cc, xs, ys = _window_pixels(grid, cols, v0, half)
+    ox, oy, oz, dx, dy, dz, tb, pb, ab = _trace_closest(ptype, R, T, prm, cam, xs, ys)
+    cx, cy, cz = face[0], face[1], face[2]
+    fnx, fny, fnz = face[11], face[12], face[13]
+    alpha = fmat[1]
+    drawn = 0
+    for i in range(xs.shape[0]):
+        p = pb[i]
+        if p < 0:
+            continue
+        t = tb[i]
+        px, py, pz = ox[i] + t * dx[i], oy[i] + t * dy[i], oz[i] + t * dz[i]
+        if fnx * (px - cx) + fny * (py - cy) + fnz * (pz - cz) <= 1e-9:
+            continue  # behind the face or on its plane
+        sx, sy, sz = vsheet[4] - px, vsheet[5] - py, vsheet[6] - pz
+        dist = math.sqrt(sx * sx + sy * sy + sz * sz)
+        ux, uy, uz = sx / dist, sy / dist, sz / dist
+        den = fnx * ux + fny * uy + fnz * uz
+        if den >= 0.0:
+            continue
+        L = (fnx * (cx - px) + fny * (cy - py) + fnz * (cz - pz)) / den
+        if not 0.0 < L < dist:
+            continue
+        zx, zy, zz = px + L * ux, py + L * uy, pz + L * uz
+        qa = (zx - cx) * face[3] + (zy - cy) * face[4] + (zz - cz) * face[5]
+        qb = (zx - cx) * face[6] + (zy - cy) * face[7] + (zz - cz) * face[8]
+        if abs(qa) > face[9] or abs(qb) > face[10]:
+            continue
+        sig_r = math.sqrt(sigma * sigma + 2.0 * alpha * alpha * L * L)
+        delta = vsheet[0] * px + vsheet[1] * py + vsheet[2] * pz + vsheet[3]
+        if abs(delta) >= 5.0 * sig_r:
+            continue
+        nx, ny, nz = _hit_normal(ptype, R, T, prm, p, ab[i], px, py, pz, dx[i], dy[i], dz[i])
+        cos_i = nx * ux + ny * uy + nz * uz
+        if cos_i <= 0.0 or not _inside_fan(vsheet, sx, sy, sz):
+            continue
+        if is_blocked(ptype, R, T, prm, px, py, pz, ux, uy, uz, L - EPS):
+            continue
+        wx, wy, wz = light[4] - zx, light[5] - zy, light[6] - zz
+        wd = math.sqrt(wx * wx + wy * wy + wz * wz)
+        wx, wy, wz = wx / wd, wy / wd, wz / wd
+        cos_z = fnx * wx + fny * wy + fnz * wz
+        if cos_z <= 0.0:
+            continue
+        tm = _until_plane(zx, zy, zz, wx, wy, wz, wd, light[13], light[14], light[15],
+                          light[16])
+        if is_blocked(ptype, R, T, prm, zx, zy, zz, wx, wy, wz, tm - EPS):
+            continue
+        o = pobj[p]
+        a = albedo[o]
+        if mats[o, 6] > 0.0:
+            vx, vy, vz = cam[32] - px, cam[33] - py, cam[34] - pz
+            vn = math.sqrt(vx * vx + vy * vy + vz * vz)
+            a = a + specular_term(mats[o], nx, ny, nz, ux, uy, uz, vx / vn, vy / vn, vz / vn)
+        val = (scale * a * cos_i / dist * _fresnel(cos_z, fmat[2], fmat[3]) * sigma / sig_r
+               * math.exp(-0.5 * (delta / sig_r) ** 2))
+        band[rows[i] - b0, cc[i]] = val
+        drawn += 1
+    return drawn
 
 
 @njit(cache=True)
@@ -890,8 +1050,9 @@ def window_halves(X, N, col, v, WRV, center, plane, sigma, psf, intr, out):
     The pixel rays at v - 1 and v + 1 of the column are cut with the surface's tangent
     plane at X; the change of the distance to the sheet per pixel gives the stripe's sigma
     in pixels, and the window covers 3.5 of those, plus half a pixel for rounding v
-    (clipped to 2..40). The blur is applied to the drawn band afterwards, so it needs no
-    margin here (``psf`` is unused, kept for the signature).
+    (clipped to 2..40); ``sigma`` (n,) is each point's stripe sigma [m]. The blur is
+    applied to the drawn band afterwards, so it needs no margin here (``psf`` is unused,
+    kept for the signature).
     """
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     for i in range(X.shape[0]):
@@ -910,7 +1071,7 @@ def window_halves(X, N, col, v, WRV, center, plane, sigma, psf, intr, out):
         slope = 0.5 * abs(d_sheet)
         h = 40.0
         if slope > 0.0 and math.isfinite(slope):
-            h = min(max(math.ceil(3.5 * sigma / slope + 0.5), 2.0), 40.0)
+            h = min(max(math.ceil(3.5 * sigma[i] / slope + 0.5), 2.0), 40.0)
         out[i] = int(h)
 
 

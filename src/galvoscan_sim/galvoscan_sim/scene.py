@@ -16,6 +16,10 @@ Object types (YAML ``type``):
 ``checkerboard``  a flat plate with ``squares`` [nx, ny] of ``square_size``.
 ``circle_board``  the paper's 740 x 740 mm board: 35 x 35 circles at 20 mm pitch, in 7 x 7
                   sub-patterns whose centre circle is 15 mm, the others 10 mm.
+
+Any object may name a ``material`` (:mod:`galvoscan_sim.materials`): a glossy lobe, the
+reflections it throws, subsurface scattering. Its ``albedo`` is then optional (the
+material's diffuse reflectance by default). Without one the object is Lambertian.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import materials as mt
 from . import raykernels as rk
 from .config import ConfigError, Section
 from .readers import MM_HINT, FileKind, as_rays, read_pose
@@ -70,6 +75,8 @@ class SceneObject:
         Diffuse reflectance of the object (of the light parts of a board) [1].
     params : dict
         Type-specific parameters as read (SI).
+    material : Material or None
+        Surface material; None is Lambertian with ``albedo``.
     """
 
     type: str
@@ -78,6 +85,7 @@ class SceneObject:
     albedo: float
     params: dict
     prims: list = field(default_factory=list)
+    material: mt.Material | None = None
 
     def __post_init__(self):
         self.O_T_W = invert_transform(self.W_T_O)
@@ -302,6 +310,11 @@ class Scene:
         #: Texture table for the compiled tracer: (tex (K, 8), W_R_O (K, 3, 3), W_t_O (K, 3)).
         self.texture_table = (tex, np.ascontiguousarray([o.W_T_O[:3, :3] for o in self.objects]),
                               np.ascontiguousarray([o.W_T_O[:3, 3] for o in self.objects]))
+        #: Packed materials (K, materials.PACK_WIDTH); all zeros for Lambertian objects.
+        self.material_table = mt.pack([o.material for o in self.objects])
+        #: Whether any object throws reflections / scatters under its surface.
+        self.specular = bool(np.any(self.material_table[:, 6] > 0))
+        self.subsurface = bool(np.any(self.material_table[:, 5] > 0))
         self.spheres = [(k, o.W_T_O[:3, :3] @ p.center + o.W_T_O[:3, 3], p.radius)
                         for k, o in enumerate(self.objects) for p in o.prims
                         if isinstance(p, _Sphere)]
@@ -570,7 +583,11 @@ def _object(sec: Section, index: int, names: set) -> SceneObject:
         raise sec.error('name', 'a name unique within the scene', name)
     names.add(name)
     W_T_O = _pose(sec)
-    albedo = sec.number('albedo', 0.0, 1.0, '(reflectance)')
+    mat = None
+    if sec.has('material'):
+        mat = mt.MATERIALS.get(sec.string('material', mt.MATERIAL_NAMES))
+    albedo = sec.number('albedo', 0.0, 1.0, '(reflectance)',
+                        **({'default': mat.albedo} if mat is not None else {}))
     params: dict = {}
     prims: list = []
     if typ == 'plane':
@@ -630,7 +647,7 @@ def _object(sec: Section, index: int, names: set) -> SceneObject:
                 raise sec.error('big_diameter', 'a diameter smaller than the pitch',
                                 params['big_diameter'])
     sec.finish()
-    return SceneObject(typ, name, W_T_O, albedo, params, prims)
+    return SceneObject(typ, name, W_T_O, albedo, params, prims, mat)
 
 
 def scene_from_dict(data: dict, source: str) -> Scene:

@@ -132,6 +132,10 @@ class FrameTruth:
     model_parameters : ModelParameters or None
         The rig's true model-equivalent parameters (``Rig.true_model_parameters()`` at
         U2_pan = 0), shared by all frames of a simulator.
+    reflection : StripeTruth
+        Where the stripe thrown by specular faces (one bounce) lands: per column the point
+        on the mirrored sheet's centre plane seen by the camera (see
+        :meth:`Simulator.reflection_truth`); empty in scenes without specular materials.
     """
 
     index: int
@@ -150,12 +154,14 @@ class FrameTruth:
     rig_name: str = ''
     scene_name: str = ''
     model_parameters: ModelParameters | None = None
+    reflection: StripeTruth = field(default_factory=StripeTruth.empty)
 
     def as_dict(self) -> dict:
         """Plain dict (arrays kept as numpy arrays), e.g. for a driver Frame's truth."""
         out = {k: v for k, v in self.__dict__.items()
-               if k not in ('stripe', 'model_parameters')}
+               if k not in ('stripe', 'model_parameters', 'reflection')}
         out['stripe'] = dict(self.stripe.__dict__)
+        out['reflection'] = dict(self.reflection.__dict__)
         if self.model_parameters is not None:
             out['model_parameters'] = self.model_parameters.as_dict()
         return out
@@ -410,8 +416,17 @@ class Simulator:
                           im.directional_fraction, out)
         return out.reshape(cam.height // step, cam.width // step)
 
-    def _laser_layer(self, geo, crossings, energy, rng):
-        """The laser stripe (electrons) in windows around the true points.
+    def _window_sigma(self, obj) -> np.ndarray:
+        """Stripe sigma [m] each direct window is sized for: the sheet's, widened on
+        translucent objects by their subsurface spread and shift."""
+        sigma = self.rig.laser.sigma
+        mats = self.scene.material_table[obj]
+        ell = np.where(mats[:, 5] > 0, mats[:, 4], 0.0)
+        return np.where(ell > 0, np.sqrt(sigma * sigma + ell * ell) + ell, sigma)
+
+    def _laser_layer(self, geo, crossings, energy, rng, reflections=()):
+        """The laser stripe (electrons) in windows around the true points, and the stripes
+        the specular faces throw (``reflections``, see :meth:`_reflection_crossings`).
 
         Returns
         -------
@@ -419,42 +434,170 @@ class Simulator:
             The band of image rows holding the stripe and its first row.
         """
         rig, cam, sheet = self.rig, self.rig.camera, geo.sheet
-        X, N, _, col, _, v = crossings
         sigma = rig.laser.sigma
-        half = np.empty(len(col), np.int64)
-        rk.window_halves(X, N, col, v, np.ascontiguousarray(geo.W_T_V[:3, :3]), geo.center,
-                         sheet.plane, sigma, rig.image.psf_sigma, self._intr, half)
-        v0 = np.rint(v).astype(np.int64)
+        starts, ends = [], []
+        if crossings is not None:
+            X, N, ob, col, _, v = crossings
+            half = np.empty(len(col), np.int64)
+            rk.window_halves(X, N, col, v, np.ascontiguousarray(geo.W_T_V[:3, :3]),
+                             geo.center, sheet.plane, self._window_sigma(ob),
+                             rig.image.psf_sigma, self._intr, half)
+            v0 = np.rint(v).astype(np.int64)
+            starts.append(v0 - half)
+            ends.append(v0 + half)
+        for r in reflections:
+            starts.append(r['v0'] - r['half'])
+            ends.append(r['v0'] + r['half'])
+        lo_all, hi_all = np.concatenate(starts), np.concatenate(ends)
         psf = rig.image.psf_sigma
         pad = int(np.ceil(3 * psf)) + 1 if psf > 0 else 0
-        b0 = max(int((v0 - half).min()) - pad, 0)
-        b1 = min(int((v0 + half).max()) + 1 + pad, cam.height)
+        b0 = max(int(lo_all.min()) - pad, 0)
+        b1 = min(int(hi_all.max()) + 1 + pad, cam.height)
         if b1 <= b0:
             return np.zeros((0, cam.width), np.float32), 0
         band = np.zeros((b1 - b0, cam.width), np.float32)
-        c = rig.image.speckle_contrast
-        if c > 0 and self._pool is not None:
-            z, zoff = self._pool, int(rng.integers(0, len(self._pool)))
-        elif c > 0:
-            z, zoff = rng.standard_normal(int(np.sum(2 * half + 1))), 0
-        else:
-            z, zoff = np.zeros(1, np.float32), 0
         ptype, pobj, Rp, Tp, prm = self.scene.packed()
         tex, oR, oT = self.scene.texture_table
+        mats = self.scene.material_table
         scale = energy * rig.laser.reference_distance
-        rk.laser_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table, tex, oR, oT,
-                         geo.extra['cam'], self._grid, col, v0, half,
-                         geo.extra['sheet'], sigma, scale, c, z, zoff, band, b0, 1.0 / cam.fx)
+        if crossings is not None:
+            c = rig.image.speckle_contrast
+            if c > 0 and self._pool is not None:
+                z, zoff = self._pool, int(rng.integers(0, len(self._pool)))
+            elif c > 0:
+                z, zoff = rng.standard_normal(int(np.sum(2 * half + 1))), 0
+            else:
+                z, zoff = np.zeros(1, np.float32), 0
+            rk.laser_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table, tex, oR, oT,
+                             mats, geo.extra['cam'], self._grid, col, v0, half,
+                             geo.extra['sheet'], sigma, scale, c, z, zoff, band, b0,
+                             1.0 / cam.fx)
+        for r in reflections:
+            layer = np.zeros_like(band)
+            rk.reflection_windows(ptype, Rp, Tp, prm, pobj, self.scene.albedo_table, mats,
+                                  geo.extra['cam'], self._grid, r['col'], r['v0'], r['half'],
+                                  r['vsheet'], r['face'], r['fmat'], geo.extra['sheet'], sigma,
+                                  scale, layer, b0)
+            band += layer
         if psf > 0:
             # blur each cluster of window rows on its own: the rows between clusters are
             # empty and farther apart than the kernel, so this equals blurring the band
-            order = np.argsort(v0 - half)
-            lo = (v0 - half)[order] - pad - b0
-            hi = np.maximum.accumulate((v0 + half)[order] + 1 + pad - b0)
+            order = np.argsort(lo_all)
+            lo = lo_all[order] - pad - b0
+            hi = np.maximum.accumulate(hi_all[order] + 1 + pad - b0)
             cut = np.flatnonzero(lo[1:] > hi[:-1] + pad) + 1
             for a, b in zip(np.r_[0, cut], np.r_[cut, len(lo)], strict=True):
                 self._blur_rows(band, lo[a], hi[b - 1], psf)
         return band, b0
+
+    # ------------------------------------------------------- reflections
+    def _specular_faces(self, geo):
+        """Planar faces of specular objects that face the laser's apex: (index, outward
+        normal (3,)) pairs (two-sided faces turned towards the apex)."""
+        F = self.scene.faces
+        mats = self.scene.material_table
+        src = geo.sheet.source
+        out = []
+        for f in range(len(F.obj)):
+            if mats[F.obj[f], 6] <= 0:
+                continue
+            n = F.normal[f].copy()
+            side = float(n @ (src - F.center[f]))
+            if F.two_sided[f] and side < 0:
+                n, side = -n, -side
+            if side > 0:
+                out.append((f, n))
+        return out
+
+    def _reflection_crossings(self, geo) -> list:
+        """The stripes thrown by the specular faces (one bounce): per face, its true
+        points, the window specification and the packed mirrored sheet (list of dicts)."""
+        F = self.scene.faces
+        sheet = geo.sheet
+        cam = self.rig.camera
+        out = []
+        base_hs = self._half_spaces(geo)[:5]
+        ptype, _, R, T, prm = self.scene.packed()
+        VTW = np.ascontiguousarray(geo.V_T_W)
+        for f, nA in self._specular_faces(geo):
+            cA = F.center[f]
+            dA = float(nA @ cA)
+            H = np.eye(3) - 2.0 * np.outer(nA, nA)
+            apex = sheet.source - 2.0 * (float(nA @ sheet.source) - dA) * nA
+            Nv = H @ sheet.plane[:3]
+            e_v = -float(Nv @ apex)
+            edges = [H @ en for en in sheet.edge_normals]
+            vpack = np.concatenate((Nv, (e_v,), apex, edges[0], edges[1], nA, (-dA,)))
+            hs = np.concatenate((base_hs, np.array([(apex, edges[0]), (apex, edges[1]),
+                                                     (cA, nA)])))
+            A, B, nrm, obj, two = self.scene.sheet_segments(np.r_[Nv, e_v], hs, geo.center,
+                                                            apex)
+            if not len(A):
+                continue
+            cap = len(A) * cam.width + 16
+            X, N = np.empty((cap, 3)), np.empty((cap, 3))
+            ob, cl = np.empty(cap, np.int64), np.empty(cap, np.int64)
+            u, v = np.empty(cap), np.empty(cap)
+            m = rk.segment_crossings(ptype, R, T, prm, VTW, self._intr, geo.center,
+                                     geo.cam_mirror, vpack, A, B, nrm, two,
+                                     obj.astype(np.int64), _NEAR, X, N, ob, cl, u, v)
+            if m == 0:
+                continue
+            X, N, ob, cl, u, v = X[:m], N[:m], ob[:m], cl[:m], u[:m], v[:m]
+            # the ray back towards the mirrored apex must cross the face inside it, and the
+            # laser must reach that point of the face
+            d = apex - X
+            dist = np.linalg.norm(d, axis=1)
+            d /= dist[:, None]
+            den = d @ nA
+            with np.errstate(divide='ignore', invalid='ignore'):
+                L = (dA - X @ nA) / den
+            Z = X + L[:, None] * d
+            q = Z - cA
+            inside = ((den < 0) & (L > 0) & (L < dist)
+                      & (np.abs(q @ F.e1[f]) <= F.half[f, 0])
+                      & (np.abs(q @ F.e2[f]) <= F.half[f, 1]))
+            w = sheet.source - Z
+            wd = np.linalg.norm(w, axis=1)
+            w /= wd[:, None]
+            mirror = sheet.mirror_plane
+            with np.errstate(divide='ignore', invalid='ignore'):
+                tm = -(Z @ mirror[:3] + mirror[3]) / (w @ mirror[:3])
+            tm = np.where((tm > 0) & (tm < wd), tm, wd)
+            keep = inside & ~self.scene.occluded(Z, w, tm)
+            if not np.any(keep):
+                continue
+            X, N, ob, cl, u, v, L = X[keep], N[keep], ob[keep], cl[keep], u[keep], v[keep], \
+                L[keep]
+            fmat = self.scene.material_table[F.obj[f]]
+            sig_r = np.sqrt(self.rig.laser.sigma ** 2 + 2.0 * fmat[1] ** 2 * L ** 2)
+            half = np.empty(len(cl), np.int64)
+            rk.window_halves(X, N, cl, v, np.ascontiguousarray(geo.W_T_V[:3, :3]),
+                             geo.center, vpack[:4], sig_r, self.rig.image.psf_sigma,
+                             self._intr, half)
+            face = np.concatenate((cA, F.e1[f], F.e2[f], F.half[f], nA))
+            out.append({'X': X, 'N': N, 'obj': ob, 'col': cl, 'u': u, 'v': v,
+                        'v0': np.rint(v).astype(np.int64), 'half': half, 'vsheet': vpack,
+                        'face': face, 'fmat': np.ascontiguousarray(fmat)})
+        return out
+
+    def _reflection_truth(self, reflections) -> StripeTruth:
+        if not reflections:
+            return StripeTruth.empty()
+        cat = {k: np.concatenate([r[k] for r in reflections]) for k in
+               ('col', 'u', 'v', 'X', 'N', 'obj')}
+        order = np.lexsort((cat['v'], cat['col']))
+        X = cat['X'][order]
+        R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
+        return StripeTruth(cat['col'][order], cat['u'][order], cat['v'][order], X,
+                           X @ R.T + t, cat['N'][order], cat['obj'][order])
+
+    def reflection_truth(self, geo: _Geometry) -> StripeTruth:
+        """Where the specular faces throw the stripe (one bounce) for a frame geometry:
+        per column, the points on the mirrored sheets' centre planes the camera sees."""
+        if geo.sheet is None or not self.scene.specular:
+            return StripeTruth.empty()
+        return self._reflection_truth(self._reflection_crossings(geo))
 
     @staticmethod
     def _blur_rows(band, start, end, psf):
@@ -535,15 +678,19 @@ class Simulator:
             if full and rig.image.psf_sigma > 0:
                 bg = cv2.GaussianBlur(bg, (0, 0), rig.image.psf_sigma)
         stripe = StripeTruth.empty()
+        reflection = StripeTruth.empty()
         band, b0 = np.zeros((0, rig.camera.width), np.float32), 0
         if laser_on:
             res = self._stripe_crossings(geo)
-            if res is not None:
+            refl = self._reflection_crossings(geo) if self.scene.specular else []
+            if res is not None or refl:
                 energy = rig.laser.peak_rate * exposure * laser_power
-                band, b0 = self._laser_layer(geo, res, energy, rng)
+                band, b0 = self._laser_layer(geo, res, energy, rng, refl)
+            if res is not None:
                 X, N, ob, cl, u, v = res
                 R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
                 stripe = StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
+            reflection = self._reflection_truth(refl)
         image = self._sensor(bg, band, b0, rng)
         nan4 = np.full(4, np.nan)
         plane_W = geo.sheet.plane if laser_on else nan4
@@ -552,7 +699,7 @@ class Simulator:
             self.V0_T_W @ geo.W_T_V, self.W_T_V0.copy(), laser_on, plane_W,
             normalize_plane(transform_plane(self.V0_T_W, plane_W)) if laser_on else nan4,
             geo.sheet.source if laser_on else np.full(3, np.nan), exposure, stripe,
-            rig.name, self.scene.name, self.model_parameters)
+            rig.name, self.scene.name, self.model_parameters, reflection)
         return SimFrame(image, truth)
 
     def calibration_frame(self, voltages, *, laser_on: bool = False,

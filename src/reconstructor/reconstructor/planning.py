@@ -7,7 +7,9 @@ from the rig's hidden truth:
   looks at a V0 point;
 - :func:`aim_laser`: the G2 tilt voltage whose laser plane crosses the view's optical axis
   at a given distance;
-- :func:`view_sweep`: a G2 sweep that moves the stripe across one G1 view.
+- :func:`view_sweep`: a G2 sweep that moves the stripe across one G1 view;
+- :func:`expected_rows`: where a part of known nominal shape and pose puts the stripe in a
+  frame's image (the extractor's prior for picking the stripe among reflections).
 """
 
 from __future__ import annotations
@@ -16,7 +18,13 @@ import numpy as np
 from scipy.optimize import brentq, least_squares
 
 from galvoscan_common.frame import VOLTAGE_LIMIT
-from reconstructor.model import RigModel, laser_plane_v0, rigid_inverse, v0_T_v
+from reconstructor.model import (
+    RigModel,
+    laser_plane_v0,
+    predict_pixels,
+    rigid_inverse,
+    v0_T_v,
+)
 
 #: An aim is reached when the target is this close to the optical axis (tangent of the angle:
 #: about 0.01 px at the telephoto focal length).
@@ -188,3 +196,75 @@ def view_sweep(model: RigModel, u1_pan: float, u1_tilt: float, distance: float,
     out = np.zeros((frames, 4))
     out[:, 0], out[:, 1], out[:, 3] = u1_pan, u1_tilt, u2
     return out
+
+
+def expected_rows(model: RigModel, faces_v0, voltages, width: int,
+                  samples: int = 400) -> np.ndarray:
+    """Rows where the stripe should cross each image column on a part of nominal shape.
+
+    The part is a set of rectangular faces (its CAD, placed where the operator put it).
+    Each face is cut with the model's laser plane of the frame; the cut is projected into
+    the frame's view; per column the nearest face (smallest depth) gives the row.
+
+    Parameters
+    ----------
+    model : RigModel
+    faces_v0 : sequence of (centre (3,), e1 (3,), e2 (3,), half (2,))
+        Rectangles in V0 [m]: centre, unit in-plane axes, half sizes along them. Faces
+        turned away from the view are skipped.
+    voltages : array_like, shape (4,), volts
+        The frame's (U1_pan, U1_tilt, U2_pan, U2_tilt).
+    width : int
+        Image width [px].
+
+    Returns
+    -------
+    ndarray, shape (width,), px
+        Expected row per column; NaN where no face is cut.
+    """
+    U = np.asarray(voltages, dtype=np.float64)
+    if U.shape != (4,) or not np.all(np.isfinite(U)):
+        raise ValueError(f'voltages: expected 4 finite volts, got {U}')
+    plane = laser_plane_v0(model, U[3])
+    T = v0_T_v(model, U[0], U[1])
+    centre = T[:3, 3]
+    rows = np.full(int(width), np.nan)
+    depth = np.full(int(width), np.inf)
+    cols = np.arange(int(width), dtype=np.float64)
+    for c, e1, e2, half in faces_v0:
+        c, e1, e2 = (np.asarray(x, dtype=np.float64) for x in (c, e1, e2))
+        n = np.cross(e1, e2)
+        if n @ (centre - c) < 0:
+            n = -n  # two-sided: the side facing the view
+        # the cut: c + a e1 + b e2 with plane . (that) = 0, |a| <= h1, |b| <= h2
+        ga, gb = plane[:3] @ e1, plane[:3] @ e2
+        g0 = plane[:3] @ c + plane[3]
+        if abs(ga) < 1e-12 and abs(gb) < 1e-12:
+            continue
+        t = np.linspace(-1.0, 1.0, samples)
+        if abs(ga) >= abs(gb):
+            b = t * half[1]
+            a = -(g0 + gb * b) / ga
+        else:
+            a = t * half[0]
+            b = -(g0 + ga * a) / gb
+        ok = (np.abs(a) <= half[0]) & (np.abs(b) <= half[1])
+        if np.count_nonzero(ok) < 2:
+            continue
+        pts = c + a[ok, None] * e1 + b[ok, None] * e2
+        uv, front = predict_pixels(model, pts, U[0], U[1])
+        z = (pts - centre) @ T[:3, 2]
+        keep = front & np.isfinite(uv).all(axis=1)
+        if np.count_nonzero(keep) < 2:
+            continue
+        uv, z = uv[keep], z[keep]
+        order = np.argsort(uv[:, 0])
+        uu, vv, zz = uv[order, 0], uv[order, 1], z[order]
+        inside = (cols >= uu[0]) & (cols <= uu[-1])
+        v_face = np.interp(cols[inside], uu, vv)
+        z_face = np.interp(cols[inside], uu, zz)
+        idx = np.flatnonzero(inside)
+        nearer = z_face < depth[idx]
+        rows[idx[nearer]] = v_face[nearer]
+        depth[idx[nearer]] = z_face[nearer]
+    return rows

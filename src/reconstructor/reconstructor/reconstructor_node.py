@@ -60,7 +60,8 @@ from galvoscan_common.executor import run_node
 from galvoscan_common.frame import VOLTAGE_LIMIT
 from galvoscan_common.tf_tree import tq_from_transform
 from reconstructor import calibration_file, tf_frames
-from reconstructor.cloud import CLOUD_DTYPE, save_cloud
+from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
+from reconstructor.consistency import agreeing
 from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
 
 #: The parameters the TF tree is built from (see reconstructor.tf_frames).
@@ -96,13 +97,22 @@ class ReconstructorNode(Node):
         self.declare_parameter('marker_range', 0.65, ParameterDescriptor(
             description='distance at which the field of view is drawn [m]',
             floating_point_range=[FloatingPointRange(from_value=0.05, to_value=10.0, step=0.0)]))
+        self.declare_parameter('multi_view_tolerance', 0.0, ParameterDescriptor(
+            description='two-view consistency: a frame followed by one of the same G2 tilt '
+                        'from another G1 position (reconstructor.consistency.two_view_sweep) '
+                        'keeps, in both, only the points the other triangulates within this '
+                        'distance [m]; 0: off',
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=0.01, step=0.0)]))
         self._declare_tf_parameters()
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._cache_parameters)
         self._cache_parameters()
 
         self.counters = {'frames': 0, 'points': 0, 'invalid_points': 0, 'scans': 0,
-                         'scan_splits': 0, 'skipped': {}}
+                         'scan_splits': 0, 'skipped': {},
+                         'multi_view': {'pairs': 0, 'unpaired': 0, 'dropped_points': 0}}
+        #: multi_view_tolerance: the frame waiting for its second view (volts, cloud, header)
+        self._pending = None
         self._warned = set()
         self.model = None
         self.calibration = None
@@ -206,7 +216,7 @@ class ReconstructorNode(Node):
         # read per frame: a dict lookup instead of rclpy's get_parameter
         self._p = {name: self.get_parameter(name).value for name in (
             'frame_id', 'min_ray_plane_angle', 'scan_end_timeout', 'scan_max_points',
-            'marker_period', 'marker_range', 'tf_rate_max')}
+            'marker_period', 'marker_range', 'tf_rate_max', 'multi_view_tolerance')}
         values = self._tf_values()
         problem = self._tf_problem(values)
         if problem:  # only a start-up value can be bad here; later sets are refused
@@ -286,9 +296,34 @@ class ReconstructorNode(Node):
         if not res.valid.all():
             block = block[res.valid]
         cloud = block.view(CLOUD_DTYPE).reshape(-1)
-        self.counters['points'] += cloud.shape[0]
         self.counters['invalid_points'] += n - cloud.shape[0]
         header = cdr.Header(msg.header.sec, msg.header.nanosec, self._p['frame_id'])
+        if self._p['multi_view_tolerance'] > 0:
+            for item in self._two_views(volts, cloud, header):
+                self._emit(*item)
+        else:
+            self._emit(volts, cloud, header)
+
+    def _two_views(self, volts, cloud, header):
+        """The frames to publish now under multi_view_tolerance: a pair filtered by
+        :func:`reconstructor.consistency.agreeing`, or a frame that found no partner."""
+        pending, self._pending = self._pending, None
+        mv = self.counters['multi_view']
+        if pending is not None and pending[0][3] == volts[3] and pending[0][:2] != volts[:2]:
+            keep_a, keep_b = agreeing(xyz(pending[1]), xyz(cloud),
+                                      self._p['multi_view_tolerance'])
+            mv['pairs'] += 1
+            mv['dropped_points'] += int((~keep_a).sum() + (~keep_b).sum())
+            return [(pending[0], pending[1][keep_a], pending[2]), (volts, cloud[keep_b], header)]
+        self._pending = (volts, cloud, header)
+        if pending is not None:
+            mv['unpaired'] += 1
+            return [pending]
+        return []
+
+    def _emit(self, volts, cloud, header):
+        """Publish one frame's cloud on points and add it to the scan."""
+        self.counters['points'] += cloud.shape[0]
         # invalid points are dropped, never sent as NaN: the cloud is dense
         self._pub_points.publish(cdr.serialize_point_cloud(cloud, header))
         if cloud.shape[0]:
@@ -305,6 +340,10 @@ class ReconstructorNode(Node):
         if self._last_frame_time is None or time.monotonic() - self._last_frame_time < timeout:
             return
         self._last_frame_time = None
+        if self._pending is not None:  # the last frame found no second view
+            self.counters['multi_view']['unpaired'] += 1
+            self._emit(*self._pending)
+            self._pending = None
         self._publish_scan('scan ended')
 
     def _publish_scan(self, why):

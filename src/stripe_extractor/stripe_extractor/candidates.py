@@ -124,9 +124,30 @@ def _secondaries(img, excl, cand, sec, bmax, barg):
                 v = nv
                 r += step
         if lo <= r <= hi:
-            sec[c] = -1
+            # the largest sum outside the zone is the main peak's flank (a wide peak, e.g.
+            # a reflection blurred by a glossy lobe): look for a peak of its own beyond it
+            sec[c] = _local_maximum_outside(img, c, lo, hi)
         else:
             sec[c] = r
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_maximum_outside(img, c, lo, hi):
+    """Row of the largest 3x3 box sum of column c that is a strict local maximum (both
+    neighbouring rows lower) outside rows lo..hi and not next to them; -1 if none."""
+    H = img.shape[0]
+    best = np.int32(-1)
+    row = -1
+    prev = box3(img, 1, c)
+    cur = box3(img, 2, c) if H > 3 else prev
+    for r in range(2, H - 2):
+        nxt = box3(img, r + 1, c)
+        if (r < lo - 1 or r > hi + 1) and cur > prev and cur > nxt and cur > best:
+            best = cur
+            row = r
+        prev = cur
+        cur = nxt
+    return row
 
 
 @numba.njit(cache=True, nogil=True)

@@ -18,6 +18,7 @@ import numpy as np
 from .candidates import column_peaks
 from .config import FWHM_PER_SIGMA
 from .profile import is_secondary, roi_profile_peak, roi_rows
+from .selection import select_peaks
 
 
 def cog_half_window(line_width_px: float) -> int:
@@ -26,7 +27,7 @@ def cog_half_window(line_width_px: float) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def cog_columns(img, R, kern, h, min_strength, out):
+def cog_columns(img, R, kern, h, min_strength, out, mode, expected, ratio, counts):
     """Centre of gravity of every column; arguments as :func:`.steger.steger_columns`, but
     the half window ``h`` [px] (:func:`cog_half_window`) in place of ``sigma``.
 
@@ -38,9 +39,12 @@ def cog_columns(img, R, kern, h, min_strength, out):
     cand = np.empty(W, np.int32)
     sec = np.empty(W, np.int32)
     column_peaks(img, R, cand, sec)
+    select_peaks(img, R, K, g0, min_strength, cand, sec, mode, expected, ratio, counts)
     n = 0
     nsec = 0
     for c in range(W):
+        if cand[c] < 0:
+            continue
         a, b = roi_rows(cand[c], R, K, H)
         if b < a:
             continue

@@ -22,6 +22,12 @@ import numpy as np
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 METHODS = ('steger', 'center_of_gravity')
+#: Peak selection modes (see :mod:`.selection`).
+PEAK_MODES = ('strongest', 'nearest', 'widest', 'unambiguous')
+#: Range of ``ambiguity_ratio`` [1].
+AMBIGUITY_RATIO_RANGE = (0.05, 1.0)
+#: Range of ``max_offset_px`` [px] (0: no limit).
+MAX_OFFSET_RANGE_PX = (0.0, 1000.0)
 ORIENTATIONS = ('horizontal', 'vertical')
 SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
@@ -49,6 +55,15 @@ class ExtractorConfig:
         Must be at least ``ceil(line_width_px)`` so the window ends see background.
     orientation : str
         ``'horizontal'`` (one centre per column) or ``'vertical'`` (one centre per row).
+    peak_mode : str
+        Which of two peaks in a column is the stripe (:mod:`.selection`): ``'strongest'``
+        (default), ``'nearest'`` (the expected row), ``'widest'`` or ``'unambiguous'``.
+    ambiguity_ratio : float
+        ``'unambiguous'``: a column whose second peak reaches this share of the first's
+        strength gives no centre [1], 0.05..1.
+    max_offset_px : float
+        ``'nearest'``: a centre farther than this from its column's expected row is dropped
+        [px] (a reflection merged into the stripe); 0: no limit.
     """
 
     method: str = 'steger'
@@ -56,10 +71,25 @@ class ExtractorConfig:
     min_strength: float = 20.0
     roi_half_height: int = 12
     orientation: str = 'horizontal'
+    peak_mode: str = 'strongest'
+    ambiguity_ratio: float = 0.3
+    max_offset_px: float = 0.0
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise ValueError(f'method must be one of {METHODS}, got {self.method!r}')
+        if self.peak_mode not in PEAK_MODES:
+            raise ValueError(f'peak_mode must be one of {PEAK_MODES}, got {self.peak_mode!r}')
+        ar = float(self.ambiguity_ratio)
+        if not (AMBIGUITY_RATIO_RANGE[0] <= ar <= AMBIGUITY_RATIO_RANGE[1]):
+            raise ValueError(f'ambiguity_ratio must be in {AMBIGUITY_RATIO_RANGE}, '
+                             f'got {self.ambiguity_ratio}')
+        object.__setattr__(self, 'ambiguity_ratio', ar)
+        mo = float(self.max_offset_px)
+        if not (MAX_OFFSET_RANGE_PX[0] <= mo <= MAX_OFFSET_RANGE_PX[1]):
+            raise ValueError(f'max_offset_px must be in {MAX_OFFSET_RANGE_PX} px, '
+                             f'got {self.max_offset_px}')
+        object.__setattr__(self, 'max_offset_px', mo)
         if self.orientation not in ORIENTATIONS:
             raise ValueError(
                 f'orientation must be one of {ORIENTATIONS}, got {self.orientation!r}')

@@ -38,6 +38,7 @@ from .config import (
     gaussian_kernels,
     stacked_kernels,
 )
+from .selection import COUNT_NAMES, MODE_CODES, no_expectation
 from .steger import steger_columns
 
 __all__ = ['FWHM_PER_SIGMA', 'LINE_WIDTH_RANGE_PX', 'METHODS', 'MIN_STRENGTH_RANGE_DN',
@@ -62,6 +63,9 @@ class StripeResult:
         Peak of the smoothed profile above background.
     rejected_secondary : int
         Columns (rows, if vertical) where a weaker secondary peak was found and rejected.
+    selection : dict
+        Peak selection counts (``config.peak_mode``; :data:`.selection.COUNT_NAMES`):
+        columns with two peaks, the strongest kept, the other taken, the column dropped.
     config : ExtractorConfig
         Parameters used; ``config.sigma`` is the derivative scale used [px].
     image_shape : tuple of int
@@ -75,6 +79,7 @@ class StripeResult:
     rejected_secondary: int
     config: ExtractorConfig
     image_shape: tuple = field(default=(0, 0))
+    selection: dict = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.u.shape[0])
@@ -100,7 +105,33 @@ def check_image(image) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def extract_columns(img: np.ndarray, config: ExtractorConfig):
+def _expected_rows(expected, n: int) -> np.ndarray:
+    """``expected`` as float32 (n,): None -> NaN, a scalar broadcast, an array checked."""
+    if expected is None:
+        return no_expectation(n)
+    e = np.asarray(expected, dtype=np.float32)
+    if e.ndim == 0:
+        return np.full(n, float(e), np.float32)
+    if e.shape != (n,):
+        raise ValueError(f'expected_v: expected a scalar or shape ({n},), got {e.shape}')
+    return np.ascontiguousarray(e)
+
+
+def _prior_offset(img, config, columns, method_arg, rows) -> np.float32:
+    """The prior's own error (calibration, the part's placement): the median offset from the
+    expected rows of the peaks nearest them, over the columns that have both (0 if none).
+    The prior need only be nearer the stripe than the reflections are."""
+    out = np.empty((4, img.shape[1]), np.float32)
+    counts = np.zeros(len(COUNT_NAMES), np.int64)
+    n, _ = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
+                   config.min_strength, out, MODE_CODES['nearest'], rows,
+                   config.ambiguity_ratio, counts)
+    d = out[1, :n] - rows[np.clip(np.rint(out[0, :n]).astype(np.int64), 0, len(rows) - 1)]
+    d = d[np.isfinite(d)]
+    return np.float32(np.median(d)) if d.size else np.float32(0.0)
+
+
+def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
     """Centres of a checked image, one per column at most, by the method of ``config``.
 
     Parameters
@@ -109,24 +140,42 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig):
         Already validated and C-contiguous (see :func:`check_image`); the stripe runs along
         the rows.
     config : ExtractorConfig
+    expected : array_like, shape (W,) or scalar, px, optional
+        Expected row of the stripe per column (``peak_mode='nearest'``; NaN: none). It is
+        first moved by the median offset of the peaks nearest it (the prior's own error,
+        e.g. of the calibration or the part's placement).
 
     Returns
     -------
     u, v, width, strength : ndarray, shape (n,), float32
         Column [px], row [px], FWHM [px], strength [DN].
     rejected_secondary : int
+    counts : ndarray, shape (4,), int64
+        Peak selection counts (:data:`.selection.COUNT_NAMES`).
     """
     if config.method == 'steger':
         columns, method_arg = steger_columns, config.sigma
     else:
         columns, method_arg = cog_columns, cog_half_window(config.line_width_px)
+    rows = _expected_rows(expected, img.shape[1])
+    if config.peak_mode == 'nearest' and np.any(np.isfinite(rows)):
+        rows = rows + _prior_offset(img, config, columns, method_arg, rows)
     out = np.empty((4, img.shape[1]), np.float32)
+    counts = np.zeros(len(COUNT_NAMES), np.int64)
     n, nsec = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
-                      config.min_strength, out)
-    return out[0, :n], out[1, :n], out[2, :n], out[3, :n], nsec
+                      config.min_strength, out, MODE_CODES[config.peak_mode], rows,
+                      config.ambiguity_ratio, counts)
+    u, v, w, s = out[0, :n], out[1, :n], out[2, :n], out[3, :n]
+    if config.peak_mode == 'nearest' and config.max_offset_px > 0 and n:
+        e = rows[np.clip(np.rint(u).astype(np.int64), 0, img.shape[1] - 1)]
+        far = np.abs(v - e) > config.max_offset_px  # NaN (no expectation) is not far
+        counts[-1] = int(np.sum(far))
+        u, v, w, s = u[~far], v[~far], w[~far], s[~far]
+    return u, v, w, s, nsec, counts
 
 
-def extract(image: np.ndarray, config: ExtractorConfig | None = None) -> StripeResult:
+def extract(image: np.ndarray, config: ExtractorConfig | None = None,
+            expected_v=None) -> StripeResult:
     """Extract at most one sub-pixel stripe centre per column (per row if vertical).
 
     Parameters
@@ -135,6 +184,9 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None) -> StripeR
         Monochrome camera image.
     config : ExtractorConfig, optional
         Method and parameters; defaults to ``ExtractorConfig()``.
+    expected_v : array_like, shape (width,) or scalar, px, optional
+        Where the stripe is expected, per column (per row if vertical: the expected
+        column), for ``peak_mode='nearest'``; NaN or None: no expectation.
 
     Returns
     -------
@@ -149,10 +201,12 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None) -> StripeR
     vertical = config.orientation == 'vertical'
     if vertical:
         img = np.ascontiguousarray(img.T)
-    a, b, w, s, nsec = extract_columns(img, config)
+    a, b, w, s, nsec, counts = extract_columns(img, config, expected_v)
     u, v = (b, a) if vertical else (a, b)
     return StripeResult(u=u, v=v, width=w, strength=s, rejected_secondary=int(nsec),
-                        config=config, image_shape=shape)
+                        config=config, image_shape=shape,
+                        selection=dict(zip(COUNT_NAMES, (int(x) for x in counts),
+                                           strict=True)))
 
 
 def warm_up() -> None:

@@ -50,8 +50,10 @@ publishers in its own process, on the executor that serves them. ``galvoscan run
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, KeyValue
 from galvoscan_msgs.msg import GalvoState, StripeCenters
 from rcl_interfaces.msg import (
@@ -76,19 +78,32 @@ from galvoscan_common.diagnostics import status as diagnostic_status
 from galvoscan_common.executor import run_node
 
 from .config import (
+    AMBIGUITY_RATIO_RANGE,
     LINE_WIDTH_RANGE_PX,
+    MAX_OFFSET_RANGE_PX,
     METHODS,
     MIN_STRENGTH_RANGE_DN,
     ORIENTATIONS,
+    PEAK_MODES,
     ROI_HALF_HEIGHT_RANGE_PX,
     ExtractorConfig,
 )
+from .exposure import frame_levels, merge_hdr
 from .extractor import extract, warm_up
 from .pairing import StampPairer
+from .selection import COUNT_NAMES
 from .worker import OffloadPolicy, SerialWorker
 
 PAIRING_BUFFER_RANGE = (1, 1000)
 DIAGNOSTICS_PERIOD_RANGE_S = (0.1, 60.0)
+
+
+def _same_position(first: cdr.GalvoState, second: cdr.GalvoState) -> bool:
+    """The second state is the next in sequence at the same voltages (an HDR pair)."""
+    return (second.seq == first.seq + 1 and first.laser_on and second.laser_on
+            and (first.g1_pan_voltage, first.g1_tilt_voltage, first.g2_pan_voltage,
+                 first.g2_tilt_voltage) == (second.g1_pan_voltage, second.g1_tilt_voltage,
+                                           second.g2_pan_voltage, second.g2_tilt_voltage))
 
 
 def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result) -> bytes:
@@ -133,6 +148,14 @@ class StripeExtractorNode(Node):
         self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
                                 'rejected_secondary': 0, 'extraction_errors': 0,
                                 'publish_errors': 0}
+        self._extract_counts.update({f'peaks_{k}': 0 for k in COUNT_NAMES})
+        # the previous frame's centre row per column (peak_mode nearest), and the last
+        # frame's saturated fraction and peak level
+        self._previous_rows = None
+        self._levels = (0.0, 0.0)
+        self._extract_counts.update(hdr_merged=0, hdr_unpaired=0, hdr_from_short=0)
+        #: hdr_pairs: the long exposure waiting for its short one (raw, image, state, result)
+        self._hdr_held = None
         self._logged_causes: set[str] = set()
         self._extract_s = 0.0
         self.add_on_set_parameters_callback(self._validate_parameters)
@@ -185,6 +208,40 @@ class StripeExtractorNode(Node):
             description='Stripe direction in the image: horizontal = one centre per column, '
                         'vertical = one centre per row',
             additional_constraints=f'one of: {", ".join(ORIENTATIONS)}'))
+        self.declare_parameter('peak_mode', defaults.peak_mode, ParameterDescriptor(
+            type=ParameterType.PARAMETER_STRING,
+            description='Which of two peaks in a column is the stripe: strongest, nearest '
+                        '(the expected_row, else the previous frame\'s centre of the '
+                        'column), widest, or unambiguous (none when the second reaches '
+                        'ambiguity_ratio of the first)',
+            additional_constraints=f'one of: {", ".join(PEAK_MODES)}'))
+        self.declare_parameter('ambiguity_ratio', defaults.ambiguity_ratio,
+                               ParameterDescriptor(
+                                   type=ParameterType.PARAMETER_DOUBLE,
+                                   description='peak_mode unambiguous: share of the first '
+                                               "peak's strength at which a second peak "
+                                               'makes the column ambiguous [1]',
+                                   floating_point_range=[FloatingPointRange(
+                                       from_value=AMBIGUITY_RATIO_RANGE[0],
+                                       to_value=AMBIGUITY_RATIO_RANGE[1])]))
+        self.declare_parameter('max_offset_px', defaults.max_offset_px, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE,
+            description='peak_mode nearest: drop a centre farther than this from the '
+                        'expected row [px]; 0: no limit',
+            floating_point_range=[FloatingPointRange(
+                from_value=MAX_OFFSET_RANGE_PX[0], to_value=MAX_OFFSET_RANGE_PX[1])]))
+        self.declare_parameter('hdr_pairs', False, ParameterDescriptor(
+            type=ParameterType.PARAMETER_BOOL,
+            description='HDR: a frame followed by the next in sequence at the same voltages '
+                        '(the driver\'s hdr_ratio: long, then short exposure) gives one '
+                        'stripe, the long one\'s centres where its stripe is not clipped, '
+                        'else the short one\'s'))
+        self.declare_parameter('expected_row', -1.0, ParameterDescriptor(
+            type=ParameterType.PARAMETER_DOUBLE,
+            description='peak_mode nearest: the row where the stripe is expected [px] '
+                        '(vertical stripes: the column); -1: the previous frame\'s centre '
+                        'of each column',
+            floating_point_range=[FloatingPointRange(from_value=-1.0, to_value=65535.0)]))
 
     def _declare_node_parameters(self, extraction_thread_default: bool | str,
                                  intra_process_default: bool) -> None:
@@ -257,7 +314,8 @@ class StripeExtractorNode(Node):
 
     # ---- parameters -------------------------------------------------------------------
     def _config_from(self, changes: dict) -> ExtractorConfig:
-        names = ('method', 'line_width_px', 'min_strength', 'roi_half_height', 'orientation')
+        names = ('method', 'line_width_px', 'min_strength', 'roi_half_height', 'orientation',
+                 'peak_mode', 'ambiguity_ratio', 'max_offset_px')
         values = {n: changes.get(n, self.get_parameter(n).value) for n in names}
         return ExtractorConfig(**values)
 
@@ -347,7 +405,15 @@ class StripeExtractorNode(Node):
         counts = self._extract_counts
         t0, cpu0 = time.perf_counter(), time.thread_time()
         try:
-            result = extract(img, config)
+            expected = None
+            if config.peak_mode == 'nearest':
+                row = float(self.get_parameter('expected_row').value)
+                expected = row if row >= 0 else self._previous_rows
+                n_cols = img.shape[1 if config.orientation == 'horizontal' else 0]
+                if expected is not None and np.ndim(expected) and len(expected) != n_cols:
+                    expected = None
+            result = extract(img, config, expected)
+            self._levels = frame_levels(img)
         except Exception as exc:  # noqa: BLE001 - the node must survive any input
             counts['extraction_errors'] += 1
             self._skip_log_error(exc)
@@ -358,6 +424,33 @@ class StripeExtractorNode(Node):
             self._policy.note_extraction(time.thread_time() - cpu0)
         counts['frames_extracted'] += 1
         counts['rejected_secondary'] += result.rejected_secondary
+        for k, v in result.selection.items():
+            counts[f'peaks_{k}'] += v
+        if config.peak_mode == 'nearest':
+            h, w = result.image_shape
+            along, across = (result.u, result.v) if config.orientation == 'horizontal' \
+                else (result.v, result.u)
+            prev = np.full(w if config.orientation == 'horizontal' else h, np.nan, np.float32)
+            prev[np.rint(along).astype(np.int64)] = across
+            self._previous_rows = prev
+        if self.get_parameter('hdr_pairs').value:
+            held, self._hdr_held = self._hdr_held, None
+            if held is not None and _same_position(held[2], state):
+                u, v, w, s, n_short = merge_hdr(held[3], result, held[1])
+                counts['hdr_merged'] += 1
+                counts['hdr_from_short'] += n_short
+                result = dataclasses.replace(held[3], u=u, v=v, width=w, strength=s)
+                raw, state = held[0], held[2]
+            else:
+                self._hdr_held = (raw, img, state, result)
+                if held is None:
+                    return
+                counts['hdr_unpaired'] += 1
+                raw, state, result = held[0], held[2], held[3]
+        self._publish_centers(raw, state, result)
+
+    def _publish_centers(self, raw, state, result) -> None:
+        counts = self._extract_counts
         header = cdr.Header(raw.stamp_sec, raw.stamp_nanosec, raw.frame_id)
         try:
             self._pub.publish(centers_cdr(header, state, result))
@@ -407,6 +500,9 @@ class StripeExtractorNode(Node):
             f'{mean_ms:.3f} ms mean extraction',
             warn=('skipped_total', 'extraction_errors', 'dropped_busy'))
         status.values.append(KeyValue(key='extraction_ms_mean', value=f'{mean_ms:.4f}'))
+        sat, peak = self._levels
+        status.values.append(KeyValue(key='saturated_fraction_last', value=f'{sat:.6f}'))
+        status.values.append(KeyValue(key='peak_level_last', value=f'{peak:.4f}'))
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [status]

@@ -42,6 +42,7 @@ import numpy as np
 from .candidates import column_peaks
 from .config import FWHM_PER_SIGMA
 from .profile import is_secondary, roi_profile_peak, roi_rows
+from .selection import select_peaks
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True, inline='always')
@@ -204,6 +205,8 @@ def _profile_peaks(img, cand, R, K, g0, min_strength, r0s, bgs, present):
     """
     H, W = img.shape
     for c in range(W):
+        if cand[c] < 0:
+            continue
         a, b = roi_rows(cand[c], R, K, H)
         if b < a:
             continue
@@ -227,11 +230,13 @@ def _continuous_footprint(present, r0s, c, K):
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def steger_columns(img, R, kern, sigma, min_strength, out):
+def steger_columns(img, R, kern, sigma, min_strength, out, mode, expected, ratio, counts):
     """Steger centre of every column (see module docstring).
 
     ``kern`` stacks the half kernels (g0, d1, d2), shape (3, K + 1); ``out`` (shape (4, W))
-    receives u, v, width, strength in its first n columns. Returns (n, rejected_secondary).
+    receives u, v, width, strength in its first n columns. ``mode``, ``expected``,
+    ``ratio`` and ``counts`` are those of :func:`.selection.select_peaks`, which picks
+    each column's peak first. Returns (n, rejected_secondary).
     """
     W = img.shape[1]
     g0 = kern[0]
@@ -241,6 +246,7 @@ def steger_columns(img, R, kern, sigma, min_strength, out):
     cand = np.empty(W, np.int32)
     sec = np.empty(W, np.int32)
     column_peaks(img, R, cand, sec)
+    select_peaks(img, R, K, g0, min_strength, cand, sec, mode, expected, ratio, counts)
     r0s = np.zeros(W, np.int32)
     bgs = np.zeros(W, np.float32)
     present = np.zeros(W, np.bool_)
