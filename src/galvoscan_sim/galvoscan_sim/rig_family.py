@@ -280,6 +280,14 @@ _REF = {'peak_rate': 4.84e7, 'reference_distance': 0.65, 'line_width': 6e-4,
 #: Usable stripe widths (Gaussian sigma in the image) [px]: at least the PSF's order; at
 #: most 10 px, a FWHM of 23.5 px inside the stripe extractor's 30 px limit.
 STRIPE_SIGMA_PX = (0.5, 10.0)
+#: Largest angle of the stripe to the image rows at the working point [rad]. The chain
+#: (capture plans and targets, column-wise stripe extraction, laser stages, joint
+#: correction, scan patterns) takes the stripe along the rows, crossing each column once,
+#: and the laser below or above the camera; the family's head roll and fan roll keep it
+#: within ~1.4 deg. 10 deg leaves room for hand-built rigs (a stripe 10 deg off the rows
+#: is 1.5 % wider along a column); a laser beside the camera (stripe along the columns)
+#: or a sheet turned further is refused with that reason.
+MAX_STRIPE_TILT = math.radians(10.0)
 #: Tolerance of the sheet/axis crossing against the asked distance [m].
 CROSSING_TOLERANCE = 1e-3
 _MAX_ATTEMPTS = 25
@@ -905,6 +913,32 @@ def stripe_profile(image: np.ndarray, column: int, half_columns: int = 60,
             'saturated': float(np.mean(peaks >= white_level))}
 
 
+def stripe_tilt(rig: Rig) -> float:
+    """Angle of the stripe to the image rows at the working point, in [0, pi/2] [rad].
+
+    The actual sheet at U2 = 0 in the actual V0 (the view at U1 = 0), ``n . X = -c``:
+    on a surface facing the camera it is the image line ``n_x x + n_y y = const`` in
+    normalised coordinates, whose normal in pixels is ``(n_x / fx, n_y / fy)``.
+    """
+    th = rig.mirror_angles(rig.applied_voltages(np.zeros(4)))
+    pi = transform_plane(invert_transform(rig.G_T_V0), rig.laser_sheet_G(th[2], th[3]).plane)
+    cam = rig.camera
+    return math.atan2(abs(pi[0]) / cam.fx, abs(pi[1]) / cam.fy)
+
+
+def _check_stripe_direction(rig: Rig) -> list[str]:
+    """The stripe runs along the image rows, as the chain takes it (:data:`MAX_STRIPE_TILT`)."""
+    tilt = stripe_tilt(rig)
+    if tilt <= MAX_STRIPE_TILT:
+        return []
+    layout = ('the laser sits beside the camera' if tilt > math.radians(60.0)
+              else 'the laser sheet is turned about the optical axis')
+    return [f'the stripe runs {math.degrees(tilt):.1f} deg off the image rows ({layout}); '
+            f'the chain takes the stripe along the rows, within '
+            f'{math.degrees(MAX_STRIPE_TILT):.0f} deg (laser below or above the camera): '
+            'a laser-beside or oblique layout is not supported']
+
+
 def _check_stripe(rig: Rig) -> list[str]:
     """The stripe on a grey plane at the working point: in the image, through the centre,
     in focus, with a usable peak."""
@@ -956,7 +990,8 @@ def check_rig(rig: dict, distance: float | None = None) -> list[str]:
         r = rig_from_dict(copy.deepcopy(rig), '<rig>')
     except ConfigError as exc:
         return [str(exc)]
-    out = _check_crossing(r, distance) + _check_mirrors(r)
+    direction = _check_stripe_direction(r)
+    out = direction + _check_crossing(r, distance) + _check_mirrors(r)
     if not out:
         out += _check_stripe(r)
     return out

@@ -353,3 +353,40 @@ def test_a_12_bit_rig_sees_the_stripe_as_an_8_bit_one_does():
         assert img.dtype == (np.uint8 if depth == 8 else np.uint16) and img.max() < 2 ** depth
     assert abs(rows[8][0] - rows[12][0]) <= 1.0
     assert abs(rows[8][1] - rows[12][1]) < 0.05 * rows[8][1] + 1.0
+
+
+def _g2_turned(data, degrees):
+    """The rig with its G2 head turned about the camera's optical axis (the actual V0's z):
+    the laser moved round the camera, the sheet still crossing the axis where it did."""
+    from scipy.spatial.transform import Rotation
+
+    from galvoscan_sim.spatial import invert_transform
+
+    rig = load_rig_text(yaml.safe_dump(data))
+    R = np.eye(4)
+    R[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(degrees)]).as_matrix()
+    T = rig.G_T_V0 @ R @ invert_transform(rig.G_T_V0) @ rig.G_T_G2
+    out = copy.deepcopy(data)
+    out['g2']['pose_in_g1'] = {
+        'translation': [float(v) for v in T[:3, 3]],
+        'rotation_vector': [float(v) for v in Rotation.from_matrix(T[:3, :3]).as_rotvec()]}
+    return out
+
+
+def test_a_laser_beside_the_camera_or_an_oblique_sheet_is_refused_up_front():
+    ref = read_yaml_file(RIG_DIR / 'reference.yaml')
+    z = rf.working_distance(ref)
+    assert math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(ref)))) < 0.5
+    # a few degrees of roll: still a stripe along the rows
+    assert rf.check_rig(_g2_turned(ref, 3.0), z) == []
+    for degrees, words in ((90.0, 'the laser sits beside the camera'),
+                           (-90.0, 'the laser sits beside the camera'),
+                           (30.0, 'the laser sheet is turned about the optical axis')):
+        turned = _g2_turned(ref, degrees)
+        tilt = math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(turned))))
+        assert abs(tilt - min(abs(degrees), 180 - abs(degrees))) < 1.0, (degrees, tilt)
+        problems = rf.check_rig(turned, z)
+        assert problems[0].startswith(f'the stripe runs {tilt:.1f} deg off the image rows')
+        assert words in problems[0] and 'not supported' in problems[0]
+        # refused before the simulator renders a stripe (not "covers 0 of 720 columns")
+        assert not any('columns' in p for p in problems), problems
