@@ -144,8 +144,7 @@ class SensorClass:
     Attributes
     ----------
     width, height : int
-        Pixels read at the scanner's 500 fps [px] (a region of interest where the full
-        frame is slower).
+        Pixels read [px].
     pixel_size : float
         Pixel pitch [m].
     full_well : float
@@ -170,7 +169,7 @@ class SensorClass:
     reason: str
 
 
-#: Sensor classes of 500 fps machine-vision cameras. Mono16 of a 12-bit ADC carries 12-bit
+#: Sensor classes of fast (about 300 to 800 fps) machine-vision cameras. Mono16 of a 12-bit ADC carries 12-bit
 #: codes MSB-aligned; the simulator quantises to 16 bits instead, which differs by the
 #: 12-bit step's 0.29 DN12 rms (~1.5 e- on IMX287), below every class' read noise.
 SENSORS: dict[str, SensorClass] = {
@@ -183,10 +182,12 @@ SENSORS: dict[str, SensorClass] = {
                           (8, 10, 12, 16), 2.0, 'Sony IMX287LLR data sheet; EMVA 1288 '
                           'sheets of acA720-520um / BFS-U3-04S2M'),
     # Sony IMX273LLR (1/2.9", 1.6 MP 1440 x 1080, 3.45 um Pregius, 12-bit ADC, ~276 fps
-    # full frame at 8/10 bit): read as 1440 x 540 (half the rows) for 500 fps. EMVA 1288
-    # sheets of IMX273 cameras (Basler acA1440-220um, FLIR BFS-U3-16S2M): saturation
-    # capacity ~10.5 ke-, temporal dark noise ~2-3 e-.
-    'IMX273': SensorClass(1440, 540, 3.45e-6, 10500.0,
+    # full frame at 8/10 bit): the same sensor area as the IMX287 at a quarter of the
+    # pixel area; read at full frame (a region of interest for 500 fps would halve the
+    # field's height, too short for the calibration sphere's views), so its scans run at
+    # up to ~276 fps. EMVA 1288 sheets of IMX273 cameras (Basler acA1440-220um, FLIR
+    # BFS-U3-16S2M): saturation capacity ~10.5 ke-, temporal dark noise ~2-3 e-.
+    'IMX273': SensorClass(1440, 1080, 3.45e-6, 10500.0,
                           Range(2.0, 3.0, 'e-', 'IMX273 cameras\' EMVA 1288 sheets'),
                           (8, 10, 12, 16), 2.0, 'Sony IMX273LLR data sheet; EMVA 1288 '
                           'sheets of acA1440-220um / BFS-U3-16S2M'),
