@@ -18,7 +18,7 @@ def test_the_reach_follows_the_head_and_the_wide_head_covers_the_papers_range():
         reach[head] = 2e3 * g1_reach(rig_from_dict(data, head), 0.65)
     order = sorted(HEADS, key=lambda h: HEADS[h].max_angle)
     assert order == ['GVS011', 'TSH8310', 'WIDE25']
-    for a, b in zip(order, order[1:]):
+    for a, b in zip(order[:-1], order[1:], strict=True):
         assert all(reach[a] < reach[b]), reach
     # the reach grows as tan(2 theta): +-12.5 deg reaches about tan(25)/tan(40) of +-20 deg
     ratio = math.tan(math.radians(25.0)) / math.tan(math.radians(40.0))

@@ -9,6 +9,14 @@ vary, and the whole set up for a working distance: the laser sheet at U2 = 0 cro
 camera's optical axis at U1 = 0 there, and the lens focus, the laser line's focus, the
 exposure and the laser power suit that distance.
 
+Builds
+    Each draw also picks a build: a camera sensor class (:data:`SENSORS`: size, pitch,
+    full well, read noise, output formats, each from its data sheet), one of its bit
+    depths, and a galvo head class (:data:`HEADS`: scan angle at the DAC's full scale,
+    linearity, repeatability) for both heads. ``draw_rig(seed, build=...)`` fixes any of
+    them; :func:`build_of` names a description's build. The range follows the head: G1's
+    reach is its scan angle's.
+
 Working distance
     The stand-off of the crossing from the scanner's front, the G1 exit (tilt) mirror:
     measured along the optical axis at U1 = 0 from the tilt mirror's axis, which sits at
@@ -169,9 +177,10 @@ class SensorClass:
     reason: str
 
 
-#: Sensor classes of fast (about 300 to 800 fps) machine-vision cameras. Mono16 of a 12-bit ADC carries 12-bit
-#: codes MSB-aligned; the simulator quantises to 16 bits instead, which differs by the
-#: 12-bit step's 0.29 DN12 rms (~1.5 e- on IMX287), below every class' read noise.
+#: Sensor classes of fast (about 300 to 800 fps) machine-vision cameras. Mono16 of a
+#: 12-bit ADC carries 12-bit codes MSB-aligned; the simulator quantises to 16 bits
+#: instead, which differs by the 12-bit step's 0.29 DN12 rms (~1.5 e- on IMX287), below
+#: every class' read noise.
 SENSORS: dict[str, SensorClass] = {
     # Sony IMX287LLR (1/2.9", 0.4 MP, Pregius global shutter, 12-bit ADC, 522 fps full
     # frame): the reference rig's sensor. EMVA 1288 data sheets of IMX287 cameras (Basler
