@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from galvoscan_sim.rig_family import draw_rig, working_distance
+from galvoscan_sim.rig_family import build_of, draw_rig, working_distance
 from reconstructor.uncertainty import prediction_summary
 
 #: The issue's acceptance thresholds at a rig's own distance [mm] (the paper's figures).
@@ -88,6 +88,7 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
         folder.mkdir(parents=True, exist_ok=True)
         description = draw_rig(seed)
         row['working_distance_mm'] = working_distance(description) * 1e3
+        row['build'] = build_of(description)
         rig_path = folder / 'rig.yaml'
         rig_path.write_text(yaml.safe_dump(description, sort_keys=False))
     except (ValueError, RuntimeError, OSError) as exc:
@@ -138,6 +139,23 @@ def drop_bags(folder: Path) -> int:
     return freed
 
 
+def build_counts(rows) -> dict:
+    """Rigs (drawn, completed, passed) per build kind: bit depth, sensor class, head class."""
+    out = {}
+    for kind in ('bit_depth', 'sensor', 'head'):
+        counts = {}
+        for r in rows:
+            if 'build' not in r:
+                continue
+            c = counts.setdefault(str(r['build'][kind]),
+                                  {'drawn': 0, 'completed': 0, 'passed': 0})
+            c['drawn'] += 1
+            c['completed'] += bool(r['completed'])
+            c['passed'] += _passes(r)
+        out[kind] = dict(sorted(counts.items()))
+    return out
+
+
 def _passes(row) -> bool:
     by = row.get('by_distance_mm') or {}
     return (row['completed'] and _finite(row.get('stair_rmse_mm'))
@@ -165,7 +183,9 @@ def _short(text: str, limit: int = 240) -> str:
 def _line(i, n, row) -> str:
     head = f"rig {i}/{n} seed {row['seed']}"
     if 'working_distance_mm' in row:
-        head += f" (working distance {row['working_distance_mm']:.0f} mm)"
+        b = row['build']
+        head += (f" (working distance {row['working_distance_mm']:.0f} mm, {b['sensor']} "
+                 f"{b['bit_depth']} bit, {b['head']} head)")
     if not row['completed']:
         f = row['failures'][0]
         return (f"{head}: FAILED at {f['stage'] or '?'}: {_short(f['message'])} "
@@ -194,7 +214,9 @@ def summarise(rows, wall_s: float, quick: bool) -> dict:
           f'{passed} passed ({100 * passed / max(n, 1):.0f} %), {finite} with a finite stair '
           f'figure at all six distances')
     summary = {'rigs': n, 'completed': completed, 'passed': passed, 'distances_finite': finite,
-               'quick': quick}
+               'quick': quick, 'builds': build_counts(rows)}
+    for kind, counts in summary['builds'].items():
+        print(f'  {kind:32s} ' + ', '.join(f'{k}: {v}' for k, v in counts.items()))
     for _, name, _ in FIGURES:
         s = _stats(r.get(name) for r in rows)
         print(f"  {name:32s} median {_f(s['median'])}  p90 {_f(s['p90'])}  max "

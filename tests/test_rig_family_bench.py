@@ -23,3 +23,23 @@ def test_drop_bags_deletes_only_calibration_data(tmp_path):
     assert all(f.exists() for f in keep)
     assert not any(p.name == 'calibration_data' for p in tmp_path.rglob('*'))
     assert bench.drop_bags(tmp_path / 'seed_000') == 0  # nothing left to delete
+
+
+def test_build_counts_count_drawn_completed_and_passed_per_kind():
+    full = {mm: 0.05 for mm in bench.DISTANCES}
+    rows = [
+        {'seed': 0, 'completed': True, 'stair_rmse_mm': 0.02, 'plate_rmse_mm': 0.07,
+         'by_distance_mm': full, 'build': {'bit_depth': 12, 'sensor': 'IMX273',
+                                           'head': 'WIDE25'}},
+        {'seed': 1, 'completed': True, 'stair_rmse_mm': 0.5, 'plate_rmse_mm': 0.07,
+         'by_distance_mm': full, 'build': {'bit_depth': 8, 'sensor': 'IMX273',
+                                           'head': 'TSH8310'}},
+        {'seed': 2, 'completed': False, 'failures': [],
+         'build': {'bit_depth': 12, 'sensor': 'PYTHON300', 'head': 'WIDE25'}},
+        {'seed': 3, 'completed': False, 'failures': []},          # failed at the draw
+    ]
+    counts = bench.build_counts(rows)
+    assert counts['bit_depth'] == {'12': {'drawn': 2, 'completed': 1, 'passed': 1},
+                                   '8': {'drawn': 1, 'completed': 1, 'passed': 0}}
+    assert counts['sensor']['IMX273'] == {'drawn': 2, 'completed': 2, 'passed': 1}
+    assert counts['head']['WIDE25'] == {'drawn': 2, 'completed': 1, 'passed': 1}

@@ -203,9 +203,8 @@ def detect_target(image, board) -> np.ndarray | None:
         # Symmetry refinement over a window of ~0.4 square sides (from the corner spacing).
         grid = corners.reshape(board.rows, board.cols, 2)
         side = float(np.median(np.linalg.norm(np.diff(grid, axis=1), axis=2)))
-        img = np.asarray(image)
-        img = (img >> 8).astype(np.uint8) if img.dtype == np.uint16 else img
-        return refine_corners_symmetric(img, corners, radius_px=max(2.0, 0.4 * side))
+        return refine_corners_symmetric(as_uint8_image(image), corners,
+                                        radius_px=max(2.0, 0.4 * side))
     if not isinstance(board, CircleGrid):
         raise ValueError(f"board must be a Checkerboard or CircleGrid, got {type(board).__name__}")
     img = as_uint8_image(image)

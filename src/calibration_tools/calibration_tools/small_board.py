@@ -26,7 +26,10 @@ def check_small_board(board, name: str = 'board'):
 
 
 def as_uint8_image(image) -> np.ndarray:
-    """A grey image as uint8 (uint16 keeps its high byte); ValueError for other shapes or types.
+    """A grey image as uint8; ValueError for other shapes or types.
+
+    A uint16 image keeps the 8 bits below its highest bit in use: Mono10/12 arrive unpacked
+    (codes below 2**10 or 2**12) and Mono16 uses the whole range.
 
     Parameters
     ----------
@@ -40,7 +43,7 @@ def as_uint8_image(image) -> np.ndarray:
     if img.ndim != 2:
         raise ValueError(f'image must have shape (H, W), got {img.shape}')
     if img.dtype == np.uint16:
-        img = (img >> 8).astype(np.uint8)
+        img = (img >> max(int(img.max(initial=0)).bit_length() - 8, 0)).astype(np.uint8)
     elif img.dtype != np.uint8:
         raise ValueError(f'image must be uint8 or uint16, got {img.dtype}')
     return img

@@ -1,6 +1,7 @@
 """``galvoscan rig``: draw a plausible rig of the family, re-set one for a distance, check one.
 
-    galvoscan rig random --seed N [--distance Z] --out FILE
+    galvoscan rig random --seed N [--distance Z] [--sensor S] [--bit-depth B] [--head H]
+        --out FILE
     galvoscan rig reset --rig FILE --distance Z --out FILE
     galvoscan rig check FILE [--distance Z]
 
@@ -28,6 +29,12 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser('random', help='draw a random, physically valid rig of the family')
     r.add_argument('--seed', type=int, required=True, help='same seed, same rig (>= 0)')
     r.add_argument('--distance', help='working distance [m], 0.1 to 1.0 (default: drawn)')
+    r.add_argument('--sensor', choices=sorted(rig_family.SENSORS),
+                   help='camera sensor class (default: drawn)')
+    r.add_argument('--bit-depth', type=int, help='output bit depth the sensor offers '
+                   '(8, 10, 12 or 16; default: drawn)')
+    r.add_argument('--head', choices=sorted(rig_family.HEADS),
+                   help='galvo head class of both heads (default: drawn)')
     r.add_argument('--out', required=True, help='rig YAML file to write')
     s = sub.add_parser('reset', help='re-set a rig for another working distance')
     s.add_argument('--rig', required=True, help='rig YAML file (or a shipped name)')
@@ -81,7 +88,9 @@ def _random(args) -> int:
         raise ValueError(f'--seed: expected a non-negative integer, got {args.seed}')
     distance = None if args.distance is None else rig_family.check_distance(args.distance)
     out = _out_path(args.out)
-    data = rig_family.draw_rig(args.seed, distance)
+    build = {'sensor': args.sensor, 'bit_depth': args.bit_depth, 'head': args.head}
+    data = rig_family.draw_rig(args.seed, distance, build)
+    kind = rig_family.build_of(data)
     z = rig_family.working_distance(data)
     how = (f'--distance {args.distance}' if distance is not None
            else 'distance drawn from 0.1..1.0 m')
@@ -91,12 +100,15 @@ def _random(args) -> int:
         'geometry (l, d, lens, principal point, G2 placement, triangulation angle) inside',
         'galvoscan_sim.rig_family.RANGES, then set up for the working distance and checked',
         'with the simulator (galvoscan_sim.rig_family.check_rig).',
+        f"Build: {kind['sensor']} sensor at {kind['bit_depth']} bits, {kind['head']}-class "
+        'galvo heads (galvoscan_sim.rig_family.SENSORS, HEADS).',
         f'Working distance {z:.4f} m (stand-off from the G1 exit mirror); the sheet at',
         'U2 = 0 crosses the optical axis at U1 = 0 at W = '
         + ', '.join(f'{v:.4f}' for v in rig_family.working_point(data)) + ' m.',
         'SI units everywhere: m, rad, V, s; signals in electrons (e-).',
     ], data)
-    print(f'{out}: rig {data["name"]}, working distance {z * 1e3:.1f} mm')
+    print(f'{out}: rig {data["name"]}, working distance {z * 1e3:.1f} mm, '
+          f"{kind['sensor']} {kind['bit_depth']} bit, {kind['head']} head")
     return 0
 
 

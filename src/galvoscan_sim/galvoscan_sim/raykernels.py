@@ -157,11 +157,11 @@ def _quantise_row(e, z, zoff, noisy, fw, r2, sh, ig, bl, tp, out_row):
         for c in range(e.shape[0]):
             v = min(e[c], fw)
             v = v + np.sqrt(r2 + sh * max(v, zero)) * z[zoff + c]
-            out_row[c] = np.uint8(min(max(v * ig + bl, zero), tp))
+            out_row[c] = min(max(v * ig + bl, zero), tp)
     else:
         for c in range(e.shape[0]):
             v = min(e[c], fw)
-            out_row[c] = np.uint8(min(max(v * ig + bl, zero), tp))
+            out_row[c] = min(max(v * ig + bl, zero), tp)
 
 
 @njit(cache=True, fastmath=True)
@@ -170,7 +170,8 @@ def sensor(bg, band, b0, z, full_well, shot, read2, inv_gain, black, top, out):
 
     Electrons = background ``bg`` (H, W) (or none when empty) + ``band`` on rows b0..;
     then clip at the full well, add shot/read noise with the N(0, 1) draws ``z`` (empty:
-    no noise) and quantise with rounding to [0, top].
+    no noise) and quantise with rounding to [0, top] in ``out``'s integer type (uint8 or
+    uint16).
     """
     h, w = out.shape
     fw = np.float32(full_well)

@@ -38,6 +38,9 @@ RIG_FORMAT_VERSION = 1
 RIG_DIR = Path(__file__).resolve().parent / 'rigs'
 RIG_FILES = FileKind(RIG_FORMAT_VERSION, RIG_DIR)
 
+#: Output bit depths of the camera (Mono8, Mono10, Mono12, Mono16).
+BIT_DEPTHS = (8, 10, 12, 16)
+
 #: Fixed factor of DESIGN.md: maps C to G before the mirrors, with l = 0 (added below).
 _M0_ROT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
@@ -55,9 +58,11 @@ class ImageFormation:
     full_well : float
         Saturation capacity [e-]; it maps to the top of the ADC range.
     bit_depth : int
-        Output bit depth (8: mono8).
+        Output bit depth, one of :data:`BIT_DEPTHS`: 8 gives uint8 images (mono8), 10, 12
+        and 16 give uint16 images (mono16) holding codes up to 2**bit_depth - 1, as a
+        GenICam camera delivers Mono10/12/16 unpacked.
     black_level : float
-        Output offset [DN].
+        Output offset [DN] of the chosen format.
     shot_noise : bool
         Photon shot noise on/off.
     read_noise : float
@@ -91,8 +96,19 @@ class ImageFormation:
     directional_fraction: float
 
     @property
+    def white_level(self) -> int:
+        """The top output code [DN]: 2**bit_depth - 1."""
+        return (1 << self.bit_depth) - 1
+
+    @property
+    def dtype(self) -> np.dtype:
+        """Image element type: uint8 at 8 bits, uint16 (unpacked) above."""
+        return np.dtype(np.uint8 if self.bit_depth <= 8 else np.uint16)
+
+    @property
     def electrons_per_dn(self) -> float:
-        return self.full_well / ((1 << self.bit_depth) - 1 - self.black_level)
+        """Conversion gain [e-/DN]: the full well maps to the top code."""
+        return self.full_well / (self.white_level - self.black_level)
 
     @property
     def noisy(self) -> bool:
@@ -611,8 +627,13 @@ def _read_camera(top: Section) -> tuple[tuple, tuple]:
     cal_exposure = cam.number('calibration_exposure', 1e-6, 1.0, 's',
                               hint='seconds expected, not ms')
     full_well = cam.number('full_well', 100.0, 1e7, 'e-')
-    bit_depth = cam.integer('bit_depth', 8, 8, 'bit')
-    black_level = cam.number('black_level', 0.0, 64.0, 'DN')
+    bit_depth = cam.integer('bit_depth', BIT_DEPTHS[0], BIT_DEPTHS[-1], 'bit')
+    if bit_depth not in BIT_DEPTHS:
+        raise cam.error('bit_depth', f'one of {", ".join(map(str, BIT_DEPTHS))} bit',
+                        bit_depth)
+    # a quarter of the range at most: an offset that lifts read noise off code 0, not one
+    # that eats the signal's range (64 DN at 8 bits)
+    black_level = cam.number('black_level', 0.0, float(1 << (bit_depth - 2)), 'DN')
     cam.finish()
     return ((width, height, pixel_size, fx, fy, cx, cy),
             (exposure, cal_exposure, full_well, bit_depth, black_level))

@@ -9,6 +9,14 @@ vary, and the whole set up for a working distance: the laser sheet at U2 = 0 cro
 camera's optical axis at U1 = 0 there, and the lens focus, the laser line's focus, the
 exposure and the laser power suit that distance.
 
+Builds
+    Each draw also picks a build: a camera sensor class (:data:`SENSORS`: size, pitch,
+    full well, read noise, output formats, each from its data sheet), one of its bit
+    depths, and a galvo head class (:data:`HEADS`: scan angle at the DAC's full scale,
+    linearity, repeatability) for both heads. ``draw_rig(seed, build=...)`` fixes any of
+    them; :func:`build_of` names a description's build. The range follows the head: G1's
+    reach is its scan angle's.
+
 Working distance
     The stand-off of the crossing from the scanner's front, the G1 exit (tilt) mirror:
     measured along the optical axis at U1 = 0 from the tilt mirror's axis, which sits at
@@ -86,12 +94,6 @@ RANGES: dict[str, Range] = {
     # ---------------------------------------------------------- Table 3 imperfections
     'zero_offset': Range(-3e-4, 3e-4, 'rad', f'{_MIRROR}: angle at 0 V minus nominal; '
                          'mirror clamped on the shaft to ~0.01-0.02 deg (sources 1, 5)'),
-    'gain_error': Range(-5e-3, 5e-3, '1', f'{_MIRROR}: servo driver scale error, '
-                        'TSH8310-class spec < 0.5 % (sources 1, 5)'),
-    'nonlinearity': Range(-2.5e-4, 2.5e-4, 'rad', f'{_MIRROR}: c2 and c3 on U/10 V each; '
-                          'linearity spec 99.9 % over 40 deg (sources 1, 5)'),
-    'jitter': Range(4e-6, 8e-6, 'rad', f'{_MIRROR}: per-frame angle noise; 8 urad '
-                    'repeatability of the TSH8310 data sheet is the worst case'),
     'surface_offset': Range(1e-4, 2e-4, 'm', f'{_MIRROR}: coating in front of (or behind) '
                             'the shaft axis; mirrors glued near, not on, the axis '
                             '(source 2)', signed=True),
@@ -107,8 +109,6 @@ RANGES: dict[str, Range] = {
                 'C-mount telephoto distorts well under 0.1 % (source 4)'),
     'k2': Range(-8.0, 8.0, '1', 'radial distortion of the reference order (k2 4.0)'),
     'p1p2': Range(-5e-4, 5e-4, '1', 'decentring of the reference order (3e-4, -2e-4)'),
-    'read_noise': Range(8.0, 14.0, 'e-', 'EMVA 1288 figures of IMX287-class sensors '
-                        '(source 8)'),
     'speckle_contrast': Range(0.3, 0.6, '1', '650 nm laser speckle on machined or painted '
                               'surfaces before blur (source 8)'),
     # ---------------------------------------------------------------- geometry
@@ -144,6 +144,135 @@ RANGES: dict[str, Range] = {
     'room_light': Range(0.5, 2.0, '1', 'room light relative to the reference lab'),
 }
 
+
+@dataclass(frozen=True)
+class SensorClass:
+    """A camera sensor a build may choose, as its data sheet gives it.
+
+    Attributes
+    ----------
+    width, height : int
+        Pixels read [px].
+    pixel_size : float
+        Pixel pitch [m].
+    full_well : float
+        Saturation capacity [e-].
+    read_noise : Range
+        Temporal dark noise [e-] over units and camera electronics.
+    bit_depths : tuple of int
+        Output formats the camera offers (Mono8/10/12/16) [bit].
+    black_level_8bit : float
+        Dark offset at 8 bits [DN]; scaled with the bit depth (the same electrons).
+    reason : str
+        Data-sheet source.
+    """
+
+    width: int
+    height: int
+    pixel_size: float
+    full_well: float
+    read_noise: Range
+    bit_depths: tuple
+    black_level_8bit: float
+    reason: str
+
+
+#: Sensor classes of fast (about 300 to 800 fps) machine-vision cameras. Mono16 of a
+#: 12-bit ADC carries 12-bit codes MSB-aligned; the simulator quantises to 16 bits
+#: instead, which differs by the 12-bit step's 0.29 DN12 rms (~1.5 e- on IMX287), below
+#: every class' read noise.
+SENSORS: dict[str, SensorClass] = {
+    # Sony IMX287LLR (1/2.9", 0.4 MP, Pregius global shutter, 12-bit ADC, 522 fps full
+    # frame): the reference rig's sensor. EMVA 1288 data sheets of IMX287 cameras (Basler
+    # acA720-520um, FLIR BFS-U3-04S2M): saturation capacity ~22-23 ke-, temporal dark
+    # noise ~8-14 e- depending on the camera (source 8).
+    'IMX287': SensorClass(720, 540, 6.9e-6, 22000.0,
+                          Range(8.0, 14.0, 'e-', 'IMX287 cameras\' EMVA 1288 sheets'),
+                          (8, 10, 12, 16), 2.0, 'Sony IMX287LLR data sheet; EMVA 1288 '
+                          'sheets of acA720-520um / BFS-U3-04S2M'),
+    # Sony IMX273LLR (1/2.9", 1.6 MP 1440 x 1080, 3.45 um Pregius, 12-bit ADC, ~276 fps
+    # full frame at 8/10 bit): the same sensor area as the IMX287 at a quarter of the
+    # pixel area; read at full frame (a region of interest for 500 fps would halve the
+    # field's height, too short for the calibration sphere's views), so its scans run at
+    # up to ~276 fps. EMVA 1288 sheets of IMX273 cameras (Basler acA1440-220um, FLIR
+    # BFS-U3-16S2M): saturation capacity ~10.5 ke-, temporal dark noise ~2-3 e-.
+    'IMX273': SensorClass(1440, 1080, 3.45e-6, 10500.0,
+                          Range(2.0, 3.0, 'e-', 'IMX273 cameras\' EMVA 1288 sheets'),
+                          (8, 10, 12, 16), 2.0, 'Sony IMX273LLR data sheet; EMVA 1288 '
+                          'sheets of acA1440-220um / BFS-U3-16S2M'),
+    # onsemi PYTHON 300 (NOIP1SN0300A: 640 x 480 VGA, 4.8 um global shutter pixel, 10-bit
+    # ADC, 815 fps): full well ~10 ke-, temporal noise < 9 e- in global shutter mode by the
+    # data sheet; camera units measure ~9-16 e-.
+    'PYTHON300': SensorClass(640, 480, 4.8e-6, 10000.0,
+                             Range(9.0, 16.0, 'e-', 'PYTHON 300/500 data sheet and cameras'),
+                             (8, 10), 2.0, 'onsemi PYTHON 300 data sheet (NOIP1SN0300A)'),
+    # onsemi PYTHON 500 (NOIP1SN0500A: 800 x 600 SVGA, the same 4.8 um pixel, 10-bit ADC,
+    # 545 fps, e.g. Basler acA800-510um).
+    'PYTHON500': SensorClass(800, 600, 4.8e-6, 10000.0,
+                             Range(9.0, 16.0, 'e-', 'PYTHON 300/500 data sheet and cameras'),
+                             (8, 10), 2.0, 'onsemi PYTHON 500 data sheet (NOIP1SN0500A)'),
+}
+
+
+@dataclass(frozen=True)
+class HeadClass:
+    """A galvo head a build may choose (both heads of a rig are the same model).
+
+    Attributes
+    ----------
+    max_angle : float
+        Mechanical angle at the DAC's full scale (+-10 V) [rad]: the gain times 10 V.
+    gain_error, nonlinearity, jitter : Range
+        Per mirror: servo scale error [1]; c2 and c3 on U/10 V each [rad] from the
+        linearity spec over the full span; per-frame angle noise [rad] up to the
+        repeatability spec.
+    reason : str
+        Data-sheet source.
+    """
+
+    max_angle: float
+    gain_error: Range
+    nonlinearity: Range
+    jitter: Range
+    reason: str
+
+
+def _head(max_deg: float, linearity: float, repeatability: float, scale_error: float,
+          reason: str) -> HeadClass:
+    """A head class from its data sheet: +-max_deg mechanical at +-10 V, linearity (e.g.
+    0.999) over the whole span, repeatability [rad], scale (gain) error [1]. The drawn
+    nonlinearity coefficients are a third of the linearity spec's angle each (the TSH8310's
+    99.9 % over 40 deg gives +-0.25 mrad), the jitter half to all of the repeatability."""
+    span = math.radians(2.0 * max_deg)
+    nl = (1.0 - linearity) * span / 2.8
+    return HeadClass(math.radians(max_deg),
+                     Range(-scale_error, scale_error, '1', f'{_MIRROR}: servo scale error'),
+                     Range(-nl, nl, 'rad', f'{_MIRROR}: c2 and c3 on U/10 V each; linearity '
+                           f'{linearity:.1%} over {2 * max_deg:g} deg'),
+                     Range(0.5 * repeatability, repeatability, 'rad',
+                           f'{_MIRROR}: per-frame angle noise up to the repeatability'),
+                     reason)
+
+
+#: Galvo head classes: scan angle (the DAC's +-10 V full scale), linearity, repeatability.
+HEADS: dict[str, HeadClass] = {
+    # Thorlabs GVS011/GVS012-class small-beam head: +-12.5 deg mechanical (input scaled
+    # 0.8 V/deg: +-10 V full range), linearity 99.9 %, repeatability 15 urad (GVS series
+    # specifications).
+    'GVS011': _head(12.5, 0.999, 15e-6, 5e-3, 'Thorlabs GVS011/012 specifications'),
+    # Sunny Technology TSH8310-class head (the reference rig's, DESIGN.md sources 1, 5):
+    # +-20 deg mechanical at +-10 V, linearity 99.9 % over 40 deg, repeatability 8 urad,
+    # scale error < 0.5 %.
+    'TSH8310': _head(20.0, 0.999, 8e-6, 5e-3, 'TSH8310 data sheet (sources 1, 5)'),
+    # Wide-angle moving-magnet head class: +-25 deg mechanical, the top of the rated
+    # excursion of wide-angle heads (e.g. the ScannerMAX Saturn series), linearity 99.9 %,
+    # repeatability 8 urad (makers' specifications).
+    'WIDE25': _head(25.0, 0.999, 8e-6, 5e-3, 'wide-angle head class specifications '
+                    '(e.g. ScannerMAX Saturn series)'),
+}
+#: The reference rig's build: what :func:`build_of` calls it.
+REFERENCE_BUILD = {'sensor': 'IMX287', 'bit_depth': 8, 'head': 'TSH8310'}
+
 #: Close-focus limit of a lens on its own helicoid (1:4): what a build may choose.
 MAX_MAGNIFICATION_HELICOID = 0.25
 #: Close-focus limit with extension rings: what a re-set may use.
@@ -156,10 +285,19 @@ POWER_RANGE = (0.05, 2.0)    # [1] laser power relative to the reference laser's
 NOMINAL_EXPOSURE = 5e-4      # [s] the exposure a technician starts from
 #: The reference rig's design point the radiometry is scaled from.
 _REF = {'peak_rate': 4.84e7, 'reference_distance': 0.65, 'line_width': 6e-4,
-        'magnification': 0.0827, 'ambient_rate': 1.8e6, 'calibration_exposure': 0.01}
+        'magnification': 0.0827, 'ambient_rate': 1.8e6, 'calibration_exposure': 0.01,
+        'pixel_size': 6.9e-6, 'full_well': 22000.0}
 #: Usable stripe widths (Gaussian sigma in the image) [px]: at least the PSF's order; at
 #: most 10 px, a FWHM of 23.5 px inside the stripe extractor's 30 px limit.
 STRIPE_SIGMA_PX = (0.5, 10.0)
+#: Largest angle of the stripe to the image rows at the working point [rad]. The chain
+#: (capture plans and targets, column-wise stripe extraction, laser stages, joint
+#: correction, scan patterns) takes the stripe along the rows, crossing each column once,
+#: and the laser below or above the camera; the family's head roll and fan roll keep it
+#: within ~1.4 deg. 10 deg leaves room for hand-built rigs (a stripe 10 deg off the rows
+#: is 1.5 % wider along a column); a laser beside the camera (stripe along the columns)
+#: or a sheet turned further is refused with that reason.
+MAX_STRIPE_TILT = math.radians(10.0)
 #: Tolerance of the sheet/axis crossing against the asked distance [m].
 CROSSING_TOLERANCE = 1e-3
 _MAX_ATTEMPTS = 25
@@ -242,6 +380,12 @@ def _diffraction_px(m: float, pixel: float) -> float:
 def _aperture_gain(m: float) -> float:
     """Image-side irradiance relative to the reference design, 1 / (N (1 + m))^2."""
     return ((1.0 + _REF['magnification']) / (1.0 + m)) ** 2
+
+
+def _pixel_gain(pixel: float) -> float:
+    """A pixel's signal at a given image irradiance relative to the reference's: its area
+    (the fill factor and quantum efficiency of the classes taken as the reference's)."""
+    return (pixel / _REF['pixel_size']) ** 2
 
 
 # ---------------------------------------------------------------- geometry
@@ -333,7 +477,8 @@ def _apply_setup(data: dict, distance: float, setup: Setup, max_magnification: f
     throw = float(np.linalg.norm(cross_G[:3] - src))
     width = setup.line_divergence * throw
     rate = (_REF['peak_rate'] * (_REF['reference_distance'] / throw)
-            * (_REF['line_width'] / width) * _aperture_gain(m))      # at power 1
+            * (_REF['line_width'] / width) * _aperture_gain(m)
+            * _pixel_gain(cam['pixel_size']))                         # at power 1
     wanted = setup.peak_fraction * cam['full_well']
     exposure = NOMINAL_EXPOSURE
     power = min(max(wanted / (rate * exposure), POWER_RANGE[0]), POWER_RANGE[1])
@@ -342,11 +487,14 @@ def _apply_setup(data: dict, distance: float, setup: Setup, max_magnification: f
     las['reference_distance'] = float(throw)
     las['peak_rate'] = float(rate * power)
     cam['exposure'] = float(exposure)
-    # room light: its signal scales with the aperture; board frames keep ~200 DN
-    ambient = _REF['ambient_rate'] * room_light * _aperture_gain(m)
+    # room light: its signal scales with the aperture and the pixel area; board frames
+    # keep the reference's ~80 % of full well on white (~200 DN at 8 bits)
+    ambient = _REF['ambient_rate'] * room_light * _aperture_gain(m) * _pixel_gain(
+        cam['pixel_size'])
     data['illumination']['ambient_rate'] = float(ambient)
     cam['calibration_exposure'] = float(min(max(
-        _REF['calibration_exposure'] * _REF['ambient_rate'] / ambient, 1e-3), 0.05))
+        _REF['calibration_exposure'] * _REF['ambient_rate'] / ambient
+        * cam['full_well'] / _REF['full_well'], 1e-3), 0.05))
     return data
 
 
@@ -369,10 +517,15 @@ def _draw_setup(rng: np.random.Generator, s: float) -> Setup:
                  u('line_divergence'), u('peak_fraction'))
 
 
-def _draw_imperfections(rng: np.random.Generator, imp: dict) -> None:
-    """Every Table 3 source drawn from :data:`RANGES` into an ``imperfections`` section."""
+def _draw_imperfections(rng: np.random.Generator, imp: dict, sensor: SensorClass,
+                        head: HeadClass) -> None:
+    """Every Table 3 source drawn from :data:`RANGES` and the build's sensor and head
+    classes into an ``imperfections`` section."""
+    ranges = {**RANGES, 'gain_error': head.gain_error, 'nonlinearity': head.nonlinearity,
+              'jitter': head.jitter, 'read_noise': sensor.read_noise}
+
     def u(key, n=None):
-        r = RANGES[key]
+        r = ranges[key]
         x = rng.uniform(r.lo, r.hi, n)
         if r.signed:
             x = x * rng.choice([-1.0, 1.0], n)
@@ -393,12 +546,85 @@ def _draw_imperfections(rng: np.random.Generator, imp: dict) -> None:
     img['speckle_contrast'] = u('speckle_contrast')
 
 
-def _draw_once(rng: np.random.Generator, distance: float | None) -> tuple[dict, float]:
-    """One draw: (rig description set up for its distance, the distance [m]); unchecked."""
+def _draw_build(rng: np.random.Generator, build: dict) -> dict:
+    """The build's kind: sensor class, bit depth, head class; ``build``'s given ones kept."""
+    depth = build.get('bit_depth')
+    sensor = build.get('sensor') or str(rng.choice(
+        [n for n in sorted(SENSORS) if depth is None or depth in SENSORS[n].bit_depths]))
+    depth = build.get('bit_depth') or int(rng.choice(SENSORS[sensor].bit_depths))
+    head = build.get('head') or str(rng.choice(sorted(HEADS)))
+    return {'sensor': sensor, 'bit_depth': int(depth), 'head': head}
+
+
+def _apply_build(data: dict, kind: dict) -> None:
+    """Write the sensor (size, pitch, full well, format, black level) and the heads' gains."""
+    sensor, head = SENSORS[kind['sensor']], HEADS[kind['head']]
+    cam = data['camera']
+    cam.update(width=sensor.width, height=sensor.height, pixel_size=sensor.pixel_size,
+               full_well=sensor.full_well, bit_depth=kind['bit_depth'],
+               black_level=sensor.black_level_8bit * 2.0 ** (kind['bit_depth'] - 8))
+    gain = head.max_angle / float(data['dac']['full_scale'])
+    for sec in ('g1', 'g2'):
+        for axis in ('pan', 'tilt'):
+            data[sec][axis]['gain'] = float(gain)
+
+
+def check_build(build) -> dict:
+    """A build request (``sensor``, ``bit_depth``, ``head``, each optional) checked.
+
+    Raises
+    ------
+    ValueError
+        Not a dict, an unknown key or class, or a bit depth the sensor does not offer.
+    """
+    if build is None:
+        return {}
+    if not isinstance(build, dict):
+        raise ValueError(f'build: expected a dict of sensor, bit_depth, head, got {build!r}')
+    unknown = set(build) - {'sensor', 'bit_depth', 'head'}
+    if unknown:
+        raise ValueError(f'build: unknown key(s) {sorted(unknown)}; known: sensor, '
+                         'bit_depth, head')
+    if build.get('sensor') is not None and build['sensor'] not in SENSORS:
+        raise ValueError(f"build: sensor {build['sensor']!r} is not one of "
+                         f"{', '.join(sorted(SENSORS))}")
+    if build.get('head') is not None and build['head'] not in HEADS:
+        raise ValueError(f"build: head {build['head']!r} is not one of "
+                         f"{', '.join(sorted(HEADS))}")
+    depth = build.get('bit_depth')
+    if depth is not None:
+        offered = (SENSORS[build['sensor']].bit_depths if build.get('sensor')
+                   else sorted({d for c in SENSORS.values() for d in c.bit_depths}))
+        if isinstance(depth, bool) or depth not in offered:
+            raise ValueError(f'build: bit_depth {depth!r} is not one of '
+                             f'{", ".join(map(str, offered))}')
+    return {k: v for k, v in build.items() if v is not None}
+
+
+def build_of(rig: dict) -> dict:
+    """The kind of a rig description's build: ``sensor`` and ``head`` class names (or
+    ``'other'`` for a camera or head outside the classes), ``bit_depth``."""
+    cam = rig['camera']
+    sensor = next((name for name, c in SENSORS.items()
+                   if (c.width, c.height) == (cam['width'], cam['height'])
+                   and math.isclose(c.pixel_size, float(cam['pixel_size']), rel_tol=1e-6)),
+                  'other')
+    gain = float(rig['g1']['pan']['gain']) * float(rig['dac']['full_scale'])
+    head = next((name for name, h in HEADS.items()
+                 if math.isclose(h.max_angle, gain, rel_tol=1e-6)), 'other')
+    return {'sensor': sensor, 'bit_depth': int(cam['bit_depth']), 'head': head}
+
+
+def _draw_once(rng: np.random.Generator, distance: float | None,
+               kind: dict) -> tuple[dict, float]:
+    """One draw: (rig description of build ``kind`` set up for its distance, the distance
+    [m]); unchecked."""
     data = _template()
+    _apply_build(data, kind)
     z = check_distance(distance) if distance is not None else float(
         rng.uniform(RANGES['distance'].lo, RANGES['distance'].hi))
-    _draw_imperfections(rng, data['imperfections'])
+    _draw_imperfections(rng, data['imperfections'], SENSORS[kind['sensor']],
+                        HEADS[kind['head']])
     g1, g2, cam = data['g1'], data['g2'], data['camera']
     g1['l'] = float(rng.uniform(RANGES['l'].lo, RANGES['l'].hi))
     g1['d'] = float(rng.uniform(RANGES['d'].lo, RANGES['d'].hi))
@@ -417,16 +643,20 @@ def _draw_once(rng: np.random.Generator, distance: float | None) -> tuple[dict, 
     return _apply_setup(data, z, setup, MAX_MAGNIFICATION_HELICOID, room), z
 
 
-def draw_rig(seed: int, distance: float | None = None) -> dict:
+def draw_rig(seed: int, distance: float | None = None, build: dict | None = None) -> dict:
     """A random, physically valid rig description of the family.
 
     Parameters
     ----------
     seed : int
-        Same seed (and distance), same rig.
+        Same seed (and distance, build), same rig.
     distance : float, optional
         Working distance [m], stand-off from the G1 exit mirror, in [0.1, 1.0]; drawn
         from that range when not given.
+    build : dict, optional
+        Any of ``sensor`` (a :data:`SENSORS` name), ``bit_depth`` (one the sensor offers)
+        and ``head`` (a :data:`HEADS` name) to fix; the others are drawn (uniformly over
+        the classes and the sensor's formats).
 
     Returns
     -------
@@ -443,16 +673,23 @@ def draw_rig(seed: int, distance: float | None = None) -> dict:
         raise ValueError(f'seed: expected a non-negative integer, got {seed!r}')
     if distance is not None:
         distance = check_distance(distance)
+    build = check_build(build)
+    # the build's kind from a stream of its own: a seed's geometry and imperfections do not
+    # depend on which classes are drawn
+    kind = _draw_build(np.random.default_rng([int(seed), 0xB1D]), build)
     problems = []
     for attempt in range(_MAX_ATTEMPTS):
         rng = np.random.default_rng([int(seed), attempt, 0x51A6])
-        data, z = _draw_once(rng, distance)
+        data, z = _draw_once(rng, distance, kind)
         data['name'] = f'random-{int(seed)}'
         data['description'] = (
             f'Drawn by galvoscan_sim.rig_family.draw_rig(seed={int(seed)}'
             + (f', distance={distance!r}' if distance is not None else '')
+            + (f', build={build!r}' if build else '')
             + f') (attempt {attempt}): working distance {z:.4f} m from the G1 exit mirror; '
-            'every imperfection inside galvoscan_sim.rig_family.RANGES.')
+            f"{kind['sensor']} sensor at {kind['bit_depth']} bits, {kind['head']}-class galvo "
+            'heads; every imperfection inside galvoscan_sim.rig_family.RANGES and the '
+            'classes\' ranges.')
         problems = check_rig(data, z)
         if not problems:
             return data
@@ -484,8 +721,8 @@ def _infer_setup(data: dict) -> tuple[Setup, float]:
     las = data['laser']
     peak = (float(las['peak_rate']) * float(las['reference_distance']) / throw
             * float(cam['exposure']) / float(cam['full_well']))
-    room = float(data['illumination']['ambient_rate']) / (_REF['ambient_rate']
-                                                          * _aperture_gain(m))
+    room = float(data['illumination']['ambient_rate']) / (
+        _REF['ambient_rate'] * _aperture_gain(m) * _pixel_gain(float(cam['pixel_size'])))
     setup = Setup(f, angle, float(p_W[0]), float(p_W[2]), roll, blur,
                   float(las['line_width']) / throw, peak)
     return setup, room
@@ -644,14 +881,17 @@ def _plane_scene(point_W: np.ndarray, albedo: float = 0.5):
         f'    albedo: {albedo}\n', '<check plane>')
 
 
-def stripe_profile(image: np.ndarray, column: int, half_columns: int = 60):
+def stripe_profile(image: np.ndarray, column: int, half_columns: int = 60,
+                   white_level: int = 255):
     """Peak, background, noise and width of the stripe in the columns around ``column``.
 
     Parameters
     ----------
-    image : ndarray, shape (height, width), uint8
+    image : ndarray, shape (height, width), uint8 or uint16 [DN]
     column : int
     half_columns : int
+    white_level : int
+        The camera's top code [DN] (2**bit_depth - 1).
 
     Returns
     -------
@@ -680,7 +920,33 @@ def stripe_profile(image: np.ndarray, column: int, half_columns: int = 60):
     return {'peak_dn': float(np.median(peaks)), 'row': float(np.median(rows)),
             'background_dn': bg, 'noise_dn': max(noise, 0.5),
             'width_px': float(np.median(widths)) if widths else math.nan,
-            'saturated': float(np.mean(peaks >= 255))}
+            'saturated': float(np.mean(peaks >= white_level))}
+
+
+def stripe_tilt(rig: Rig) -> float:
+    """Angle of the stripe to the image rows at the working point, in [0, pi/2] [rad].
+
+    The actual sheet at U2 = 0 in the actual V0 (the view at U1 = 0), ``n . X = -c``:
+    on a surface facing the camera it is the image line ``n_x x + n_y y = const`` in
+    normalised coordinates, whose normal in pixels is ``(n_x / fx, n_y / fy)``.
+    """
+    th = rig.mirror_angles(rig.applied_voltages(np.zeros(4)))
+    pi = transform_plane(invert_transform(rig.G_T_V0), rig.laser_sheet_G(th[2], th[3]).plane)
+    cam = rig.camera
+    return math.atan2(abs(pi[0]) / cam.fx, abs(pi[1]) / cam.fy)
+
+
+def _check_stripe_direction(rig: Rig) -> list[str]:
+    """The stripe runs along the image rows, as the chain takes it (:data:`MAX_STRIPE_TILT`)."""
+    tilt = stripe_tilt(rig)
+    if tilt <= MAX_STRIPE_TILT:
+        return []
+    layout = ('the laser sits beside the camera' if tilt > math.radians(60.0)
+              else 'the laser sheet is turned about the optical axis')
+    return [f'the stripe runs {math.degrees(tilt):.1f} deg off the image rows ({layout}); '
+            f'the chain takes the stripe along the rows, within '
+            f'{math.degrees(MAX_STRIPE_TILT):.0f} deg (laser below or above the camera): '
+            'a laser-beside or oblique layout is not supported']
 
 
 def _check_stripe(rig: Rig) -> list[str]:
@@ -697,9 +963,10 @@ def _check_stripe(rig: Rig) -> list[str]:
     near = np.abs(truth.column - cam.cx) <= 1.0
     if not np.any(near) or np.min(np.abs(truth.v[near] - cam.cy)) > 3.0:
         out.append('the stripe does not cross the image centre')
-    prof = stripe_profile(frame.image, int(round(cam.cx)))
+    white = rig.image.white_level
+    prof = stripe_profile(frame.image, int(round(cam.cx)), white_level=white)
     signal = prof['peak_dn'] - prof['background_dn']
-    if signal < max(10.0 * prof['noise_dn'], 20.0):
+    if signal < max(10.0 * prof['noise_dn'], 20.0 * white / 255.0):   # 20 DN at 8 bits
         out.append(f'stripe peak {signal:.0f} DN over background is not well above the '
                    f'noise ({prof["noise_dn"]:.1f} DN)')
     if prof['saturated'] > 0.5:
@@ -733,7 +1000,8 @@ def check_rig(rig: dict, distance: float | None = None) -> list[str]:
         r = rig_from_dict(copy.deepcopy(rig), '<rig>')
     except ConfigError as exc:
         return [str(exc)]
-    out = _check_crossing(r, distance) + _check_mirrors(r)
+    direction = _check_stripe_direction(r)
+    out = direction + _check_crossing(r, distance) + _check_mirrors(r)
     if not out:
         out += _check_stripe(r)
     return out

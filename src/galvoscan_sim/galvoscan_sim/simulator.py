@@ -173,7 +173,7 @@ class SimFrame:
 
     Attributes
     ----------
-    image : ndarray, shape (height, width), uint8
+    image : ndarray, shape (height, width), uint8 (8-bit rigs) or uint16 (10, 12, 16 bits)
     truth : FrameTruth
     """
 
@@ -607,7 +607,8 @@ class Simulator:
                                                borderType=cv2.BORDER_CONSTANT)
 
     def _sensor(self, bg, band, b0, rng) -> np.ndarray:
-        """Background (None, coarse or full) + stripe band -> noisy 8-bit image."""
+        """Background (None, coarse or full) + stripe band -> noisy image in the camera's
+        output format (uint8 at 8 bits, uint16 above)."""
         im, cam = self.rig.image, self.rig.camera
         n = cam.width * cam.height
         if im.noisy:
@@ -622,10 +623,10 @@ class Simulator:
             bg = np.zeros((0, 0), np.float32)
         elif bg.shape != (cam.height, cam.width):
             bg = cv2.resize(bg, (cam.width, cam.height), interpolation=cv2.INTER_LINEAR)
-        out = np.empty((cam.height, cam.width), np.uint8)
+        out = np.empty((cam.height, cam.width), im.dtype)
         rk.sensor(bg, band, b0, z, float(im.full_well), bool(im.shot_noise),
                   float(im.read_noise ** 2), 1.0 / im.electrons_per_dn, float(im.black_level),
-                  float((1 << im.bit_depth) - 1), out)
+                  float(im.white_level), out)
         return out
 
     def render(self, voltages, *, laser_on: bool = True, background: str = 'coarse',

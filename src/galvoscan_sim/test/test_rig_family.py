@@ -24,8 +24,8 @@ def drawn():
     return {seed: rf.draw_rig(seed) for seed in SEEDS}
 
 
-def _within(value, key, slack=1e-12):
-    r = rf.RANGES[key]
+def _within(value, key, slack=1e-12, r=None):
+    r = r or rf.RANGES[key]
     values = np.abs(np.atleast_1d(value)) if r.signed else np.atleast_1d(value)
     return bool(np.all(values >= r.lo - slack) and np.all(values <= r.hi + slack))
 
@@ -58,20 +58,24 @@ def test_ranges_are_respected_and_used(drawn):
     distances, lenses = [], []
     for seed, data in drawn.items():
         imp = data['imperfections']
+        build = rf.build_of(data)
+        head, sensor = rf.HEADS[build['head']], rf.SENSORS[build['sensor']]
         for m in mirrors:
-            for key in ('zero_offset', 'gain_error', 'nonlinearity', 'jitter',
-                        'surface_offset', 'axis_tilt'):
+            for key in ('zero_offset', 'surface_offset', 'axis_tilt'):
                 assert _within(imp[m][key], key), (seed, m, key, imp[m][key])
+            for key in ('gain_error', 'nonlinearity', 'jitter'):
+                assert _within(imp[m][key], key, r=getattr(head, key)), (seed, m, key)
         k1, k2, p1, p2, k3 = imp['lens_distortion']
         assert _within(k1, 'k1') and _within(k2, 'k2') and _within([p1, p2], 'p1p2')
         assert k3 == 0.0
         for key in ('camera_mount_rotation', 'laser_fan_roll', 'laser_fan_offset'):
             assert _within(imp[key], key), (seed, key)
-        assert _within(imp['image']['read_noise'], 'read_noise')
+        assert _within(imp['image']['read_noise'], 'read_noise', r=sensor.read_noise)
         assert _within(data['g1']['l'], 'l') and _within(data['g1']['d'], 'd')
         assert _within(data['g2']['d'], 'd')
         cam = data['camera']
-        assert abs(cam['cx'] - 359.5) <= 10.0 and abs(cam['cy'] - 269.5) <= 10.0
+        assert abs(cam['cx'] - (cam['width'] - 1) / 2) <= 10.0
+        assert abs(cam['cy'] - (cam['height'] - 1) / 2) <= 10.0
         assert _within(cam['fy'] / cam['fx'], 'fy_over_fx', 1e-9)
         z = rf.working_distance(data)
         assert _within(z, 'distance', 1e-6), (seed, z)
@@ -111,13 +115,15 @@ def _plane(z_W, albedo=0.5):
 
 
 def _stripe_row(rig, z_W, seed=3):
-    """Median brightest row of the 61 central columns, the peak over the background, and
-    the frame's true laser plane in W, on a grey plane at W z = z_W, all voltages 0."""
+    """Median brightest row of the 61 central columns, the peak over the background (in
+    8-bit DN) and the frame's true laser plane in W, on a grey plane at W z = z_W, all
+    voltages 0."""
     frame = Simulator(rig, _plane(z_W), seed=seed).render(np.zeros(4), frame_index=0)
     c = int(round(rig.camera.cx))
     block = frame.image[:, c - 30:c + 31].astype(float)
     return (float(np.median(np.argmax(block, axis=0))),
-            float(np.median(block.max(axis=0)) - np.median(block)), frame.truth.laser_plane_W)
+            float(np.median(block.max(axis=0)) - np.median(block)) * 255.0
+            / rig.image.white_level, frame.truth.laser_plane_W)
 
 
 @pytest.mark.parametrize('seed,distance', [(11, 0.1), (12, 0.35), (13, 1.0)])
@@ -294,3 +300,93 @@ def test_galvoscan_rig_random_command(tmp_path):
     assert res.returncode == 0, res.stderr
     assert load_rig(out).name == 'random-9'
     assert yaml.safe_load(out.read_text()) == rf.draw_rig(9)
+
+
+# ------------------------------------------------------------------------------ builds
+def test_the_family_spans_sensors_bit_depths_and_heads(drawn):
+    builds = [rf.build_of(d) for d in drawn.values()]
+    assert {b['sensor'] for b in builds} == set(rf.SENSORS)
+    assert {b['head'] for b in builds} == set(rf.HEADS)
+    assert {b['bit_depth'] for b in builds} >= {8, 10, 12}
+    for seed, data in drawn.items():
+        b = rf.build_of(data)
+        sensor, head = rf.SENSORS[b['sensor']], rf.HEADS[b['head']]
+        cam = data['camera']
+        assert b['bit_depth'] in sensor.bit_depths
+        assert cam['full_well'] == sensor.full_well
+        assert cam['black_level'] == sensor.black_level_8bit * 2 ** (b['bit_depth'] - 8)
+        for sec in ('g1', 'g2'):
+            for axis in ('pan', 'tilt'):
+                assert math.isclose(data[sec][axis]['gain'] * data['dac']['full_scale'],
+                                    head.max_angle), (seed, sec, axis)
+        assert f"{b['sensor']} sensor at {b['bit_depth']} bits" in data['description']
+    assert rf.build_of(read_yaml_file(RIG_DIR / 'reference.yaml')) == rf.REFERENCE_BUILD
+
+
+def test_a_build_can_be_asked_for_and_bad_builds_are_refused():
+    data = rf.draw_rig(5, 0.5, build={'sensor': 'IMX273', 'bit_depth': 12, 'head': 'GVS011'})
+    assert rf.build_of(data) == {'sensor': 'IMX273', 'bit_depth': 12, 'head': 'GVS011'}
+    assert rf.check_rig(data, 0.5) == []
+    # the build does not change the seed's geometry or its mirrors' placement errors
+    other = rf.draw_rig(5, 0.5, build={'sensor': 'IMX287', 'bit_depth': 8, 'head': 'TSH8310'})
+    assert data['g1'].keys() == other['g1'].keys() and data['g1']['l'] == other['g1']['l']
+    assert rf.build_of(rf.draw_rig(5, 0.5, build={'bit_depth': 12}))['sensor'] in (
+        'IMX287', 'IMX273')
+    for bad, words in (({'sensor': 'IMX999'}, 'not one of'), ({'head': 'huge'}, 'not one of'),
+                       ({'sensor': 'PYTHON300', 'bit_depth': 12}, 'bit_depth 12'),
+                       ({'bit_depth': 9}, 'bit_depth 9'), ({'lens': 1}, 'unknown key'),
+                       ('IMX287', 'expected a dict')):
+        with pytest.raises(ValueError, match=words):
+            rf.draw_rig(5, 0.5, build=bad)
+
+
+def test_a_12_bit_rig_sees_the_stripe_as_an_8_bit_one_does():
+    """Same seed and geometry at 8 and 12 bits: the stripe lands on the same row with the
+    same peak (in 8-bit DN), the 12-bit image in uint16 codes below 4096."""
+    rows = {}
+    for depth in (8, 12):
+        data = rf.draw_rig(6, 0.4, build={'sensor': 'IMX287', 'bit_depth': depth})
+        rig = load_rig_text(yaml.safe_dump(data))
+        z_W = float(rf.working_point(rig)[2])
+        rows[depth] = _stripe_row(rig, z_W)[:2]
+        img = Simulator(rig, _plane(z_W), seed=1).render(np.zeros(4), frame_index=0).image
+        assert img.dtype == (np.uint8 if depth == 8 else np.uint16) and img.max() < 2 ** depth
+    assert abs(rows[8][0] - rows[12][0]) <= 1.0
+    assert abs(rows[8][1] - rows[12][1]) < 0.05 * rows[8][1] + 1.0
+
+
+def _g2_turned(data, degrees):
+    """The rig with its G2 head turned about the camera's optical axis (the actual V0's z):
+    the laser moved round the camera, the sheet still crossing the axis where it did."""
+    from scipy.spatial.transform import Rotation
+
+    from galvoscan_sim.spatial import invert_transform
+
+    rig = load_rig_text(yaml.safe_dump(data))
+    R = np.eye(4)
+    R[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(degrees)]).as_matrix()
+    T = rig.G_T_V0 @ R @ invert_transform(rig.G_T_V0) @ rig.G_T_G2
+    out = copy.deepcopy(data)
+    out['g2']['pose_in_g1'] = {
+        'translation': [float(v) for v in T[:3, 3]],
+        'rotation_vector': [float(v) for v in Rotation.from_matrix(T[:3, :3]).as_rotvec()]}
+    return out
+
+
+def test_a_laser_beside_the_camera_or_an_oblique_sheet_is_refused_up_front():
+    ref = read_yaml_file(RIG_DIR / 'reference.yaml')
+    z = rf.working_distance(ref)
+    assert math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(ref)))) < 0.5
+    # a few degrees of roll: still a stripe along the rows
+    assert rf.check_rig(_g2_turned(ref, 3.0), z) == []
+    for degrees, words in ((90.0, 'the laser sits beside the camera'),
+                           (-90.0, 'the laser sits beside the camera'),
+                           (30.0, 'the laser sheet is turned about the optical axis')):
+        turned = _g2_turned(ref, degrees)
+        tilt = math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(turned))))
+        assert abs(tilt - min(abs(degrees), 180 - abs(degrees))) < 1.0, (degrees, tilt)
+        problems = rf.check_rig(turned, z)
+        assert problems[0].startswith(f'the stripe runs {tilt:.1f} deg off the image rows')
+        assert words in problems[0] and 'not supported' in problems[0]
+        # refused before the simulator renders a stripe (not "covers 0 of 720 columns")
+        assert not any('columns' in p for p in problems), problems
