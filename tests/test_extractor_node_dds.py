@@ -200,7 +200,7 @@ def test_extractor_node_pairs_extracts_and_survives_bad_input(spawn, ros_env, th
         assert r.successful, r.reason
         t.state_pub.publish(_state(301, 3001))
         t.img_pub.publish(_image(301, good))
-        t.spin_until(lambda: any(m.header.stamp.sec == 301 for m in t.centers), 10,
+        t.spin_until(lambda: any(m.header.stamp.sec == 301 for m in t.centers), 30,
                      'a frame after the parameter change')
         last = [m for m in t.centers if m.header.stamp.sec == 301][0]
         assert last.method == 'center_of_gravity'
