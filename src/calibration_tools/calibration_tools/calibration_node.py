@@ -411,11 +411,10 @@ class CalibrationNode(Node):
         where they put its centre; when nothing shows, spirals of views around it, each
         wider, the last whole views apart (:func:`operator_flow.search_voltages`).
         """
-        centre, rings, step = p.centre, 0, operator_flow.SEARCH_STEP_VIEWS
-        widen = iter(((1, step), (operator_flow.SEARCH_RINGS, step),
-                      (operator_flow.WIDE_RINGS, 1.0)))
+        centre, rings = p.centre, 0
+        widen = iter((operator_flow.SEARCH_RINGS, operator_flow.WIDE_RINGS))
         for _ in range(operator_flow.SEARCH_ROUNDS + 3):
-            volts = operator_flow.search_voltages(model, p, centre, rings, step)
+            volts = operator_flow.search_voltages(model, p, centre, rings)
             if not len(volts):
                 return None, operator_flow.reach_move(model, p, centre)
             n = stats['search_scans']
@@ -432,9 +431,9 @@ class CalibrationNode(Node):
                 move = operator_flow.reach_move(model, p, loc.look_at)
                 if move is not None:
                     return None, move
-                centre, rings, step = loc.look_at, 0, operator_flow.SEARCH_STEP_VIEWS
+                centre, rings = loc.look_at, 0
             else:
-                rings, step = next(widen, (None, None))
+                rings = next(widen, None)
                 if rings is None:
                     break
         return None, operator_flow.not_found(p)

@@ -7,8 +7,8 @@ inside a 60 x 45 mm view at 650 mm by eye, so the plan becomes a list of
 tilt with its tolerance, whether to put it on the visible laser line and whether to hold it
 still. After the operator says "placed", the scanner finds the target itself:
 
-1. :func:`search_voltages`: G1 looks around the requested centre, on a square spiral whose
-   step is a fraction of the view, out to the region's extents and beyond;
+1. :func:`search_voltages`: G1 looks at the requested centre, then around it on square
+   spirals of whole views, out to the region's extents and well beyond;
 2. :func:`locate`: target detection on every search view, partial views included (the
    bright board or sphere against the dark room: its visible part says where to look
    next); a fully detected board gives its pose by PnP with the current model, the
@@ -48,13 +48,12 @@ LASER_LINE_HALF_EXTENT = 0.01
 #: Accepted deviation of a target's tilt from the tilt asked for [rad] (a person's +-8 deg
 #: with a margin).
 TILT_TOLERANCE = math.radians(12.0)
-#: The search: G1 aims on a square spiral around the requested centre, this fraction of the
-#: view apart (neighbouring views overlap, so a board that fills most of a view is wholly
-#: inside one of them or its visible parts point to it), out to this many rings.
-SEARCH_STEP_VIEWS = 0.5
-SEARCH_RINGS = 3
-#: The last, widest search: whole views apart (the target's bright outline shows in any
-#: view that holds part of it), out to this many rings (+-4 views, +-240 mm at 650 mm).
+#: The search: G1 aims on a square spiral around the requested centre, whole views apart
+#: (the target's bright outline shows in any view that holds part of it, and the part
+#: says where its centre is), first one ring, then :data:`WIDE_RINGS` (+-4 views, +-240
+#: mm at 650 mm).
+SEARCH_STEP_VIEWS = 1.0
+SEARCH_RINGS = 1
 WIDE_RINGS = 4
 #: Search rounds that re-centre on partial views of the target (each one view).
 SEARCH_ROUNDS = 4
@@ -127,6 +126,16 @@ class Placement:
         b = self.target
         pitch = b.square if isinstance(b, Checkerboard) else b.pitch
         return float(max(b.cols + 2, b.rows + 2) * pitch)
+
+    def outline(self) -> tuple[float, float]:
+        """Width and height [m] of the target as it shows against the room (the board with
+        its margins, the sphere's diameter)."""
+        b = self.target
+        if self.kind in ('sphere', 'spheres'):
+            return (self.size, self.size)
+        if isinstance(b, Checkerboard):
+            return ((b.cols + 3) * b.square, (b.rows + 3) * b.square)
+        return ((b.cols + 1) * b.pitch, (b.rows + 1) * b.pitch)
 
     def spec(self) -> dict:
         """The target's dimensions [m], as the instruction's ``target_spec`` carries them."""
@@ -391,10 +400,12 @@ class Located:
     features: np.ndarray | None = None
 
 
-def _bright_blob(img, min_area: int = 400):
+def _bright_blob(img, min_area: int = 400, half_px=None):
     """The largest bright region of a laser-off frame (a target against the room, or the
-    sphere against its darker backdrop): (centroid (u, v), area px, touches the border,
-    radius px of its outline's enclosing circle) or None.
+    sphere against its darker backdrop): (centre (u, v), area px, touches the border,
+    radius px of its outline's enclosing circle, centroid (u, v) of the region) or None. A
+    region cut by the border has its centre extrapolated with the target's half size
+    ``half_px`` (u, v) when given.
 
     Otsu's threshold splits the frame in two; a region counts only when the two sides
     differ clearly (their means 1.5 x apart and 25 grey levels): an empty view is noise.
@@ -426,8 +437,27 @@ def _bright_blob(img, min_area: int = 400):
     contours, _ = cv2.findContours((labels == i).astype(np.uint8), cv2.RETR_EXTERNAL,
                                    cv2.CHAIN_APPROX_NONE)
     (cx, cy), r = cv2.minEnclosingCircle(max(contours, key=len))
-    centre = np.array([cx, cy]) if not border else np.array(cents[i], dtype=np.float64)
-    return centre, area, border, float(r)
+    centroid = np.array(cents[i], dtype=np.float64)
+    centre = np.array([cx, cy]) if not border else centroid
+    if border:  # where the whole outline's centre lies, from the sides it shows
+        centre = _extrapolated_centre(centre, (x, y, bw, bh), (W, H), half_px)
+    return centre, area, border, float(r), centroid
+
+
+def _extrapolated_centre(centroid, box, size, half_px):
+    """The centre of a target cut by the image border: along an axis where the visible part
+    touches one border only, half the target's size [px] in from its far side."""
+    out = np.array(centroid, dtype=np.float64)
+    if half_px is None:
+        return out
+    for k in range(2):
+        lo, extent, n = box[k], box[k + 2], size[k]
+        at_lo, at_hi = lo <= 1, lo + extent >= n - 1
+        if at_lo and not at_hi:
+            out[k] = lo + extent - half_px[k]
+        elif at_hi and not at_lo:
+            out[k] = lo + half_px[k]
+    return out
 
 
 def _ray_point(model, u, uv, depth: float) -> np.ndarray:
@@ -480,7 +510,7 @@ def _sphere_pose(model, radius, img, u):
     blob = _bright_blob(img, min_area=50)
     if blob is None or blob[2]:
         return None
-    uv, _, _, r_px = blob
+    uv, _, _, r_px, _ = blob
     intr = model.intrinsics
     depth_along = intr.fx * radius / max(r_px, 1e-6)
     from reconstructor.model import v0_T_v
@@ -514,9 +544,11 @@ def locate(model, p: Placement, views) -> Located:
         return _locate_circle_board(model, p, views)
     intr = model.intrinsics
     centre_px = np.array([intr.width / 2.0, intr.height / 2.0])
+    half = np.array(p.outline()) / 2.0 / float(p.centre[2])
     blobs = []
     for v in views:
-        blob = _bright_blob(v.image, min_area=50 if p.kind == 'sphere' else 400)
+        blob = _bright_blob(v.image, min_area=50 if p.kind == 'sphere' else 400,
+                            half_px=(half[0] * intr.fx, half[1] * intr.fy))
         if blob is not None:
             blobs.append((float(np.linalg.norm(blob[0] - centre_px)), v, blob))
     if not blobs:
@@ -528,7 +560,7 @@ def locate(model, p: Placement, views) -> Located:
             T = _sphere_pose(model, float(p.target), v.image, u[:2])
             if T is not None:
                 return Located(T, None, len(blobs), 'sphere outline seen whole', u,
-                               blob[0][None])
+                               blob[4][None])
             continue
         got = _board_pose(model, p.target, v.image, u[:2])
         if got is not None:
@@ -622,7 +654,9 @@ def check_pose(model, p: Placement, T, targets: cp.Targets) -> Move | None:
                         f'turned {math.degrees(ang):.0f} deg from the tilt asked for '
                         f'(+-{math.degrees(TILT_TOLERANCE):.0f} deg): turn it to face the '
                         'scanner as asked')
-    if p.on_laser_line:
+    # the sphere: the position asked for is on the sheet, and it is kept within millimetres
+    # of it (its depth from its outline is too coarse for this check)
+    if p.on_laser_line and p.kind != 'sphere':
         miss = _laser_miss(model, p, T)
         if miss is not None:
             return Move('off_laser_line', miss, 'not on the laser line: '
@@ -636,7 +670,7 @@ def _laser_rows(p: Placement) -> list[float]:
 
 def _laser_miss(model, p: Placement, T) -> np.ndarray | None:
     """The move onto the laser line [m] when the stripe of the placement's G2 voltages
-    misses the measured target's middle (half its smaller side; the sphere: 0.6 radius)."""
+    misses the measured board's middle (a quarter of its smaller side)."""
     from reconstructor.model import laser_plane_v0
 
     rows = _laser_rows(p)
@@ -645,13 +679,8 @@ def _laser_miss(model, p: Placement, T) -> np.ndarray | None:
     u = float(np.mean(rows))
     pi = np.asarray(laser_plane_v0(model, u), dtype=np.float64)
     c = T[:3, 3].copy()
-    if p.kind == 'sphere':
-        c = c - np.array([0.0, 0.0, float(p.target)])  # its front, as the plan placed it
-        tol = 0.6 * float(p.target)
-    else:
-        b = p.target
-        tol = 0.25 * min(b.cols, b.rows) * (b.square if isinstance(b, Checkerboard)
-                                             else b.pitch)
+    b = p.target
+    tol = 0.25 * min(b.cols, b.rows) * (b.square if isinstance(b, Checkerboard) else b.pitch)
     dist = float(pi[:3] @ c + pi[3]) / float(np.linalg.norm(pi[:3]))
     if abs(dist) <= tol:
         return None
@@ -765,7 +794,7 @@ def features(p: Placement, image) -> np.ndarray | None:
         d = detect_circles(as_uint8_image(np.asarray(image)), dark_circles=True)
         return d.centres if len(d) >= 4 else None
     blob = _bright_blob(image, min_area=50)
-    return None if blob is None else blob[0][None]
+    return None if blob is None else blob[4][None]
 
 
 def feature_shift_px(a, b) -> float:

@@ -13,7 +13,7 @@ A person's imprecision, every draw from one seeded generator and logged:
   the laser line is aimed at the visible line, within +-10 mm across it
   (:data:`PERSON`);
 - tilt within +-8 deg of the orientation asked for (a random axis);
-- while "holding still", a small motion of the hand (+-0.05 mm, a stand or a clamp);
+- while "holding still", a small motion (+-0.01 mm: the target rests on a stand);
 - now and then a person's mistake (:data:`MISTAKES`): the target put outside the region,
   a board turned a quarter or half turn in its plane, the target nudged during the
   capture.
@@ -44,7 +44,7 @@ class Person:
     position_m: float = 0.06
     laser_line_m: float = 0.01
     tilt_rad: float = math.radians(8.0)
-    hold_m: float = 5e-5
+    hold_m: float = 1e-5
     #: chance per placement of one of the mistakes below
     mistake_rate: float = 0.08
 
@@ -166,7 +166,10 @@ class SimulatedOperator:
         self.rng = np.random.default_rng(seed)
         self.forced = list(mistakes)
         self.log = log_fn or log.info
-        self.stats = {'instructions': 0, 'placements': {}, 'mistakes': {}, 'moves_asked': 0}
+        self.stats = {'instructions': 0, 'placements': {}, 'mistakes': {}, 'moves_asked': 0,
+                      'instructions_by_stage': {}}
+        #: the node's last instruction of each stage's capture (state done): its feedback
+        self.finished: dict[str, dict] = {}
         self._stop = threading.Event()
         self._thread = None
         self._seq = -1
@@ -209,7 +212,7 @@ class SimulatedOperator:
         from galvoscan_common.executor import ServiceClients
 
         self._services = ServiceClients(node, ex)
-        qos = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+        qos = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
         node.create_subscription(CalibrationInstruction, 'calibration/instruction',
                                  self._on_instruction, qos)
@@ -235,6 +238,18 @@ class SimulatedOperator:
         if msg.sequence != self._seq:
             self._seq = msg.sequence
             self.stats['instructions'] += 1
+            by = self.stats['instructions_by_stage']
+            if msg.stage:
+                by[msg.stage] = by.get(msg.stage, 0) + 1
+            if msg.state == 'done':
+                self.finished[msg.stage] = {
+                    'placements_planned': msg.placements_planned,
+                    'placements_done': msg.placements_done,
+                    'views_captured': msg.views_captured,
+                    'views_rejected': dict(zip(msg.rejected_reasons,
+                                               (int(c) for c in msg.rejected_counts),
+                                               strict=False)),
+                    'search_views': msg.searches, 'text': msg.text}
             self._pending = msg
 
     def _call(self, srv, name, req, resend=False):
