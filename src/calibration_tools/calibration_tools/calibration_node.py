@@ -405,38 +405,20 @@ class CalibrationNode(Node):
         return stage_runner.views_from_bags([bag])
 
     def _search(self, p, model, targets, run_dir, stats):
-        """Find the target after "placed": ``(Located, None)`` or ``(Located or None, Move)``.
-
-        One view at the centre asked for; while only parts of the target show, one view
-        where they put its centre; when nothing shows, spirals of views around it, each
-        wider, the last whole views apart (:func:`operator_flow.search_voltages`).
-        """
-        centre, rings = p.centre, 0
-        widen = iter((operator_flow.SEARCH_RINGS, operator_flow.WIDE_RINGS))
-        for _ in range(operator_flow.SEARCH_ROUNDS + 3):
-            volts = operator_flow.search_voltages(model, p, centre, rings)
-            if not len(volts):
-                return None, operator_flow.reach_move(model, p, centre)
+        """Find the target after "placed" (:func:`operator_flow.search`), each look recorded
+        under ``run_dir/search``."""
+        def look(volts):
             n = stats['search_scans']
             stats['search_scans'] += 1
             stats['search_views'] += len(volts)
-            views = self._look(p, volts, run_dir / 'search' / f'place{p.index:03d}_{n:03d}',
-                               f'{p.stage}: search for placement {p.index}')
-            loc = operator_flow.locate(model, p, views)
+            return self._look(p, volts, run_dir / 'search' / f'place{p.index:03d}_{n:03d}',
+                              f'{p.stage}: search for placement {p.index}')
+
+        def note(volts, loc):
             self.get_logger().info(f'{p.stage} placement {p.index}: search of {len(volts)} '
                                    f'view(s): {loc.note}')
-            if loc.V0_T_target is not None:
-                return loc, operator_flow.check_pose(model, p, loc.V0_T_target, targets)
-            if loc.look_at is not None:
-                move = operator_flow.reach_move(model, p, loc.look_at)
-                if move is not None:
-                    return None, move
-                centre, rings = loc.look_at, 0
-            else:
-                rings = next(widen, None)
-                if rings is None:
-                    break
-        return None, operator_flow.not_found(p)
+
+        return operator_flow.search(model, p, targets, look, note)
 
     def _operator_capture(self, stage, steps, run_dir, t0, bags, by_robot=False,
                           after_step=None, first=0):

@@ -348,9 +348,9 @@ def search_voltages(model, p: Placement, centre=None, rings: int = SEARCH_RINGS,
                     step_views: float = SEARCH_STEP_VIEWS) -> np.ndarray:
     """G1 aims of a search around ``centre`` (default: the requested one), laser off.
 
-    A square spiral on the plane of the requested depth, ``step_views`` views apart
-    (the large circle board: +-2 whole views, which hold a whole sub-pattern of it and so
-    its large circles), nearest first; aims out of G1 reach are left out.
+    A square spiral on the plane of the requested depth, ``step_views`` views apart, nearest
+    first (the large circle board: +-2 whole views first, then +-3 half views); aims out of
+    G1 reach are left out.
 
     Returns
     -------
@@ -360,9 +360,12 @@ def search_voltages(model, p: Placement, centre=None, rings: int = SEARCH_RINGS,
 
     c = p.centre if centre is None else np.asarray(centre, dtype=np.float64)
     w, h = _view_size(model, float(c[2]))
-    step = (1.0 if p.kind == 'circle_board' else step_views) * np.array([w, h])
-    if p.kind == 'circle_board':  # +-2 views: a whole sub-pattern, so its large circles
-        rings = max(rings, 2)
+    if p.kind == 'circle_board':
+        # +-2 whole views hold a whole sub-pattern, so most often a large circle wholly in
+        # one view; the next round's half-view steps leave none cut by every view's border
+        rings, step_views = {0: (2, 1.0), SEARCH_RINGS: (3, 0.5)}.get(
+            rings, (rings, step_views))
+    step = step_views * np.array([w, h])
     cells = sorted(((i, j) for i in range(-rings, rings + 1) for j in range(-rings, rings + 1)),
                    key=lambda ij: (max(abs(ij[0]), abs(ij[1])), math.atan2(ij[1], ij[0])))
     pts = np.array([c + np.array([i * step[0], j * step[1], 0.0]) for i, j in cells])
@@ -600,6 +603,45 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
     return Located(np.asarray(ident.board_poses[0]), None, len(dets),
                    f'{ok} of {len(dets)} search views identified',
                    np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres)
+
+
+def search(model, p: Placement, targets: cp.Targets, look, note=None):
+    """Find a placed target: ``(Located, None)`` when it can be captured, else
+    ``(Located or None, Move)`` saying what the operator must change.
+
+    One view at the centre asked for; while only parts of the target show, one view where
+    they put its centre (:data:`SEARCH_ROUNDS` at most); when nothing shows, a ring of
+    views around it, then :data:`WIDE_RINGS` rings (:func:`search_voltages`).
+
+    Parameters
+    ----------
+    look : callable ``(voltages (n, 4)) -> list of CaptureView``
+        Takes laser-off frames at G1 voltages (the node records them; tests run the
+        simulator).
+    note : callable ``(voltages, Located)``, optional
+        Told every look's outcome (the node logs it).
+    """
+    centre, rings = p.centre, 0
+    widen = iter((SEARCH_RINGS, WIDE_RINGS))
+    for _ in range(SEARCH_ROUNDS + 3):
+        volts = search_voltages(model, p, centre, rings)
+        if not len(volts):
+            return None, reach_move(model, p, centre, 'no view of the search within G1 reach')
+        loc = locate(model, p, look(volts))
+        if note is not None:
+            note(volts, loc)
+        if loc.V0_T_target is not None:
+            return loc, check_pose(model, p, loc.V0_T_target, targets)
+        if loc.look_at is not None:
+            move = reach_move(model, p, loc.look_at)
+            if move is not None:
+                return loc, move
+            centre, rings = loc.look_at, 0
+        else:
+            rings = next(widen, None)
+            if rings is None:
+                break
+    return None, not_found(p)
 
 
 # ----------------------------------------------------------------------------- checks
