@@ -62,7 +62,7 @@ def test_operator_places_the_scanner_finds_a_moved_target_is_retaken(spawn, ros_
     # the first board is nudged 4 mm while its views are taken; the second is put 80 mm
     # off and turned 10 deg
     operator = SimulatedOperator(int(ros_env['ROS_DOMAIN_ID']), seed=4, mistakes=[
-        'moved_during_capture', ((0.08, 0.0, 0.0), 0.1745)]).start()
+        'moved_during_capture', ((0.08, 0.0, 0.0), 0.1745)], log_fn=print).start()
     try:
         cap = call(CaptureCalibration, 'calibration/capture',
                    CaptureCalibration.Request(stage='intrinsics', max_frames=5))

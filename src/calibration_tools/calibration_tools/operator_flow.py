@@ -443,23 +443,27 @@ def _bright_blob(img, min_area: int = 400, half_px=None):
     centroid = np.array(cents[i], dtype=np.float64)
     centre = np.array([cx, cy]) if not border else centroid
     if border:  # where the whole outline's centre lies, from the sides it shows
-        centre = _extrapolated_centre(centre, (x, y, bw, bh), (W, H), half_px)
+        centre = _extrapolated_centre(centroid, (x, y, bw, bh), (W, H), half_px)
     return centre, area, border, float(r), centroid
 
 
 def _extrapolated_centre(centroid, box, size, half_px):
     """The centre of a target cut by the image border: along an axis where the visible part
-    touches one border only, half the target's size [px] in from its far side."""
+    touches one border only, half the target's size [px] in from its far side, and at least
+    15 % of the image beyond the middle towards that border (a turned target shows taller
+    than its size: the next look must still move towards the part not seen)."""
     out = np.array(centroid, dtype=np.float64)
-    if half_px is None:
-        return out
     for k in range(2):
         lo, extent, n = box[k], box[k + 2], size[k]
         at_lo, at_hi = lo <= 1, lo + extent >= n - 1
         if at_lo and not at_hi:
-            out[k] = lo + extent - half_px[k]
+            if half_px is not None:
+                out[k] = lo + extent - half_px[k]
+            out[k] = min(out[k], 0.35 * n)
         elif at_hi and not at_lo:
-            out[k] = lo + half_px[k]
+            if half_px is not None:
+                out[k] = lo + half_px[k]
+            out[k] = max(out[k], 0.65 * n)
     return out
 
 

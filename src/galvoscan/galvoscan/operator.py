@@ -291,12 +291,13 @@ class SimulatedOperator:
             self._set_scene(scene_text(instr['target'], spec, np.eye(4)))
             self._answer('placed', msg.placement)
             return
+        move = np.asarray(instr['move'], dtype=np.float64)
         if state == 'move' and self._current is not None and \
-                self._current[0]['placement'] == msg.placement:
+                self._current[0]['placement'] == msg.placement and \
+                (np.any(move) or 'turn' in instr['text']):
             # follow the direction given, with a person's imprecision again
             self.stats['moves_asked'] += 1
             draw = self._current[1]
-            move = np.asarray(instr['move'], dtype=np.float64)
             if 'turn' in instr['text'] and not np.any(move):
                 redo = draw_placement(instr, self.rng, Person(0.0, 0.0, self.person.tilt_rad,
                                                               0.0, 0.0))
@@ -307,9 +308,9 @@ class SimulatedOperator:
             self.log(f'simulated operator: {msg.stage} placement {msg.placement}: '
                      f'{instr["direction"] or instr["text"]}; moved by '
                      f'{np.round((move + jitter) * 1e3, 1).tolist()} mm')
-        else:
+        else:  # asked to place it, or told it was not found: place it (again)
             draw = draw_placement(instr, self.rng, self.person)
-            if self.forced:
+            if self.forced and state == 'place':
                 draw = self._force(instr, draw, self.forced.pop(0))
             self._current = (instr, draw)
             self._nudged = False
