@@ -2,7 +2,8 @@
 ``calibration/instruction`` and waits for ``calibration/operator``; the simulated operator
 (its own process context) answers. A target nudged during its capture is caught by the
 motion gate and its views are retaken; a board put 80 mm off and turned 10 deg is found by
-the search; bad answers are refused without harm."""
+the search; bad answers are refused without harm; the captured bags re-solve offline
+(``galvoscan calibrate intrinsics --bags``) to the same intrinsics."""
 
 import sys
 import time
@@ -15,8 +16,10 @@ from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration, OperatorA
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
+from galvoscan.offline import main
 from galvoscan.operator import SimulatedOperator
 from galvoscan_common.executor import ServiceClients
+from reconstructor import calibration_file
 
 pytestmark = pytest.mark.dds
 
@@ -73,6 +76,14 @@ def test_operator_places_the_scanner_finds_a_moved_target_is_retaken(spawn, ros_
                     ComputeCalibration.Request(stage='intrinsics'))
         assert comp.success and comp.samples_used == 5, comp.message
         assert comp.reprojection_rms < 0.2
+        # the bags re-solve offline to the same intrinsics
+        offline = tmp_path / 'offline.yaml'
+        assert main(['intrinsics', '--bags', cap.bag_path, '--rig', 'reference',
+                     '--calibration', str(offline)]) == 0
+        got = calibration_file.load(offline).model.intrinsics
+        want = calibration_file.load(tmp_path / 'cal.yaml').model.intrinsics
+        assert (got.fx, got.fy, got.cx, got.cy, *got.dist) == pytest.approx(
+            (want.fx, want.fy, want.cx, want.cy, *want.dist), rel=1e-9, abs=1e-12)
         ex.spin_once(timeout_sec=0.2)
         states = [m.state for m in seen]
         for state in ('place', 'search', 'capture', 'done'):
