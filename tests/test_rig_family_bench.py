@@ -23,3 +23,19 @@ def test_drop_bags_deletes_only_calibration_data(tmp_path):
     assert all(f.exists() for f in keep)
     assert not any(p.name == 'calibration_data' for p in tmp_path.rglob('*'))
     assert bench.drop_bags(tmp_path / 'seed_000') == 0  # nothing left to delete
+
+
+def test_operator_row_compares_the_operator_with_the_zero_error_one():
+    person = {'seed': 3, 'completed': True, 'failures': [], 'stair_rmse_mm': 0.03,
+              'plate_rmse_mm': 0.12, 'wall_s': 10.0,
+              'operator': {'placements': {'intrinsics': 9, 'laser_axis': 20},
+                           'placements_kept': {'intrinsics': 8, 'laser_axis': 6}}}
+    exact = {'seed': 3, 'completed': True, 'failures': [], 'stair_rmse_mm': 0.025,
+             'plate_rmse_mm': 0.1, 'wall_s': 8.0}
+    row = bench.operator_row(person, exact)
+    assert row['completed'] and row['wall_s'] == 18.0
+    assert abs(row['stair_ratio'] - 1.2) < 1e-12 and abs(row['plate_ratio'] - 1.2) < 1e-12
+    assert row['placements'] == {'intrinsics': 9, 'laser_axis': 20}
+    assert not row['placements_within_limit']  # 20 > 2 x 6 + 2
+    failed = bench.operator_row(person, {**exact, 'completed': False, 'stair_rmse_mm': None})
+    assert not failed['completed'] and failed['stair_ratio'] is None
