@@ -5,6 +5,7 @@ motion gate and its views are retaken; a board put 80 mm off and turned 10 deg i
 the search; bad answers are refused without harm; the captured bags re-solve offline
 (``galvoscan calibrate intrinsics --bags``) to the same intrinsics."""
 
+import io
 import sys
 import time
 
@@ -17,7 +18,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from galvoscan.offline import main
-from galvoscan.operator import SimulatedOperator
+from galvoscan.operator import SimulatedOperator, console
 from galvoscan_common.executor import ServiceClients
 from reconstructor import calibration_file
 
@@ -57,6 +58,11 @@ def test_operator_places_the_scanner_finds_a_moved_target_is_retaken(spawn, ros_
     resp = call(OperatorAction, 'calibration/operator',
                 OperatorAction.Request(action='juggle'), resend=True)
     assert not resp.accepted and 'unknown action' in resp.message
+    # a person at the console: what they type is checked and sent, the answer printed
+    typed, shown = io.StringIO('x\np\n'), io.StringIO()
+    assert console(int(ros_env['ROS_DOMAIN_ID']), typed, shown) == 1  # input ended
+    assert "'x'? p(laced)" in shown.getvalue()
+    assert 'no capture is waiting' in shown.getvalue(), shown.getvalue()
     t_end = time.monotonic() + 10.0
     while not seen and time.monotonic() < t_end:  # latched: the idle instruction is there
         ex.spin_once(timeout_sec=0.1)

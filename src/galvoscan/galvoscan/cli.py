@@ -6,9 +6,10 @@
     galvoscan replay ...
     galvoscan bag-recover ...
     galvoscan calibrate STAGE ...
-    galvoscan operator --sim [--seed N] [--exact]
-                                (the simulated operator: places the calibration targets the
-                                running calibration node asks for, in the simulator)
+    galvoscan operator [--sim [--seed N] [--exact]]
+                                (the calibration's operator: print the running calibration
+                                node's instructions and answer them from the keyboard; --sim:
+                                place the targets in the simulator as a person would)
     galvoscan evaluate [--rig FILE] [--seed N] [--quick] [--out DIR]
     galvoscan demo [--out DIR]  (evaluate on the reference rig; what `make demo` runs)
     galvoscan rig random --seed N [--distance Z] --out FILE  (draw a plausible rig)

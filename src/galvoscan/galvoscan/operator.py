@@ -1,4 +1,8 @@
-"""The simulated operator: places the calibration targets in the simulator as a person would.
+"""The operator's side of calibration: the simulated operator, and a person at the console.
+
+``galvoscan operator`` prints the calibration node's instructions and sends what the person
+types (placed, undo, skip, done). The rest of this module is the simulated operator, which
+places the calibration targets in the simulator as a person would.
 
 ``galvoscan operator --sim`` (and ``galvoscan evaluate`` / ``demo`` while they calibrate)
 runs it. It reads only what any operator reads, the calibration node's latched
@@ -371,21 +375,95 @@ class SimulatedOperator:
         self._set_scene(scene_text(instr0['target'], yaml.safe_load(spec_yaml) or {}, draw.T))
 
 
+def console(domain_id: int, stdin=None, out=None) -> int:
+    """A person at the console plays the operator: every instruction is printed, and a line
+    typed answers it (``p``/``placed``, ``u``/``undo``, ``s``/``skip``, ``d``/``done``,
+    ``q`` to leave). Returns 0 when left, 1 when the input ends."""
+    import queue
+
+    import rclpy
+    from galvoscan_msgs.msg import CalibrationInstruction
+    from galvoscan_msgs.srv import OperatorAction
+    from rclpy.node import Node
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from galvoscan_common.executor import ServiceClients
+
+    stdin = stdin or sys.stdin
+    out = out or sys.stdout
+    words = {'p': 'placed', 'u': 'undo', 's': 'skip', 'd': 'done'}
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx, domain_id=int(domain_id))
+    node = Node('console_operator', context=ctx)
+    ex = rclpy.executors.SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    services = ServiceClients(node, ex)
+    current = {'placement': 0, 'seq': -1}
+
+    def show(msg):
+        if msg.sequence == current['seq']:
+            return
+        current.update(placement=msg.placement, seq=msg.sequence)
+        head = f'[{msg.stage or "-"} {msg.state}'
+        if msg.placements_planned:
+            head += f' {msg.placement + 1}/{msg.placements_planned}'
+        print(f'{head}] {msg.text}', file=out, flush=True)
+        if msg.state in ('place', 'move'):
+            print('  answer: p(laced) / u(ndo) / s(kip) / d(one)', file=out, flush=True)
+
+    node.create_subscription(CalibrationInstruction, 'calibration/instruction', show,
+                             QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
+                                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    lines: queue.Queue = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(x) for x in iter(stdin.readline, '')]
+                     + [lines.put(None)], daemon=True).start()
+    try:
+        while True:
+            ex.spin_once(timeout_sec=0.1)
+            try:
+                line = lines.get_nowait()
+            except queue.Empty:
+                continue
+            if line is None:
+                return 1
+            word = line.strip().lower()
+            if word in ('q', 'quit'):
+                return 0
+            action = words.get(word[:1], word) if word else ''
+            if action not in words.values():
+                print(f"  '{word}'? p(laced), u(ndo), s(kip), d(one) or q(uit)", file=out,
+                      flush=True)
+                continue
+            resp = services.call(OperatorAction, 'calibration/operator', OperatorAction.Request(
+                action=action, placement=current['placement']), 30.0, False)
+            print(f'  {resp.message}', file=out, flush=True)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 def main(argv=None):
-    p = argparse.ArgumentParser(prog='galvoscan operator',
-                                description='Play the operator of a running calibration node.')
-    p.add_argument('--sim', action='store_true', required=True,
-                   help='place the targets in the simulator (sim/set_scene); the only '
-                        'operator this command plays')
-    p.add_argument('--seed', type=int, default=0, help='seed of every placement error')
+    p = argparse.ArgumentParser(
+        prog='galvoscan operator',
+        description='Play the operator of a running calibration node: print its instructions '
+                    'and answer them from the keyboard, or (--sim) place the targets in the '
+                    'simulator as a person would.')
+    p.add_argument('--sim', action='store_true',
+                   help='the simulated operator: place the targets in the simulator '
+                        '(sim/set_scene) with a person\'s imprecision and mistakes')
+    p.add_argument('--seed', type=int, default=0, help='--sim: seed of every placement error')
     p.add_argument('--exact', action='store_true',
-                   help='the zero-error operator: every target exactly where asked')
-    p.add_argument('--duration', type=float, default=0.0, help='stop after S seconds (0: never)')
+                   help='--sim: the zero-error operator, every target exactly where asked')
+    p.add_argument('--duration', type=float, default=0.0,
+                   help='--sim: stop after S seconds (0: never)')
     args = p.parse_args(argv)
     import os
 
     logging.basicConfig(level=logging.INFO, format='[%(name)s] %(message)s')
     domain = int(os.environ.get('ROS_DOMAIN_ID', '0'))
+    if not args.sim:
+        return console(domain)
     op = SimulatedOperator(domain, args.seed, EXACT if args.exact else PERSON,
                            log_fn=lambda s: print(s, flush=True))
     op.start()
