@@ -398,9 +398,10 @@ class CalibrationNode(Node):
         finally:
             cap.expect = None
 
-    def _look(self, p, volts, bag, note):
-        """Record laser-off frames at ``volts`` into ``bag`` and read them back."""
-        step = CaptureStep(p.index, None, volts, False, frame_rate=50.0, note=note)
+    def _look(self, p, volts, bag, note, laser_on=False):
+        """Record frames at ``volts`` (laser off unless ``laser_on``) into ``bag`` and read
+        them back."""
+        step = CaptureStep(p.index, None, volts, laser_on, frame_rate=50.0, note=note)
         self._record_step(step, bag)
         return stage_runner.views_from_bags([bag])
 
@@ -418,7 +419,13 @@ class CalibrationNode(Node):
             self.get_logger().info(f'{p.stage} placement {p.index}: search of {len(volts)} '
                                    f'view(s): {loc.note}')
 
-        return operator_flow.search(model, p, targets, look, note)
+        def look_lit(volts):
+            n = stats['search_scans']
+            stats['search_scans'] += 1
+            return self._look(p, volts, run_dir / 'search' / f'place{p.index:03d}_{n:03d}',
+                              f'{p.stage}: laser line on placement {p.index}', laser_on=True)
+
+        return operator_flow.search(model, p, targets, look, note, look_lit)
 
     def _operator_capture(self, stage, steps, run_dir, t0, bags, by_robot=False,
                           after_step=None, first=0):

@@ -609,7 +609,7 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
                    np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres)
 
 
-def search(model, p: Placement, targets: cp.Targets, look, note=None):
+def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=None):
     """Find a placed target: ``(Located, None)`` when it can be captured, else
     ``(Located or None, Move)`` saying what the operator must change.
 
@@ -624,6 +624,9 @@ def search(model, p: Placement, targets: cp.Targets, look, note=None):
         simulator).
     note : callable ``(voltages, Located)``, optional
         Told every look's outcome (the node logs it).
+    look_lit : callable ``(voltages (n, 4)) -> list of CaptureView``, optional
+        Takes laser-on frames: a sphere found is then checked to carry the laser line
+        (:func:`stripe_on_sphere`).
     """
     centre, rings = p.centre, 0
     widen = iter((SEARCH_RINGS, WIDE_RINGS))
@@ -635,7 +638,14 @@ def search(model, p: Placement, targets: cp.Targets, look, note=None):
         if note is not None:
             note(volts, loc)
         if loc.V0_T_target is not None:
-            return loc, check_pose(model, p, loc.V0_T_target, targets)
+            move = check_pose(model, p, loc.V0_T_target, targets)
+            if move is None and p.kind == 'sphere' and look_lit is not None:
+                off = look(loc.check_voltages[None])
+                u = loc.check_voltages.copy()
+                u[3] = float(np.median([r[3] for v, lit, _ in p.views if lit for r in v]))
+                move = stripe_on_sphere(model, p, loc.V0_T_target, off[0].image,
+                                        look_lit(u[None])[0].image)
+            return loc, move
         if loc.look_at is not None:
             move = reach_move(model, p, loc.look_at)
             if move is not None:
@@ -649,6 +659,38 @@ def search(model, p: Placement, targets: cp.Targets, look, note=None):
 
 
 # ----------------------------------------------------------------------------- checks
+def stripe_on_sphere(model, p: Placement, T, off_image, lit_image) -> Move | None:
+    """None when the laser line crosses the sphere's middle in a lit frame (its stripe
+    pixels reach within half a radius of the outline's centre), else the move onto the line:
+    along V0 y by where the stripe runs on the backdrop beside it (the sphere's own outline
+    and the stripe, nothing of the model's laser plane)."""
+    blob = _bright_blob(off_image, min_area=50)
+    if blob is None:
+        return not_found(p)
+    (cu, cv), r = blob[4], blob[3]
+    lit = np.asarray(lit_image, np.float64)  # a laser frame: the stripe on a dark scene
+    level = max(30.0, 0.5 * float(lit.max()))
+    vs, us = np.nonzero(lit > level)
+    if vs.size == 0:
+        return Move('off_laser_line', np.zeros(3), 'the laser line is not on the sphere or '
+                    'the backdrop in view: put the sphere on the laser line')
+    d = np.hypot(us - cu, vs - cv)
+    if np.count_nonzero(d < 0.5 * r) >= 5:
+        return None
+    from reconstructor.model import laser_plane_v0
+
+    # the line runs dy [m] below the sphere's centre; it must cross the sphere where it was
+    # asked for (x, y), so the sphere goes nearer or farther along the sheet's slope
+    dy = (float(np.median(vs)) - cv) * float(T[2, 3]) / model.intrinsics.fy
+    u2 = float(np.median([r[3] for v, lit, _ in p.views if lit for r in v]))
+    a, b, c, _ = np.asarray(laser_plane_v0(model, u2), dtype=np.float64)
+    slope = -c / b if abs(b) > 1e-9 else 0.0  # dy/dz of the sheet at fixed x
+    move = np.array([0.0, 0.0, -dy / slope]) if abs(slope) > 0.2 else np.array([0, dy, 0.0])
+    return Move('off_laser_line', move, 'the laser line misses the sphere\'s middle: '
+                + _direction_words(move))
+
+
+
 @dataclass
 class Move:
     """What the operator must change: ``reason`` (not_found, out_of_reach, too_near,
@@ -743,8 +785,8 @@ def views_for(model, p: Placement, T, targets: cp.Targets, seed: int = 0) -> lis
       plan's G2 voltages;
     - the circle board: the reachable large circles, then random points within 16.5 pitches
       of its centre, as many views as the plan's;
-    - the sphere: the plan's G1 grid (its step and extent) around the aim at its measured
-      centre, lit at the plan's G2 voltage; nodes whose view would cut the sphere dropped.
+    - the sphere: the plan's G1 grid nodes (they chain the positions' corrections), lit at
+      the plan's G2 voltage; nodes whose view would cut the measured sphere dropped.
 
     Raises
     ------
@@ -784,36 +826,20 @@ def views_for(model, p: Placement, T, targets: cp.Targets, seed: int = 0) -> lis
         return [CaptureStep(pose, None, np.column_stack([u, np.zeros((len(u), 2))]), False,
                             note=f'{p.stage}: circle board placement {pose} measured at '
                                  f'{cp._mm(c)}, {len(u)} G1 positions')]
-    # the sphere: the plan's grid shape around the measured centre
+    # the sphere: the plan's G1 grid nodes (one global grid, chosen so that neighbouring
+    # positions share nodes and their corrections chain), kept where the sphere measured
+    # within SPHERE_MAX_OFFSET of its position asked for is wholly in view
     V = np.vstack([v for v, lit, _ in p.views if lit])
     rate = next(r for _, lit, r in p.views if lit)
-    step = _grid_step(V[:, :2])
-    reach = 0.5 * (V[:, :2].max(axis=0) - V[:, :2].min(axis=0))
-    aim = aim_g1(model, c, max_abs_u=MAX_ABS_VOLTAGE)
-    if not np.all(np.isfinite(aim)):
-        raise ValueError('its centre is out of G1 reach')
-    axes = [np.round(np.arange(math.ceil((a - r) / step - 1e-9),
-                               math.floor((a + r) / step + 1e-9) + 1)) * step
-            for a, r in zip(aim, np.maximum(reach, step), strict=True)]
-    grid = np.array([[a, b] for a in axes[0] for b in axes[1]])
     r_px = model.intrinsics.fx * float(p.target) / max(float(c[2]), 1e-6)
-    keep = [cp.check_view(model, targets, c[None], centre=c, g1=g, radius_px=r_px) is None
-            for g in grid]
-    grid = grid[np.array(keep, dtype=bool)]
-    if len(grid) < cp.MIN_SPHERE_NODES:
-        raise ValueError(f'{len(grid)} G1 grid node(s) see the whole sphere, '
+    keep = np.array([cp.check_view(model, targets, c[None], centre=c, g1=v[:2],
+                                   radius_px=r_px) is None for v in V], dtype=bool)
+    if keep.sum() < cp.MIN_SPHERE_NODES:
+        raise ValueError(f'{int(keep.sum())} G1 grid node(s) see the whole sphere, '
                          f'{cp.MIN_SPHERE_NODES} needed')
-    u2 = float(np.median(V[:, 3]))
-    volts = np.column_stack([grid, np.zeros(len(grid)), np.full(len(grid), u2)])
-    return [CaptureStep(pose, None, volts, True, frame_rate=rate,
+    return [CaptureStep(pose, None, V[keep], True, frame_rate=rate,
                         note=f'{p.stage}: sphere placement {pose} measured at {cp._mm(c)}, '
-                             f'{len(grid)} G1 grid nodes')]
-
-
-def _grid_step(u) -> float:
-    d = np.abs(np.diff(np.unique(np.round(u.ravel(), 6))))
-    d = d[d > 1e-6]
-    return float(d.min()) if d.size else 0.1
+                             f'{int(keep.sum())} of the plan\'s {len(V)} G1 grid nodes')]
 
 
 def check_step(p: Placement, voltages) -> CaptureStep:

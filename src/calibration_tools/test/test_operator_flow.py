@@ -149,3 +149,21 @@ def test_malformed_instruction_targets_are_refused():
         of.target_from_spec('teapot', {})
     with pytest.raises(ValueError, match='missing'):
         of.target_from_spec('checkerboard', {'cols': 11})
+
+
+def test_sphere_the_laser_line_misses_is_told_to_move_along_the_sheet(bench):
+    """The joint correction's sphere put 10 mm too near: the lit frame shows the line off
+    its middle, and the instruction moves it away (+z); where asked, it passes."""
+    _, cal, model, targets, sim = bench
+    p = of.placements('joint_correction', plan('joint_correction', cal, quick=True))[0]
+
+    def look_lit(volts):
+        return execute_in_process(sim, [CaptureStep(0, None, volts, True)])[0]
+
+    _place(sim, p, p.V0_T_target)
+    loc, move = of.search(model, p, targets, _looker(sim), None, look_lit)
+    assert move is None and np.linalg.norm(loc.V0_T_target[:2, 3] - p.centre[:2]) < 2e-3
+    _place(sim, p, _off(p, [0.0, 0.0, -0.01], 0.0))
+    loc, move = of.search(model, p, targets, _looker(sim), None, look_lit)
+    assert move is not None and move.reason == 'off_laser_line', move
+    assert move.move[2] > 0.004 and 'away (+z)' in move.words
