@@ -1,7 +1,7 @@
 """Drawn rigs of the family, each calibrated and evaluated through the graph.
 
 Run: ``.venv/bin/python benchmarks/rig_family.py [--rigs 20] [--seed-start 0] [--quick]
-[--out DIR] [--timeout S]``
+[--out DIR] [--timeout S] [--operator [--reference-rig] [--distances MM,..|none]]``
 
 For each seed from ``--seed-start``: ``galvoscan_sim.rig_family.draw_rig(seed)`` (a rig of
 the family, at a working distance drawn in 100..1000 mm) is written to
@@ -21,6 +21,17 @@ RMSE <= 0.165 mm and plate RMSE <= 0.281 mm at the rig's own distance, a finite 
 at every distance), median / p90 / max of the stair, plate, sphere-radius and
 transfer-matrix errors, and which stage failed on which rig (and at which distance). Times
 are wall-clock on a shared machine. The last line of stdout is one JSON object.
+
+``--operator``: every rig (and the reference rig first, with ``--reference-rig``) is
+evaluated twice, both times calibrated through the simulated operator
+(:mod:`galvoscan.operator`, seeded by the rig's seed): once with a person's imprecision and
+mistakes, once with the zero-error operator (``evaluate --exact-operator``: every target
+exactly where asked). Per rig it prints both stair and plate errors and their ratios
+(operator over zero-error), and the placements each stage took; the last line's JSON
+holds ``rigs``, ``completed`` (rigs where both runs completed), ``stair_ratio_max``,
+``plate_ratio_max``, ``placements_max`` (most placements one stage took, retakes
+included), ``placements_within_limit`` (every stage took at most
+:data:`PLACEMENT_FACTOR` x its kept placements plus :data:`PLACEMENT_SLACK`) and the rows.
 """
 
 from __future__ import annotations
@@ -45,6 +56,12 @@ from reconstructor.uncertainty import prediction_summary
 STAIR_LIMIT_MM = 0.165
 PLATE_LIMIT_MM = 0.281
 DISTANCES = ('100', '200', '350', '400', '650', '1000')
+#: With ``--operator``: the stated bound on the placements one stage takes, retakes and
+#: re-placements included: this many times the placements it kept, plus the slack.
+PLACEMENT_FACTOR = 2.0
+PLACEMENT_SLACK = 2
+#: The operator's stair and plate errors may be this many times the zero-error operator's.
+OPERATOR_RATIO_LIMIT = 1.25
 FIGURES = (  # (metrics key, short name, absolute value)
     ('stair_step_error_rmse_mm', 'stair_rmse_mm', False),
     ('plate_flatness_rmse_mm', 'plate_rmse_mm', False),
@@ -80,13 +97,21 @@ def _read_json(path: Path):
 
 
 def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
-            model: str = 'physical') -> dict:
-    """Draw rig ``seed`` and evaluate it; never raises (a failure is recorded)."""
+            model: str = 'physical', extra=(), rig_name: str | None = None) -> dict:
+    """Draw rig ``seed`` (or use the shipped rig ``rig_name``) and evaluate it with the extra
+    ``evaluate`` arguments; never raises (a failure is recorded)."""
     t0 = time.monotonic()
     row = {'seed': seed, 'completed': False, 'failures': []}
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        description = draw_rig(seed)
+        if rig_name is not None:
+            from galvoscan_sim.config import read_yaml_file
+            from galvoscan_sim.rig import RIG_DIR
+
+            description = read_yaml_file(RIG_DIR / f'{rig_name}.yaml')
+            row['rig'] = rig_name
+        else:
+            description = draw_rig(seed)
         row['working_distance_mm'] = working_distance(description) * 1e3
         row['build'] = build_of(description)
         rig_path = folder / 'rig.yaml'
@@ -98,7 +123,7 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
     out = folder / 'evaluation'
     argv = [sys.executable, '-m', 'galvoscan.cli', 'evaluate', '--rig', str(rig_path),
             '--out', str(out), '--seed', str(seed), '--model', model, '--no-paper-method'] \
-        + (['--quick'] if quick else [])
+        + (['--quick'] if quick else []) + list(extra)
     try:
         with open(folder / 'evaluate.log', 'w') as log:
             rc = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT, timeout=timeout,
@@ -120,6 +145,7 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
         v = metrics.get(key)
         row[name] = abs(v) if absolute and _finite(v) else v
     row['by_distance_mm'] = metrics.get('stair_step_error_rmse_mm_by_distance', {})
+    row['operator'] = metrics.get('operator')
     details = _read_json(out / 'details.json') or {}
     for mm, d in (details.get('stair_by_distance') or {}).items():
         if d.get('error_mm') is None:
@@ -255,13 +281,24 @@ def main(argv=None) -> int:
     p.add_argument('--model', choices=('paper', 'physical', 'both'), default='physical',
                    help="model form the calibrations fit (both: every rig with each, and the "
                         "rigs the physical model does worse on)")
+    p.add_argument('--operator', action='store_true',
+                   help='each rig calibrated through the simulated operator and through the '
+                        'zero-error operator, compared (see the module)')
+    p.add_argument('--reference-rig', action='store_true',
+                   help='with --operator: the reference rig first, then the drawn rigs')
+    p.add_argument('--distances', default=None, metavar='MM[,MM..]|none',
+                   help="evaluate's --distances (default: the paper's six)")
     p.add_argument('--keep-bags', action='store_true',
                    help="keep every rig's recorded calibration bags (default: only of the rigs "
                         'that did not pass)')
     args = p.parse_args(argv)
-    if args.rigs < 1 or args.seed_start < 0 or args.timeout <= 0:
-        p.error('--rigs must be >= 1, --seed-start >= 0 and --timeout > 0')
+    if args.rigs < (0 if args.operator and args.reference_rig else 1) \
+            or args.seed_start < 0 or args.timeout <= 0:
+        p.error('--rigs must be >= 1 (>= 0 with --operator --reference-rig), --seed-start '
+                '>= 0 and --timeout > 0')
     t0 = time.monotonic()
+    if args.operator:
+        return operator_family(args, t0)
     models = ('paper', 'physical') if args.model == 'both' else (args.model,)
     rows = {m: [] for m in models}
     seeds = range(args.seed_start, args.seed_start + args.rigs)
@@ -290,6 +327,76 @@ def main(argv=None) -> int:
         summary = {**summary['physical'], 'paper': summary['paper'],
                    **compare(rows['paper'], rows['physical'])}
         summary['wall_s'] = wall
+    print(json.dumps(summary, default=float))
+    return 0
+
+
+def _ratio(a, b):
+    return a / b if _finite(a) and _finite(b) and b > 0 else None
+
+
+def operator_row(person: dict, exact: dict) -> dict:
+    """One rig's operator run against its zero-error run."""
+    placed, limit_ok = {}, True
+    op = person.get('operator') or {}
+    for stage, n in (op.get('placements') or {}).items():
+        kept = (op.get('placements_kept') or {}).get(stage, 0)
+        placed[stage] = n
+        limit_ok = limit_ok and n <= PLACEMENT_FACTOR * kept + PLACEMENT_SLACK
+    return {'seed': person['seed'], 'rig': person.get('rig', f"seed {person['seed']}"),
+            'completed': bool(person['completed'] and exact['completed']),
+            'stair_mm': person.get('stair_rmse_mm'), 'stair_exact_mm': exact.get('stair_rmse_mm'),
+            'plate_mm': person.get('plate_rmse_mm'), 'plate_exact_mm': exact.get('plate_rmse_mm'),
+            'stair_ratio': _ratio(person.get('stair_rmse_mm'), exact.get('stair_rmse_mm')),
+            'plate_ratio': _ratio(person.get('plate_rmse_mm'), exact.get('plate_rmse_mm')),
+            'placements': placed, 'placements_within_limit': limit_ok,
+            'views_rejected': op.get('views_rejected'), 'mistakes': op.get('mistakes_whole_run'),
+            'wall_s': person.get('wall_s', 0.0) + exact.get('wall_s', 0.0),
+            'failures': person['failures'] + exact['failures']}
+
+
+def operator_family(args, t0: float) -> int:
+    """``--operator``: every rig through the simulated operator and the zero-error one."""
+    extra = ['--distances', args.distances] if args.distances else []
+    runs = ([(None, 'reference')] if args.reference_rig else []) + [
+        (s, None) for s in range(args.seed_start, args.seed_start + args.rigs)]
+    rows = []
+    for i, (seed, name) in enumerate(runs, 1):
+        folder = Path(args.out) / (name or f'seed_{seed:03d}')
+        s = 0 if seed is None else seed
+        person = run_rig(s, folder / 'operator', args.quick, args.timeout, args.model,
+                         extra, name)
+        exact = run_rig(s, folder / 'exact_operator', args.quick, args.timeout, args.model,
+                        extra + ['--exact-operator'], name)
+        row = operator_row(person, exact)
+        rows.append(row)
+        print(f"[{i}/{len(runs)}] {row['rig']}: " + (
+            f"stair {_f(row['stair_mm'])} mm (zero-error operator {_f(row['stair_exact_mm'])}, "
+            f"ratio {_f(row['stair_ratio'])}), plate {_f(row['plate_mm'])} mm "
+            f"({_f(row['plate_exact_mm'])}, ratio {_f(row['plate_ratio'])}); placements "
+            f"{row['placements']}; {row['wall_s']:.0f} s" if row['completed'] else
+            'not completed: ' + _short('; '.join(f"{f.get('stage')}: {f.get('message')}"
+                                                 for f in row['failures']))), flush=True)
+        if not args.keep_bags:
+            for sub in ('operator', 'exact_operator'):
+                drop_bags(folder / sub)
+    done = [r for r in rows if r['completed']]
+
+    def worst(key):
+        vals = [r[key] for r in done if r[key] is not None]
+        return max(vals) if vals else None
+
+    summary = {'rigs': len(rows), 'completed': len(done),
+               'stair_ratio_max': worst('stair_ratio'), 'plate_ratio_max': worst('plate_ratio'),
+               'ratio_limit': OPERATOR_RATIO_LIMIT,
+               'placements_max': max((n for r in rows for n in r['placements'].values()),
+                                     default=None),
+               'placements_within_limit': all(r['placements_within_limit'] for r in done),
+               'placement_limit': f'{PLACEMENT_FACTOR:g} x kept + {PLACEMENT_SLACK} per stage',
+               'quick': bool(args.quick), 'distances': args.distances or 'paper six',
+               'wall_s': time.monotonic() - t0, 'rows': rows}
+    (Path(args.out) / 'operator_rigs.json').write_text(json.dumps(rows, indent=1,
+                                                                  default=float))
     print(json.dumps(summary, default=float))
     return 0
 

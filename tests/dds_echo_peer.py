@@ -15,7 +15,7 @@ import galvoscan_msgs.srv
 import numpy as np
 
 MESSAGE_TYPES = [galvoscan_msgs.msg.GalvoState, galvoscan_msgs.msg.StripeCenters,
-                 galvoscan_msgs.msg.CalibrationStage]
+                 galvoscan_msgs.msg.CalibrationStage, galvoscan_msgs.msg.CalibrationInstruction]
 SERVICE_TYPES = [getattr(galvoscan_msgs.srv, n) for n in sorted(dir(galvoscan_msgs.srv))
                  if not n.startswith('_') and hasattr(getattr(galvoscan_msgs.srv, n), 'Request')]
 
@@ -55,6 +55,9 @@ def _fill(msg, rng):
                 raise AssertionError(f'unhandled sequence type {ftype}')
         elif ftype in _SCALARS:
             setattr(msg, name, _SCALARS[ftype](rng))
+        elif ftype.endswith(']') and ftype.split('[')[0] in _SCALARS:  # fixed-size array
+            inner, n = ftype[:-1].split('[')
+            setattr(msg, name, [_SCALARS[inner](rng) for _ in range(int(n))])
         elif ftype == 'builtin_interfaces/Time':
             setattr(msg, name, type(getattr(msg, name))(
                 sec=rng.randrange(0, 2 ** 31), nanosec=rng.randrange(0, 10 ** 9)))

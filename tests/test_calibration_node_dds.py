@@ -1,5 +1,7 @@
 """Calibration services over real DDS: with the sim driver running, capture and compute the
-dynamic-camera stage through the calibration node, and the calibration file appears."""
+dynamic-camera stage through the calibration node, its board placed by the simulated
+operator (a person's imprecision) and found by the scanner, and the calibration file
+appears."""
 
 import sys
 
@@ -14,6 +16,7 @@ from galvoscan_msgs.srv import (
 )
 from rclpy.node import Node
 
+from galvoscan.operator import SimulatedOperator
 from galvoscan_common.executor import ServiceClients
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
@@ -39,6 +42,7 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
 
     services = ServiceClients(node, ex, on_error=lambda exc: AssertionError(
         f'{exc}\n' + proc.log_path.read_text()))
+    operator = SimulatedOperator(int(ros_env['ROS_DOMAIN_ID']), seed=3).start()
 
     def call(srv, name, req, timeout=240.0, resend=False):
         return services.call(srv, name, req, timeout, resend)
@@ -81,7 +85,9 @@ def test_capture_and_compute_dynamic_camera(spawn, ros_env, tmp_path):
                     ComputeCalibration.Request(stage='no_such_stage'))
         assert not resp.success and 'unknown stage' in resp.message
         assert proc.poll() is None
+        assert operator.stats['placements']['dynamic_camera'] >= 1
     finally:
+        operator.stop()
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)

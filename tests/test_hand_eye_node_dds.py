@@ -22,6 +22,7 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.node import Node
 from scipy.spatial.transform import Rotation
 
+from galvoscan.operator import EXACT, SimulatedOperator
 from galvoscan_common.executor import ServiceClients
 from galvoscan_sim import load_rig
 from reconstructor import calibration_file
@@ -115,6 +116,9 @@ def test_hand_eye_poses_from_the_topic(spawn, ros_env, tmp_path):
 
     services = ServiceClients(node, ex, on_error=lambda exc: AssertionError(
         f'{exc}\n' + proc.log_path.read_text()))
+    # the simulator's scene follows the robot: the simulated operator, playing the robot's
+    # side of the instructions, puts the artefact where each robot pose shows it
+    operator = SimulatedOperator(int(ros_env['ROS_DOMAIN_ID']), person=EXACT).start()
 
     def call(srv, name, req, timeout=120.0, resend=False):
         return services.call(srv, name, req, timeout, resend)
@@ -210,6 +214,7 @@ def test_hand_eye_poses_from_the_topic(spawn, ros_env, tmp_path):
             again.message
         assert proc.poll() is None
     finally:
+        operator.stop()
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)

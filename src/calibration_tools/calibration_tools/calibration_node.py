@@ -2,15 +2,26 @@
 
 Services
     calibration/capture  galvoscan_msgs/CaptureCalibration: run the stage's capture plan
-                         on the driver (``sim/set_scene`` to place boards and the sphere in
-                         the simulator, ``scan/start`` for each pattern) and record
+                         with its operator: each target placement is asked for on
+                         ``calibration/instruction``; after "placed" the scanner searches
+                         for the target, measures its pose from its own detections, plans
+                         the views around it (``scan/start`` for each) and records
                          ``camera/image_raw`` + ``galvo/state`` into one rosbag2 directory
-                         per pose under ``data_dir``.
+                         per step under ``data_dir`` (search and check views under
+                         ``search/`` and ``checks/``; the measured poses in
+                         ``measured_poses.yaml``). See docs/calibrate-real-rig.md.
+    calibration/operator galvoscan_msgs/OperatorAction: the operator's answer to the
+                         instruction: placed, undo, skip or done.
     calibration/compute  galvoscan_msgs/ComputeCalibration: run the stage on captured bags,
                          merge the result into the active calibration and save it
                          atomically to ``calibration_file``.
     calibration/load     galvoscan_msgs/LoadCalibration
     calibration/save     galvoscan_msgs/SaveCalibration
+
+Publications
+    calibration/instruction  galvoscan_msgs/CalibrationInstruction, latched (transient
+                         local, depth 1): what the operator must do now, with the stage's
+                         feedback (placements, views kept and rejected by reason).
 
 Subscriptions (spun only while a capture runs)
     robot/flange_pose    geometry_msgs/PoseStamped (``robot_pose_topic``): the robot's flange
@@ -39,27 +50,27 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from galvoscan_msgs.msg import GalvoState
+from galvoscan_msgs.msg import CalibrationInstruction, GalvoState
 from galvoscan_msgs.srv import (
     CaptureCalibration,
     ComputeCalibration,
     GetScanProgress,
     LoadCalibration,
+    OperatorAction,
     SaveCalibration,
-    SetScene,
     StartScan,
 )
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 
-from calibration_tools import robot_poses, stage_runner
+from calibration_tools import operator_flow, robot_poses, stage_runner
 from calibration_tools.registry import OVERRIDABLE, plan
 from calibration_tools.registry import stage as stage_entry
-from calibration_tools.stages import KNOWN_STAGES, apply_result
+from calibration_tools.stages import KNOWN_STAGES, CaptureStep, apply_result
 from galvoscan_bag.writer import BagWriter
 from galvoscan_common.boundary import CallbackErrors, guard_service, guard_subscription
 from galvoscan_common.diagnostics import publish_periodically
@@ -83,8 +94,11 @@ class _Capture(Node):
         self.create_subscription(GalvoState, 'galvo/state', guard_subscription(
             'galvo/state', self._on_state, log, errors), qos, raw=True)
         self.clients_ = {n: self.create_client(t, n) for n, t in (
-            ('scan/start', StartScan), ('scan/progress', GetScanProgress),
-            ('sim/set_scene', SetScene))}
+            ('scan/start', StartScan), ('scan/progress', GetScanProgress))}
+        self.actions = []  # (action, placement) answered on calibration/operator
+        self.expect = None  # (placement index, states accepted for 'placed') or None
+        self.create_service(OperatorAction, 'calibration/operator', guard_service(
+            'calibration/operator', self._on_action, log, errors))
         self.pose_topic = pose_topic
         self.watch = robot_poses.PoseWatch(1.0, 1e-4, 2e-4)  # limits set per capture
         self.create_subscription(PoseStamped, pose_topic, guard_subscription(
@@ -103,6 +117,22 @@ class _Capture(Node):
             self.watch.reject(str(exc))  # a measurement it falls in is refused
             raise
         self.watch.add(T, msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9, frame)
+
+    def _on_action(self, req, resp):
+        action = req.action.strip().lower()
+        if action not in ('placed', 'undo', 'skip', 'done'):
+            resp.accepted = False
+            resp.message = f"unknown action '{req.action}'; one of placed, undo, skip, done"
+        elif self.expect is None:
+            resp.accepted, resp.message = False, 'no capture is waiting for the operator'
+        elif action in ('placed', 'skip') and req.placement != self.expect:
+            resp.accepted = False
+            resp.message = (f'the instruction asks for placement {self.expect}, not '
+                            f'{req.placement}')
+        else:
+            self.actions.append(action)
+            resp.accepted, resp.message = True, f'{action}: received'
+        return resp
 
     def _on_image(self, data):
         if self.writer is not None:
@@ -174,8 +204,20 @@ class CalibrationNode(Node):
         self.declare_parameter('robot_still_rad', 2e-4, _ranged(
             'hand_eye: the flange may turn this far while the scanner measures [rad]',
             1e-7, 0.1))
+        self.declare_parameter('operator_timeout', 900.0, _ranged(
+            'how long a capture waits for the operator\'s answer to an instruction [s]',
+            1.0, 86400.0))
+        self.declare_parameter('max_moves', 6, ParameterDescriptor(
+            description='instructions to move a target (not found, out of reach, off the '
+                        'laser line, moved during capture) before a placement is skipped'))
         self._last_bags = {}
         self._series: dict[str, _PoseSeries] = {}
+        self._instruction = self.create_publisher(
+            CalibrationInstruction, 'calibration/instruction',
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._sequence = 0
+        self.operator_stats: dict[str, dict] = {}
         self.calibration = self._initial()
         self.callback_errors = CallbackErrors()
         self.counters = {'captures': 0, 'computes': 0, 'frames_recorded': 0,
@@ -198,6 +240,9 @@ class CalibrationNode(Node):
         self._cap = _Capture(self.context, self.callback_errors,
                              self.get_parameter('robot_pose_topic').value)
         self._cap_executor.add_node(self._cap)
+        # between captures the operator service still answers (that nothing waits)
+        self.create_timer(0.1, lambda: self._cap_executor.spin_once(timeout_sec=0.0))
+        self._publish(CalibrationInstruction(state='idle', text='no capture running'))
 
     def _initial(self):
         path = self.get_parameter('initial_calibration').value
@@ -220,10 +265,8 @@ class CalibrationNode(Node):
 
     def _record_step(self, step, bag_dir):
         cap = self._cap
-        if step.scene_yaml:
-            resp = self._call('sim/set_scene', SetScene.Request(scene_yaml=step.scene_yaml))
-            if not resp.success:
-                raise RuntimeError(f'sim/set_scene: {resp.message}')
+        if step.scene_yaml:  # targets are placed by the operator, never by the node
+            raise ValueError(f'a capture step that places a target itself: {step.note}')
         # drop frames of earlier scans still queued in the subscriptions
         quiet = time.monotonic() + 0.2
         while time.monotonic() < quiet:
@@ -289,22 +332,217 @@ class CalibrationNode(Node):
             root = Path(req.output_dir or self.get_parameter('data_dir').value)
             run_dir = _new_run_dir(root, stage)
             bags = []
-            frames, wanted = self._run_steps(stage, steps, run_dir, t0, bags)
+            frames, wanted, placed = self._operator_capture(
+                stage, steps, run_dir, t0, bags, by_robot=bool(stage_entry(stage).inputs))
         except (RuntimeError, ValueError, OSError) as exc:
             resp.success, resp.message = False, f'capture {stage} failed: {exc}'
             self.get_logger().error(resp.message)
+            self._publish(CalibrationInstruction(stage=stage, state='failed',
+                                                 text=resp.message))
             return resp
         self._last_bags[stage] = bags
         self.counters['captures'] += 1
         self.counters['frames_recorded'] += frames
         resp.success = frames > 0
         resp.bag_path, resp.frames_recorded = str(run_dir), frames
-        resp.poses = len({s.pose_index for s in steps})
+        resp.poses = placed
         resp.duration = time.monotonic() - t0
-        resp.message = (f'{stage}: recorded {frames}/{wanted} frames in {len(bags)} bags '
-                        f'under {run_dir}')
+        resp.message = (f'{stage}: recorded {frames}/{wanted} frames of {placed} placement(s) '
+                        f'in {len(bags)} bags under {run_dir}; operator: '
+                        + operator_flow.stats_line(self.operator_stats[stage]))
         self.get_logger().info(resp.message)
         return resp
+
+    # -- the operator -----------------------------------------------------------------
+    def _publish(self, msg):
+        self._sequence += 1
+        msg.sequence = self._sequence
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = msg.header.frame_id or 'v0'
+        self._instruction.publish(msg)
+
+    def _instruct(self, stats, p, state, text, move=None):
+        fields = operator_flow.instruction_fields(
+            p, state, text, None if move is None else move.move,
+            '' if move is None else move.words)
+        msg = CalibrationInstruction(**fields)
+        if p.by_robot:
+            msg.header.frame_id = 'robot'
+        msg.placements_planned = stats['planned']
+        msg.placements_done = stats['placed']
+        msg.views_captured = stats['views']
+        msg.views_rejected = sum(stats['rejected'].values())
+        msg.rejected_reasons = list(stats['rejected'])
+        msg.rejected_counts = [int(v) for v in stats['rejected'].values()]
+        msg.searches = stats['search_views']
+        stats['instructions'] += 1
+        self._publish(msg)
+        if state in ('place', 'move'):
+            self.get_logger().info(f'{p.stage} placement {p.index + 1}/{stats["planned"]}: '
+                                   f'{text}')
+
+    def _wait_action(self, placement: int) -> str:
+        """The operator's next answer to the instruction of ``placement``."""
+        cap = self._cap
+        cap.actions.clear()
+        cap.expect = placement
+        timeout = self.get_parameter('operator_timeout').value
+        t_end = time.monotonic() + timeout
+        try:
+            while not cap.actions:
+                if time.monotonic() > t_end:
+                    raise RuntimeError(f'no answer from the operator within {timeout:.0f} s '
+                                       '(calibration/operator)')
+                self._cap_executor.spin_once(timeout_sec=0.05)
+            return cap.actions.pop(0)
+        finally:
+            cap.expect = None
+
+    def _look(self, p, volts, bag, note, laser_on=False):
+        """Record frames at ``volts`` (laser off unless ``laser_on``) into ``bag`` and read
+        them back."""
+        step = CaptureStep(p.index, None, volts, laser_on, frame_rate=50.0, note=note)
+        self._record_step(step, bag)
+        return stage_runner.views_from_bags([bag])
+
+    def _search(self, p, model, targets, run_dir, stats):
+        """Find the target after "placed" (:func:`operator_flow.search`), each look recorded
+        under ``run_dir/search``."""
+        def look(volts):
+            n = stats['search_scans']
+            stats['search_scans'] += 1
+            stats['search_views'] += len(volts)
+            return self._look(p, volts, run_dir / 'search' / f'place{p.index:03d}_{n:03d}',
+                              f'{p.stage}: search for placement {p.index}')
+
+        def note(volts, loc):
+            self.get_logger().info(f'{p.stage} placement {p.index}: search of {len(volts)} '
+                                   f'view(s): {loc.note}')
+
+        def look_lit(volts):
+            n = stats['search_scans']
+            stats['search_scans'] += 1
+            return self._look(p, volts, run_dir / 'search' / f'place{p.index:03d}_{n:03d}',
+                              f'{p.stage}: laser line on placement {p.index}', laser_on=True)
+
+        return operator_flow.search(model, p, targets, look, note, look_lit)
+
+    def _operator_capture(self, stage, steps, run_dir, t0, bags, by_robot=False,
+                          after_step=None, first=0):
+        """Every placement of the plan through the operator (see the module); returns
+        (frames, frames wanted, placements kept)."""
+        from calibration_tools import capture_plans as cp
+
+        model = cp.current_model(self.calibration)
+        targets = getattr(steps, 'targets', None) or cp.choose_targets(model)
+        places = operator_flow.placements(stage, steps, by_robot)
+        stats = operator_flow.new_stats(len(places))
+        self.operator_stats[stage] = stats
+        max_moves = int(self.get_parameter('max_moves').value)
+        kept, measured = [], {}
+        i, moves, frames, wanted, counter = 0, 0, 0, 0, first
+        state, text, move = 'place', '', None
+        t_start = time.monotonic()
+        while i < len(places):
+            p = places[i]
+            if state == 'place':
+                self._instruct(stats, p, 'place', operator_flow.describe(p, text))
+            else:
+                self._instruct(stats, p, 'move', text, move)
+            action = self._wait_action(p.index)
+            if action == 'done':
+                stats['done_early'] = True
+                break
+            if action in ('skip', 'undo'):
+                if action == 'skip':
+                    stats['skipped'] += 1
+                    i += 1
+                elif kept:
+                    q, mine, got, n = kept.pop()
+                    for bag in mine:
+                        shutil.rmtree(bag, ignore_errors=True)
+                        bags.remove(bag)
+                    frames, wanted = frames - got, wanted - n
+                    measured.pop(q.index, None)
+                    stats['placed'] -= 1
+                    stats['undone'] += 1
+                    i = places.index(q)
+                state, text, moves = 'place', 'Undone: ' if action == 'undo' else '', 0
+                continue
+            T, why, views, loc = None, None, p.plan_steps, None
+            if not p.by_robot:
+                self._instruct(stats, p, 'search', 'Searching for the target: keep it still.')
+                loc, why = self._search(p, model, targets, run_dir, stats)
+                T = None if loc is None else loc.V0_T_target
+                if why is None:
+                    try:
+                        views = operator_flow.views_for(model, p, T, targets)
+                    except ValueError as exc:
+                        why = operator_flow.reach_move(model, p, T[:3, 3], str(exc))
+            if why is not None:
+                stats['refused'][why.reason] = stats['refused'].get(why.reason, 0) + 1
+                moves += 1
+                if moves > max_moves:
+                    self.get_logger().warning(f'{stage} placement {p.index} skipped after '
+                                              f'{max_moves} moves: {why.words}')
+                    stats['skipped'] += 1
+                    i, state, text, moves = i + 1, 'place', '', 0
+                    continue
+                state, text, move = 'move', why.words, why
+                continue
+            mine = []
+            try:
+                self._instruct(stats, p, 'capture', 'Capturing: hold it still.')
+                got, n = self._run_steps(stage, views, run_dir, t0, mine, after_step,
+                                         first=counter)
+                counter += len(views)
+                shift = 0.0
+                if not p.by_robot:
+                    after = self._check(p, loc.check_voltages, run_dir, counter)
+                    shift = operator_flow.feature_shift_px(loc.features, after)
+            except BaseException:
+                for bag in mine:
+                    shutil.rmtree(bag, ignore_errors=True)
+                raise
+            if shift > operator_flow.MOVED_PX:
+                for bag in mine:
+                    shutil.rmtree(bag, ignore_errors=True)
+                stats['rejected']['moved'] = stats['rejected'].get('moved', 0) + got
+                moves += 1
+                state, move = 'place', None
+                text = (f'The target moved during the capture ({shift:.1f} px): its views '
+                        'are retaken. ')
+                self.get_logger().warning(f'{stage} placement {p.index}: {text}')
+                continue
+            bags += mine
+            frames, wanted = frames + got, wanted + n
+            kept.append((p, mine, got, n))
+            if T is not None:
+                measured[p.index] = T
+            stats['placed'] += 1
+            stats['views'] += got
+            i, state, text, moves = i + 1, 'place', '', 0
+        stats['seconds'] = time.monotonic() - t_start
+        if measured:
+            operator_flow.write_measured_poses(run_dir / operator_flow.MEASURED_POSES, measured)
+        done = CalibrationInstruction(stage=stage, state='done', text=(
+            f'{stage}: {stats["placed"]} of {len(places)} placements captured; '
+            + operator_flow.stats_line(stats)))
+        done.placements_planned, done.placements_done = len(places), stats['placed']
+        done.views_captured = stats['views']
+        done.views_rejected = sum(stats['rejected'].values())
+        done.rejected_reasons = list(stats['rejected'])
+        done.rejected_counts = [int(v) for v in stats['rejected'].values()]
+        done.searches = stats['search_views']
+        self._publish(done)
+        return frames, wanted, stats['placed']
+
+    def _check(self, p, voltages, run_dir, counter):
+        """The motion gate's view of the target (its features) after its views."""
+        step = operator_flow.check_step(p, voltages)
+        got = self._look(p, step.voltages, run_dir / 'checks' /
+                         f'place{p.index:03d}_{counter:03d}', step.note)
+        return operator_flow.features(p, got[0].image) if got else None
 
     def _run_steps(self, stage, steps, run_dir, t0, bags: list, after_step=None, first=0):
         """Record every step into its own bag under ``run_dir`` (numbered from ``first``),
@@ -372,8 +610,9 @@ class CalibrationNode(Node):
                 cap.watch.check_still(cap.now(), f'robot pose {number}, step {i + 1}/'
                                       f'{len(steps)} ({step.note})', cap.pose_topic)
 
-            frames, wanted = self._run_steps(stage, steps, series.run_dir, t0, bags, still,
-                                             first=len(series.bags))
+            frames, wanted, _ = self._operator_capture(
+                stage, steps, series.run_dir, t0, bags, by_robot=True, after_step=still,
+                first=len(series.bags))
             recorded = robot_poses.RobotPoses(
                 base, series.flange_frame, np.stack([*series.poses, T]),
                 tuple(range(number + 1)), cap.pose_topic)
@@ -413,7 +652,8 @@ class CalibrationNode(Node):
         """What the operator supplies for ``stage`` (node parameters named as its inputs)."""
         entry = stage_entry(stage)
         out = {k: self.get_parameter(k).value for k in entry.inputs}
-        out.update({k: self.get_parameter(k).value for k in OVERRIDABLE if k in entry.options})
+        out.update({k: self.get_parameter(k).value for k in OVERRIDABLE
+                    if k in entry.options and self.has_parameter(k)})
         return out
 
     # -- compute ----------------------------------------------------------------------
@@ -438,6 +678,8 @@ class CalibrationNode(Node):
             name = self._pose_topic_input(stage)
             if name:  # the poses recorded with these bags
                 inputs[name] = str(_recorded_poses(bags))
+            if 'measured_poses' in stage_entry(stage).options:
+                inputs['measured_poses'] = operator_flow.read_measured_poses(bags)
             views = stage_runner.views_from_bags(bags)
             result = stage_runner.compute(stage, views, self.calibration, progress=progress,
                                           inputs=inputs)

@@ -78,19 +78,22 @@ class Stage:
 def _run_intrinsics(views, calibration, options, report):
     from calibration_tools.intrinsics import run_intrinsics
 
-    return run_intrinsics(views, calibration, options['board'], progress=report)
+    return run_intrinsics(views, calibration, options['board'], progress=report,
+                          max_abs_u1=options['max_abs_u1'])
 
 
 def _run_dynamic_camera(views, calibration, options, report):
-    """The plan's board placements (:func:`capture_plans.circle_board_poses`) are the priors."""
+    """The board poses measured during capture (``measured_poses``, from the board's own
+    detections) are the priors; without them the plan's placements
+    (:func:`capture_plans.circle_board_poses`, views captured exactly where planned)."""
     from calibration_tools.dynamic_camera import run_dynamic_camera
 
-    placed = options['board_poses']
+    placed = options.get('measured_poses') or dict(enumerate(options['board_poses']))
     poses = sorted({int(v.pose_index) for v in views})
-    unknown = [p for p in poses if p >= len(placed)]
+    unknown = [p for p in poses if p not in placed]
     if unknown:
-        raise ValueError(f'dynamic_camera: pose_index {unknown} is not a placement of the '
-                         f'capture plan (0..{len(placed) - 1})')
+        raise ValueError(f'dynamic_camera: pose_index {unknown} is not a placement with a '
+                         f'known pose ({sorted(placed)})')
     priors = {p: placed[p] for p in poses}
     return run_dynamic_camera(views, calibration, options['board'], board_pose=priors,
                               refine_poly=options['refine_poly'], model=options['model'],
@@ -198,14 +201,17 @@ def _options(**kw) -> MappingProxyType:
 
 #: The stages, in calibration order.
 REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
+    # G1 is aimed at the board wherever the operator put it: plane mirrors move the virtual
+    # camera but leave its intrinsics as they are, so views at any U1 count.
     Stage('intrinsics',
           lambda model, quick: cp.intrinsics_steps(model, 8 if quick else 30),
-          _run_intrinsics, targets=lambda t, m: {'board': t.checkerboard}),
+          _run_intrinsics, _options(max_abs_u1=cp.MAX_ABS_VOLTAGE + 0.1),
+          targets=lambda t, m: {'board': t.checkerboard}),
     # The reference rig's galvos are non-linear by up to ~0.02 deg: fit their cubic.
     Stage('dynamic_camera',
           lambda model, quick: cp.dynamic_camera_steps(
               model, [20] if quick else [40, 12, 12, 12, 12]),
-          _run_dynamic_camera, _options(refine_poly=2, model='physical'),
+          _run_dynamic_camera, _options(refine_poly=2, model='physical', measured_poses=None),
           targets=_circle_board),
     Stage('laser_plane',
           lambda model, quick: cp.laser_plane_steps(model, 1 if quick else 2),
@@ -249,8 +255,10 @@ def stage(name: str) -> Stage:
 
 
 #: Stage options an operator may set per run (node parameter or offline flag of that name):
-#: ``model``, the model form (``paper`` or ``physical``) the dynamic-camera stage fits.
-OVERRIDABLE = ('model',)
+#: ``model``, the model form (``paper`` or ``physical``) the dynamic-camera stage fits;
+#: ``measured_poses``, the board poses the capture measured (``{pose_index: V0_T_W}``,
+#: :func:`calibration_tools.operator_flow.read_measured_poses`).
+OVERRIDABLE = ('model', 'measured_poses')
 
 
 def stage_inputs(name: str, inputs=None) -> dict:

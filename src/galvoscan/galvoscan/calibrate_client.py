@@ -47,17 +47,42 @@ def capture_and_compute(client, stage: str):
     return cap, comp
 
 
-def calibrate_all(client, cal_path, progress, quick=False) -> dict:
-    """Capture and compute each stage in order; return the stage figures for the report."""
+def calibrate_all(client, cal_path, progress, quick=False, operator=None) -> dict:
+    """Capture and compute each stage in order; return the stage figures for the report.
+
+    With the simulated ``operator`` (:class:`galvoscan.operator.SimulatedOperator`) that
+    placed the targets, ``info['operator']`` holds its figures per stage: placements it
+    made (retakes included) and kept, instructions given, views rejected by reason, search
+    views and wall time.
+    """
+    import time
+
     progress.stage('calibration (capture + compute)', len(STAGES), 'stages')
     info = {}
+    ops = {}
     for stage in STAGES:
+        before = dict(operator.stats['placements']) if operator is not None else {}
+        asked = dict(operator.stats['instructions_by_stage']) if operator is not None else {}
+        t0 = time.monotonic()
         cap, comp = capture_and_compute(client, stage)
         info[stage] = {'frames': cap.frames_recorded, 'capture_s': cap.duration,
                        'samples_used': comp.samples_used,
                        'samples_rejected': comp.samples_rejected}
+        if operator is not None:
+            done = operator.finished.get(stage, {})
+            ops[stage] = {
+                'placements': operator.stats['placements'].get(stage, 0)
+                - before.get(stage, 0),
+                'placements_kept': cap.poses,
+                'instructions': operator.stats['instructions_by_stage'].get(stage, 0)
+                - asked.get(stage, 0),
+                'views_rejected': done.get('views_rejected', {}),
+                'search_views': done.get('search_views', 0),
+                'wall_s': time.monotonic() - t0}
         progress.advance(note=f'{stage}: {cap.frames_recorded} frames, '
                               f'{comp.samples_used} used, {comp.samples_rejected} rejected')
+    if operator is not None:
+        info['operator'] = ops
     cal = calibration_file.load(cal_path)
     for stage in STAGES:
         info[stage]['residuals'] = cal.stages.get(stage, {}).get('residuals', {})

@@ -6,6 +6,10 @@
     galvoscan replay ...
     galvoscan bag-recover ...
     galvoscan calibrate STAGE ...
+    galvoscan operator [--sim [--seed N] [--exact]]
+                                (the calibration's operator: print the running calibration
+                                node's instructions and answer them from the keyboard; --sim:
+                                place the targets in the simulator as a person would)
     galvoscan evaluate [--rig FILE] [--seed N] [--quick] [--out DIR]
     galvoscan demo [--out DIR]  (evaluate on the reference rig; what `make demo` runs)
     galvoscan rig random --seed N [--distance Z] --out FILE  (draw a plausible rig)
@@ -27,6 +31,7 @@ DELEGATED = {
     'replay': 'galvoscan_bag.replay_node:main',
     'bag-recover': 'galvoscan_bag.recover:main',
     'calibrate': 'galvoscan.offline:main',
+    'operator': 'galvoscan.operator:main',
     'scan': 'galvoscan.scan_client:main',
     'evaluate': 'galvoscan.evaluate:main',
     'view': 'galvoscan_view.view_node:main',

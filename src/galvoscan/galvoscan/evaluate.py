@@ -3,7 +3,9 @@
 1. Starts the graph (driver with the sim backend, stripe_extractor, reconstructor,
    calibration node), one process per node, under the supervisor.
 2. Runs every calibration stage through the calibration node's services (capture, then
-   compute); the sim scene service places the boards and the sphere.
+   compute) with the simulated operator (:mod:`galvoscan.operator`): it reads the node's
+   instructions and places the boards and the sphere through the sim scene service with a
+   person's imprecision and mistakes (seeded by ``--seed``); the scanner finds them.
 3. Scans the paper's test objects through the same graph and scores the clouds against the
    scene's ground truth, every object placed around the rig's working point (where its
    laser sheet crosses its optical axis; :class:`galvoscan.eval_scenes.Site`): the stair
@@ -555,6 +557,9 @@ class Graph:
         params = bringup.with_sim_starting_calibration(params, self.nodes, self.out / 'start')
         self.sup = bringup.Supervisor(self.nodes, params, env=env, log_dir=self.out / 'logs')
         self.client = None
+        self.operator = None
+        self.operator_seed = int(getattr(args, 'seed', 0))
+        self.exact_operator = bool(getattr(args, 'exact_operator', False))
 
     def __enter__(self):
         self.progress.log(f'starting the graph ({", ".join(self.nodes)}), logs in '
@@ -563,12 +568,19 @@ class Graph:
         try:
             self.client = GraphClient(int(self.env['ROS_DOMAIN_ID']))
             self.client.wait_ready()
+            from galvoscan.operator import EXACT, PERSON, SimulatedOperator
+
+            self.operator = SimulatedOperator(
+                int(self.env['ROS_DOMAIN_ID']), self.operator_seed,
+                EXACT if self.exact_operator else PERSON, log_fn=self.progress.log).start()
         except BaseException:
             self.__exit__(None, None, None)
             raise
         return self
 
     def __exit__(self, *exc):
+        if self.operator is not None:
+            self.operator.stop()
         if self.client is not None:
             self.client.close()
         self.sup.stop()
@@ -671,7 +683,8 @@ class Graph:
             self.progress.log('USING THE SIMULATOR TRUTH AS CALIBRATION (upper bound, not a '
                               'result)')
         else:
-            stage_info = calibrate_all(self.client, self.cal_path, self.progress, quick=quick)
+            stage_info = calibrate_all(self.client, self.cal_path, self.progress, quick=quick,
+                                       operator=self.operator)
             if cell:
                 try:  # a rig the cell positions do not suit still gets every other figure
                     stage_info['cell_extrinsic'] = calibrate_cell(
@@ -973,6 +986,9 @@ def build_parser():
                    help='working distances [mm] of the by-distance evaluation (the rig '
                         're-set, calibrated and scanned at each), 100 to 1000; "none" skips '
                         'it (default: the paper\'s ' + ','.join(map(str, DISTANCES_MM)) + ')')
+    p.add_argument('--exact-operator', action='store_true',
+                   help='the zero-error simulated operator: every target exactly where the '
+                        'instruction asks (the reference for the operator\'s imprecision)')
     p.add_argument('--demo', action='store_true', help=argparse.SUPPRESS)
     return p
 
@@ -1012,6 +1028,24 @@ def _load(args):
     return rig, description, site, working_distance(rig), _output_folder(Path(args.out))
 
 
+def _operator_metrics(operator, details) -> dict:
+    """``metrics.json``'s ``operator``: the simulated operator's figures of the evaluated
+    rig's own calibration (per stage: placements made and kept, instructions given, views
+    rejected by reason, search views, wall time) and its mistakes over the whole run."""
+    stages = details.get('stages', {}).get('operator', {})
+    return {'seed': operator.seed if operator is not None else None,
+            'exact': operator is not None and operator.person.position_m == 0.0,
+            'placements': {k: v['placements'] for k, v in stages.items()},
+            'placements_kept': {k: v['placements_kept'] for k, v in stages.items()},
+            'instructions': {k: v['instructions'] for k, v in stages.items()},
+            'views_rejected': {k: v['views_rejected'] for k, v in stages.items()},
+            'search_views': {k: v['search_views'] for k, v in stages.items()},
+            'wall_s': {k: v['wall_s'] for k, v in stages.items()},
+            'mistakes_whole_run': dict(operator.stats['mistakes']) if operator else {},
+            'placements_whole_run': sum(operator.stats['placements'].values())
+            if operator else 0}
+
+
 def _write_failure(out, exc):
     """``failure.json``: what stopped the evaluation (the stage, when a stage failed)."""
     (out / 'failure.json').write_text(json.dumps(
@@ -1049,6 +1083,7 @@ def main(argv=None):
                 paper_method = _paper_method(args, graph, rig, site, out, progress)
             by_distance = _by_distance(args, graph, description, wd * 1e3,
                                        result['stair_step_error_rmse_mm'], out, progress)
+            graph_operator = graph.operator
     except (RuntimeError, ValueError) as exc:
         progress.log(f'evaluation failed: {exc}')
         _write_failure(out, exc)
@@ -1059,6 +1094,7 @@ def main(argv=None):
                   k: v['error_mm'] for k, v in by_distance.items()},
               **result,
               **({'paper_method': paper_method} if paper_method is not None else {}),
+              'operator': _operator_metrics(graph_operator, details),
               'model': args.model, 'working_distance_mm': wd * 1e3,
               'working_point_depth_mm': site.depth * 1e3, 'scene_scale': site.scale,
               'runtime_s': time.monotonic() - t0}

@@ -174,7 +174,7 @@ def _report(result, progress: Progress):
 
 
 def run_stage(args, progress: Progress) -> int:
-    from calibration_tools import stage_runner
+    from calibration_tools import registry, stage_runner
     from calibration_tools.stages import apply_result
     from reconstructor import calibration_file
 
@@ -192,9 +192,15 @@ def run_stage(args, progress: Progress) -> int:
         progress.advance(1, bag.name)
     progress.log(f'{len(views)} frames from {len(bags)} bag(s)')
     t0 = time.monotonic()
+    inputs = _inputs(args)
+    if 'measured_poses' in registry.stage(args.stage).options:
+        # the target poses the capture measured, written beside its bags
+        from calibration_tools.operator_flow import read_measured_poses
+
+        inputs['measured_poses'] = read_measured_poses(bags)
     result = stage_runner.compute(args.stage, views, cal,
                                   progress=_progress_callback(progress, args.stage),
-                                  inputs=_inputs(args))
+                                  inputs=inputs)
     sources = [{'path': str(b.resolve()), 'sha256': stage_runner.bag_digest(b)} for b in bags]
     new = apply_result(cal, result, sources)
     calibration_file.save(new, args.calibration)

@@ -1,0 +1,169 @@
+"""The scanner finds targets an operator placed imprecisely (in process, on the simulator).
+
+Each target is placed in the simulator where a person might put it, never where the plan
+asked; the search (:func:`calibration_tools.operator_flow.search`) sees it only through
+laser-off frames the simulator renders at the G1 voltages it asks for.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from calibration_tools import capture_plans as cp
+from calibration_tools import operator_flow as of
+from calibration_tools import stage_runner
+from calibration_tools.registry import plan
+from calibration_tools.stages import CaptureStep
+from galvoscan.operator import scene_text
+from galvoscan.simulated_rig import execute_in_process, nominal_calibration, truth_model
+from galvoscan_sim.rig import load_rig
+from galvoscan_sim.scene import load_scene_text
+from galvoscan_sim.simulator import Simulator
+from reconstructor.planning import aim_g1
+
+
+@pytest.fixture(scope='module')
+def bench():
+    rig = load_rig('reference')
+    cal = nominal_calibration('reference')
+    model = cp.current_model(cal)
+    sim = Simulator(rig, load_scene_text(scene_text('sphere', {'radius': 0.01}, np.eye(4)),
+                                         'start'), seed=5)
+    return rig, cal, model, cp.choose_targets(model), sim
+
+
+def _place(sim, p, T):
+    """Put the placement's target at ``T`` (V0 is the scene frame here)."""
+    spec = yaml.safe_load(of.instruction_fields(p, 'place', '')['target_spec'])
+    sim.set_scene(load_scene_text(scene_text(p.kind, spec, T), 'operator'))
+
+
+def _looker(sim):
+    def look(volts):
+        return execute_in_process(sim, [CaptureStep(0, None, volts, False)])[0]
+    return look
+
+
+def _off(p, offset, tilt):
+    """The placement asked for, moved by ``offset`` [m] and turned ``tilt`` rad about x."""
+    T = p.V0_T_target.copy()
+    T[:3, :3] = Rotation.from_rotvec([tilt, 0.0, 0.0]).as_matrix() @ T[:3, :3]
+    T[:3, 3] += offset
+    return T
+
+
+def test_boards_80_mm_off_and_10_deg_wrong_still_calibrate(bench):
+    """Every intrinsics board 80 mm from where it was asked and turned 10 deg: the search
+    finds each one, measures its pose from its own corners, the views are aimed at it, and
+    the intrinsics computed from them are the rig's."""
+    rig, cal, model, targets, sim = bench
+    places = of.placements('intrinsics', plan('intrinsics', cal, quick=True))[:5]
+    views = []
+    for k, p in enumerate(places):
+        a = 2 * math.pi * k / len(places)
+        T = _off(p, [0.08 * math.cos(a), 0.08 * math.sin(a), 0.0], math.radians(10.0))
+        _place(sim, p, T)
+        loc, move = of.search(model, p, targets, _looker(sim))
+        assert move is None, move.words
+        # the pose is the board's own, to a fraction of a millimetre
+        assert np.linalg.norm(loc.V0_T_target[:3, 3] - T[:3, 3]) < 2e-3
+        views += execute_in_process(sim, of.views_for(model, p, loc.V0_T_target, targets))[0]
+    result = stage_runner.compute('intrinsics', views, cal)
+    assert result.samples_used == len(places)
+    true = truth_model(rig).intrinsics
+    assert abs(result.updates['intrinsics']['fx'] - true.fx) / true.fx < 2e-3
+
+
+def test_circle_grid_off_the_laser_line_is_told_which_way(bench):
+    """A laser board found 30 mm below the laser line is told to move up (-y)."""
+    _, cal, model, targets, sim = bench
+    p = of.placements('laser_plane', plan('laser_plane', cal, quick=True))[1]
+    T = _off(p, [0.02, 0.03, 0.0], 0.0)
+    _place(sim, p, T)
+    loc, move = of.search(model, p, targets, _looker(sim))
+    assert loc is not None and move is not None and move.reason == 'off_laser_line'
+    assert move.move[1] < -0.02 and 'up (-y)' in move.words
+
+
+def test_target_out_of_reach_gets_the_direction_to_move_it(bench):
+    """A board put beyond G1's reach (its edge still seen from the outermost views) is
+    reported out of reach, with the way back: towards -x."""
+    _, cal, model, targets, sim = bench
+    p = of.placements('intrinsics', plan('intrinsics', cal, quick=True))[0]
+    depth = float(p.centre[2])
+    xs = np.linspace(0.0, 1.2, 241)
+    u = aim_g1(model, np.column_stack([xs, np.zeros_like(xs), np.full_like(xs, depth)]),
+               max_abs_u=20.0)
+    edge = xs[np.argmax(np.abs(u[:, 0]) > of.MAX_ABS_VOLTAGE)]  # last reachable x
+    asked = _off(p, [edge - 0.05 - p.centre[0], -p.centre[1], 0.0], 0.0)
+    p.V0_T_target = asked  # the instruction asked for a board near the edge of reach
+    _place(sim, p, _off(p, [0.05, 0.0, 0.0], 0.0))  # it was put 50 mm beyond
+    loc, move = of.search(model, p, targets, _looker(sim))
+    assert move is not None and move.reason == 'out_of_reach', move
+    assert move.move[0] < -0.02 and 'left (-x)' in move.words
+
+
+def test_motion_gate_catches_a_moved_board_and_passes_a_still_one(bench):
+    _, cal, model, targets, sim = bench
+    p = of.placements('laser_plane', plan('laser_plane', cal, quick=True))[0]
+    T = _off(p, [-0.03, 0.004, 0.01], 0.05)
+    _place(sim, p, T)
+    loc, move = of.search(model, p, targets, _looker(sim))
+    assert move is None, move.words
+    check = of.check_step(p, loc.check_voltages)
+    still = execute_in_process(sim, [check])[0][0]
+    assert of.feature_shift_px(loc.features, of.features(p, still.image)) < of.MOVED_PX
+    _place(sim, p, _off(p, [-0.03 + 0.001, 0.004, 0.01], 0.05))  # nudged by 1 mm
+    moved = execute_in_process(sim, [check])[0][0]
+    assert of.feature_shift_px(loc.features, of.features(p, moved.image)) > 5 * of.MOVED_PX
+
+
+def test_placements_of_the_plans_and_their_instructions(bench):
+    """Every stage's plan becomes placements whose instructions name a kit target, a region
+    around the plan's pose and a tilt; the laser stages' boards go on the laser line."""
+    _, cal, model, _, _ = bench
+    for stage, kind, n in (('intrinsics', 'checkerboard', 8),
+                           ('dynamic_camera', 'circle_board', 1),
+                           ('laser_plane', 'circle_grid', 4),
+                           ('laser_axis', 'circle_grid', 6),
+                           ('joint_correction', 'sphere', 1)):
+        steps = plan(stage, cal, quick=True)
+        places = of.placements(stage, steps)
+        assert [p.kind for p in places] == [kind] * n
+        assert sum(len(v) for p in places for v, _, _ in p.views) == cp.total_frames(steps)
+        for p in places:
+            f = of.instruction_fields(p, 'place', of.describe(p))
+            assert of.target_from_spec(f['target'], yaml.safe_load(f['target_spec'])) \
+                is not None
+            assert np.allclose(f['centre'], p.V0_T_target[:3, 3])
+            assert f['on_laser_line'] == (stage != 'intrinsics' and
+                                          stage != 'dynamic_camera')
+            assert 0.0 <= f['tilt'] < math.pi / 2 and f['tilt_tolerance'] > 0
+
+
+def test_malformed_instruction_targets_are_refused():
+    with pytest.raises(ValueError, match='unknown target'):
+        of.target_from_spec('teapot', {})
+    with pytest.raises(ValueError, match='missing'):
+        of.target_from_spec('checkerboard', {'cols': 11})
+
+
+def test_sphere_the_laser_line_misses_is_told_to_move_along_the_sheet(bench):
+    """The joint correction's sphere put 10 mm too near: the lit frame shows the line off
+    its middle, and the instruction moves it away (+z); where asked, it passes."""
+    _, cal, model, targets, sim = bench
+    p = of.placements('joint_correction', plan('joint_correction', cal, quick=True))[0]
+
+    def look_lit(volts):
+        return execute_in_process(sim, [CaptureStep(0, None, volts, True)])[0]
+
+    _place(sim, p, p.V0_T_target)
+    loc, move = of.search(model, p, targets, _looker(sim), None, look_lit)
+    assert move is None and np.linalg.norm(loc.V0_T_target[:2, 3] - p.centre[:2]) < 2e-3
+    _place(sim, p, _off(p, [0.0, 0.0, -0.01], 0.0))
+    loc, move = of.search(model, p, targets, _looker(sim), None, look_lit)
+    assert move is not None and move.reason == 'off_laser_line', move
+    assert move.move[2] > 0.004 and 'away (+z)' in move.words
