@@ -46,6 +46,11 @@ BENCHMARKS = {
                       'the board protocol decoder under 10^6 random and damaged frames'),
     'driver_idle': (['benchmarks/driver_idle.py', '--seconds', '10'], True,
                     'CPU of an idle driver against a bare rclpy node'),
+    'firmware_simavr': (['benchmarks/firmware_simavr.py'], True,
+                        'the board firmware in simavr: 10,000 triggers at 500 Hz, watchdog, '
+                        'interlock'),
+    'materials': (['benchmarks/materials.py'], False,
+                  'stair, plate and outliers per material, countermeasures off and on'),
     'calibration_chain': (['benchmarks/calibration_chain.py'], False,
                           'the whole calibration chain in-process, quick and full plans'),
     'camera_trigger': (['benchmarks/camera_trigger.py'], False,
@@ -63,7 +68,8 @@ BENCHMARKS = {
     'hosts_apart': (['benchmarks/hosts_apart.py'], False,
                     'the image path across a network link (root: network namespaces)'),
 }
-ACCURACY = ('rig_family', 'uncertainty_check', 'calibration_seeds', 'joint_bundle')
+ACCURACY = ('rig_family', 'uncertainty_check', 'calibration_seeds', 'joint_bundle',
+            'materials')
 
 #: metrics.json keys shown on the accuracy page, with the paper's figure where it gives one
 DEMO_ROWS = (
