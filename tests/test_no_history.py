@@ -71,6 +71,6 @@ def test_the_search_finds_what_it_must_and_skips_what_it_may(tmp_path):
     for skipped in ('.venv/lib', 'node_modules/three', 'build/msgs', 'tests/data'):
         (tmp_path / skipped).mkdir(parents=True)
         (tmp_path / skipped / 'x.md').write_text(bad)
-    (tmp_path / 'protocol.md').write_text('a board session is one HELLO to the next\n')
+    (tmp_path / 'protocol.md').write_text('a board link lasts from one HELLO to the next\n')
     hits = history_hits(project_files(tmp_path), tmp_path)
     assert hits == [f'guide.md:1: see Iss{"ue"} 20 for the range', f'pkg/mod.py:2: # {bad}']

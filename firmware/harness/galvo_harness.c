@@ -364,7 +364,7 @@ static void pty_open(void)
         exit(2);
     }
     const char *name = ptsname(pty_master);
-    /* keep the slave open, so that the master never reads EIO between host sessions */
+    /* keep the slave open, so that the master never reads EIO while no host has the port */
     pty_slave = open(name, O_RDWR | O_NOCTTY);
     struct termios t;
     tcgetattr(pty_slave, &t);

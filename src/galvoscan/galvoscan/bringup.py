@@ -95,24 +95,32 @@ def with_sim_starting_calibration(params_file, nodes, workdir) -> str | None:
     driver = params.get('galvo_driver', {}).get('ros__parameters', {})
     if cal.get('initial_calibration') or driver.get('backend', 'sim') != 'sim':
         return params_file
-    from galvoscan.simulated_rig import nominal_calibration
-    from reconstructor import calibration_file
-
     rig = driver.get('rig', 'reference')
-    try:
-        nominal = nominal_calibration(rig)
-    except OSError as exc:
-        raise ValueError(f'rig {rig}: {exc}') from None
     workdir = Path(workdir)
-    workdir.mkdir(parents=True, exist_ok=True)
-    start = workdir / 'nominal_calibration.yaml'
-    calibration_file.save(nominal, start)
+    start = _write_design_values(rig, workdir / 'nominal_calibration.yaml')
     cal['initial_calibration'] = str(start)
     params['calibration'] = {'ros__parameters': cal}
     out = workdir / 'params.yaml'
     out.write_text(yaml.safe_dump(params, sort_keys=False))
     log.info('calibration starts from the design values of sim rig %s (%s)', rig, start)
     return str(out)
+
+
+def _write_design_values(rig: str, path: Path) -> Path:
+    """Write the design values of sim rig ``rig`` as a calibration file at ``path``.
+
+    Raises ``ValueError`` for an unknown rig.
+    """
+    from galvoscan.simulated_rig import nominal_calibration
+    from reconstructor import calibration_file
+
+    try:
+        nominal = nominal_calibration(rig)
+    except OSError as exc:
+        raise ValueError(f'rig {rig}: {exc}') from None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    calibration_file.save(nominal, path)
+    return path
 
 
 def with_reconstructor_calibration(params_file, nodes, workdir) -> str | None:
@@ -154,17 +162,7 @@ def with_reconstructor_calibration(params_file, nodes, workdir) -> str | None:
                  record.get('written_by', 'galvoscan'), record['path'], rig,
                  record.get('written_at', ''))
     else:
-        from galvoscan.simulated_rig import nominal_calibration
-        from reconstructor import calibration_file
-
-        try:
-            nominal = nominal_calibration(rig)
-        except OSError as exc:
-            raise ValueError(f'rig {rig}: {exc}') from None
-        workdir = Path(workdir)
-        workdir.mkdir(parents=True, exist_ok=True)
-        start = workdir / 'design_values.yaml'
-        calibration_file.save(nominal, start)
+        start = _write_design_values(rig, Path(workdir) / 'design_values.yaml')
         recon['calibration_file'] = str(start)
         log.info('reconstructor uses the design values of sim rig %s: no calibration has been '
                  'made for it yet (make demo, or galvoscan calibrate all --sim, makes one)', rig)
