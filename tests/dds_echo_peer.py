@@ -15,7 +15,8 @@ import galvoscan_msgs.srv
 import numpy as np
 
 MESSAGE_TYPES = [galvoscan_msgs.msg.GalvoState, galvoscan_msgs.msg.StripeCenters,
-                 galvoscan_msgs.msg.CalibrationStage, galvoscan_msgs.msg.CalibrationInstruction]
+                 galvoscan_msgs.msg.CalibrationStage, galvoscan_msgs.msg.CalibrationInstruction,
+                 galvoscan_msgs.msg.CalibrationProgress]
 SERVICE_TYPES = [getattr(galvoscan_msgs.srv, n) for n in sorted(dir(galvoscan_msgs.srv))
                  if not n.startswith('_') and hasattr(getattr(galvoscan_msgs.srv, n), 'Request')]
 

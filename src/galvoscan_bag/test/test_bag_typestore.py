@@ -11,7 +11,8 @@ from galvoscan_bag.typestore import find_msg_dir, make_typestore, msg_dir_candid
 
 REPO_MSG_DIR = Path(__file__).resolve().parents[3] / 'msgs' / 'msg'
 INSTALLED_MSG_DIR = Path(sys.prefix) / 'share' / 'galvoscan_msgs' / 'msg'
-OUR_TYPES = ['CalibrationInstruction', 'CalibrationStage', 'GalvoState', 'StripeCenters']
+OUR_TYPES = ['CalibrationInstruction', 'CalibrationProgress', 'CalibrationStage', 'GalvoState',
+             'StripeCenters']
 
 
 def test_repo_has_the_messages_this_test_expects():
