@@ -68,9 +68,28 @@ class TransformView:
     static: bool
 
 
+@dataclass(frozen=True)
+class CalibrationView:
+    """The last view of a calibration capture: its detected feature centres and its image.
+
+    ``uv`` (N, 2) float64 [px] (column, row) from ``calibration/progress``; ``image`` is the
+    camera image stamped ``stamp`` (the view's own frame, ``matched``) or, when that frame
+    never arrived, the newest camera image (``matched`` false; ``None`` before any image).
+    """
+
+    stamp: float            # the view's image stamp [s]
+    uv: np.ndarray
+    accepted: bool
+    reason: str
+    image: np.ndarray | None
+    image_stamp: float      # stamp of ``image`` [s] (0 without one)
+    matched: bool
+
+
 @dataclass
 class ViewState:
-    """The latest cloud, image, galvo state, transforms, progress and diagnostics."""
+    """The latest cloud, image, galvo state, transforms, progress, diagnostics, and the
+    calibration's instruction, progress and last view."""
 
     _lock: threading.Condition = field(default_factory=threading.Condition, repr=False)
     _version: int = 0
@@ -83,6 +102,10 @@ class ViewState:
     diagnostics: dict = field(default_factory=dict)   # status name -> {key: value (str)}
     counts: dict = field(default_factory=dict)        # messages received, by topic
     reference: CloudView | None = None  # the cloud the page measures the live cloud against
+    #: calibration/instruction and calibration/progress as plain dicts (SI units), or None
+    instruction: dict | None = None
+    calibration_progress: dict | None = None
+    calibration_view: CalibrationView | None = None
 
     def _bump(self, key: str) -> None:
         # caller holds the lock
@@ -149,10 +172,28 @@ class ViewState:
             self.reference = reference
             self._bump('reference')
 
+    def set_instruction(self, instruction: dict) -> None:
+        with self._lock:
+            self.instruction = dict(instruction)
+            self._bump('instruction')
+
+    def set_calibration_progress(self, progress: dict) -> None:
+        with self._lock:
+            self.calibration_progress = dict(progress)
+            self._bump('calibration_progress')
+
+    def set_calibration_view(self, view: CalibrationView) -> None:
+        with self._lock:
+            self.calibration_view = view
+            self._bump('calibration_view')
+
     def snapshot(self) -> dict:
         """A consistent shallow copy of every entry (arrays are not copied: never mutate them)."""
         with self._lock:
             return {'version': self._version, 'cloud': self.cloud, 'image': self.image,
                     'galvo': self.galvo, 'transforms': dict(self.transforms),
                     'progress': dict(self.progress), 'diagnostics': dict(self.diagnostics),
-                    'counts': dict(self.counts), 'reference': self.reference}
+                    'counts': dict(self.counts), 'reference': self.reference,
+                    'instruction': self.instruction,
+                    'calibration_progress': self.calibration_progress,
+                    'calibration_view': self.calibration_view}

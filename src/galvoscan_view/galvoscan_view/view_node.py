@@ -1,7 +1,7 @@
 """``galvoscan view``: join the running graph over DDS and serve it to Foxglove and a browser.
 
     galvoscan view [--ws-port 8765] [--http-port 8080] [--host 0.0.0.0] [--no-browser-page]
-                   [--image-rate 10]
+                   [--image-rate 10] [--operator-timeout 10]
 
 Any host on the graph's ``ROS_DOMAIN_ID`` can run it. It serves a **Foxglove WebSocket**
 (:mod:`galvoscan_view.foxglove_server`; Foxglove and Lichtblick open
@@ -20,6 +20,20 @@ needs them)
     diagnostics          diagnostic_msgs/DiagnosticArray reliable  -> Foxglove, page (progress)
     /tf, /tf_static      tf2_msgs/TFMessage (when tf2_msgs is installed; /tf_static
                          transient-local)                          -> Foxglove, page
+    calibration/instruction  galvoscan_msgs/CalibrationInstruction transient-local
+                                                                   -> Foxglove (latched), page
+    calibration/progress galvoscan_msgs/CalibrationProgress transient-local
+                                                                   -> Foxglove (latched), page
+
+and calls the calibration node's ``calibration/operator`` (galvoscan_msgs/OperatorAction)
+for the page's placed / undo / skip / done buttons (:meth:`ViewNode.operator_action`: one
+request per press, never resent, answered or refused within ``--operator-timeout``).
+
+The page's calibration view shows the last view of ``calibration/progress`` on its own
+camera frame: the last ``RECENT_FRAMES`` camera images are kept by stamp, and the view's
+detected points are paired with the image whose stamp is the view's ``view_stamp`` (if that
+frame was never received, e.g. the view started after it, the newest image stands in and
+the page says so).
 
 and publishes to Foxglove ``/camera/image_stripe`` (sensor_msgs/Image rgb8): the sampled
 camera image with its extracted stripe centres drawn in red, the same frame as on the page.
@@ -43,12 +57,19 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+import threading
 import time
 from collections import OrderedDict
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from galvoscan_msgs.msg import GalvoState, StripeCenters
+from galvoscan_msgs.msg import (
+    CalibrationInstruction,
+    CalibrationProgress,
+    GalvoState,
+    StripeCenters,
+)
+from galvoscan_msgs.srv import OperatorAction
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import Image, PointCloud2
@@ -61,6 +82,7 @@ from galvoscan_common.tf_tree import transform_from_tq
 from galvoscan_view.foxglove_server import DEFAULT_WS_PORT, ChannelSpec, FoxgloveServer
 from galvoscan_view.state import (
     MAX_VIEW_POINTS,
+    CalibrationView,
     CloudView,
     GalvoView,
     ImageView,
@@ -85,6 +107,14 @@ CLOUD_PERIOD_S = 0.2
 SCAN_GAP_S = 1.0
 #: Centres messages kept to pair with an image that arrives after them.
 RECENT_CENTRES = 64
+#: Camera images kept by stamp, to show a calibration view on its own frame.
+RECENT_FRAMES = 32
+#: Default wait for the calibration node's answer to an operator action [s], and its bounds.
+OPERATOR_TIMEOUT_S, OPERATOR_TIMEOUT_RANGE_S = 10.0, (0.5, 300.0)
+#: The operator's actions (galvoscan_msgs/OperatorAction ``action``).
+OPERATOR_ACTIONS = ('placed', 'undo', 'skip', 'done')
+#: Largest coverage grid and number of detected points a progress message may carry.
+MAX_GRID_CELLS, MAX_VIEW_FEATURES = 65_536, 100_000
 #: Colour of the drawn stripe centres (rgb8).
 STRIPE_RGB = (255, 0, 0)
 #: diagnostic_msgs/DiagnosticStatus levels.
@@ -108,6 +138,9 @@ CHANNELS = (
     ChannelSpec('/galvo/state', 'galvoscan_msgs/msg/GalvoState'),
     ChannelSpec('/markers', 'visualization_msgs/msg/MarkerArray'),
     ChannelSpec('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'),
+    ChannelSpec('/calibration/instruction', 'galvoscan_msgs/msg/CalibrationInstruction',
+                latched=1),
+    ChannelSpec('/calibration/progress', 'galvoscan_msgs/msg/CalibrationProgress', latched=1),
 )
 TF_CHANNELS = (
     ChannelSpec('/tf', 'tf2_msgs/msg/TFMessage'),
@@ -216,6 +249,106 @@ def diagnostic_statuses(data) -> tuple[dict, dict | None]:
     return statuses, progress
 
 
+def _finite_or_none(values) -> list:
+    """Floats, NaN and infinities as ``None`` (JSON has no NaN)."""
+    return [float(v) if np.isfinite(v) else None for v in np.asarray(values, float).ravel()]
+
+
+def instruction_fields(data) -> dict:
+    """The fields of a serialised galvoscan_msgs/CalibrationInstruction as plain values.
+
+    Keys as the message's fields (``stamp`` [s] and ``frame_id`` from its header); the
+    rejected views by reason as ``rejected`` ``{reason: count}``. A message whose
+    ``rejected_reasons`` and ``rejected_counts`` differ in length, or with a non-finite
+    number, raises ``ValueError``.
+    """
+    m = deserialize(data, 'galvoscan_msgs/msg/CalibrationInstruction')
+    if len(m.rejected_reasons) != len(m.rejected_counts):
+        raise ValueError(f'calibration/instruction: {len(m.rejected_reasons)} rejected_reasons '
+                         f'but {len(m.rejected_counts)} rejected_counts')
+    numbers = {k: np.asarray(getattr(m, k), float).ravel()
+               for k in ('centre', 'extents', 'orientation', 'tilt', 'tilt_tolerance', 'move')}
+    bad = [k for k, v in numbers.items() if not np.isfinite(v).all()]
+    if bad:
+        raise ValueError(f'calibration/instruction: non-finite {", ".join(bad)}')
+    return {
+        'stamp': _stamp(m.header), 'frame_id': m.header.frame_id, 'sequence': int(m.sequence),
+        'stage': m.stage, 'state': m.state, 'placement': int(m.placement),
+        'placements_planned': int(m.placements_planned),
+        'placements_done': int(m.placements_done), 'target': m.target,
+        'target_spec': m.target_spec, 'centre': numbers['centre'].tolist(),
+        'extents': numbers['extents'].tolist(), 'orientation': numbers['orientation'].tolist(),
+        'tilt': float(m.tilt), 'tilt_tolerance': float(m.tilt_tolerance),
+        'on_laser_line': bool(m.on_laser_line), 'hold_still': bool(m.hold_still),
+        'by_robot': bool(m.by_robot), 'move': numbers['move'].tolist(),
+        'direction': m.direction, 'text': m.text, 'views_captured': int(m.views_captured),
+        'views_rejected': int(m.views_rejected),
+        'rejected': {str(r): int(c) for r, c in zip(m.rejected_reasons, m.rejected_counts,
+                                                   strict=True)},
+        'searches': int(m.searches)}
+
+
+def _grid(name: str, cols: int, rows: int, cells) -> dict:
+    cells = np.asarray(cells, np.int64).ravel()
+    if cols * rows > MAX_GRID_CELLS:
+        raise ValueError(f'calibration/progress: {name} grid of {cols} x {rows} cells is over '
+                         f'{MAX_GRID_CELLS}')
+    if len(cells) != cols * rows:
+        raise ValueError(f'calibration/progress: {name}_coverage has {len(cells)} cells, '
+                         f'not {name}_grid_rows x cols = {rows} x {cols}')
+    return {'cols': int(cols), 'rows': int(rows), 'cells': cells.tolist()}
+
+
+def progress_fields(data) -> tuple[dict, tuple[int, np.ndarray, bool, str]]:
+    """A serialised galvoscan_msgs/CalibrationProgress as plain values, and its last view.
+
+    Returns the progress (``parameters``: one ``{name, unit, sigma, target, met}`` per
+    parameter, ``sigma`` ``None`` where NaN (not yet estimable); ``image_coverage`` and
+    ``voltage_coverage`` as ``{cols, rows, cells}`` row-major; ``voltage_axes`` as a list of
+    two names) and the view: (image stamp [ns], detected centres (N, 2) [px] (column, row),
+    accepted, reason). Arrays of different lengths where they must agree, a coverage grid
+    of the wrong size, or non-finite points raise ``ValueError``.
+    """
+    m = deserialize(data, 'galvoscan_msgs/msg/CalibrationProgress')
+    n = len(m.parameter_names)
+    lengths = {k: len(getattr(m, k)) for k in ('parameter_units', 'sigma', 'sigma_target')}
+    if any(v != n for v in lengths.values()):
+        raise ValueError(f'calibration/progress: {n} parameter_names but '
+                         + ', '.join(f'{v} {k}' for k, v in lengths.items()))
+    if len(m.view_points_u) != len(m.view_points_v):
+        raise ValueError(f'calibration/progress: {len(m.view_points_u)} view_points_u but '
+                         f'{len(m.view_points_v)} view_points_v')
+    if len(m.view_points_u) > MAX_VIEW_FEATURES:
+        raise ValueError(f'calibration/progress: {len(m.view_points_u)} view points is over '
+                         f'{MAX_VIEW_FEATURES}')
+    uv = np.column_stack([np.asarray(m.view_points_u, float), np.asarray(m.view_points_v, float)])
+    if not np.isfinite(uv).all():
+        raise ValueError('calibration/progress: non-finite view_points_u / view_points_v')
+    extent = np.asarray(m.voltage_extent, float)
+    sigma, target = np.asarray(m.sigma, float), np.asarray(m.sigma_target, float)
+    parameters = [{'name': m.parameter_names[i], 'unit': m.parameter_units[i],
+                   'sigma': _finite_or_none([sigma[i]])[0],
+                   'target': _finite_or_none([target[i]])[0],
+                   'met': bool(np.isfinite(sigma[i]) and sigma[i] <= target[i])}
+                  for i in range(n)]
+    progress = {
+        'stamp': _stamp(m.header), 'stage': m.stage,
+        'placements_done': int(m.placements_done), 'placements_max': int(m.placements_max),
+        'parameters': parameters, 'targets_met': bool(m.targets_met), 'advice': m.advice,
+        'image_coverage': _grid('image', int(m.image_grid_cols), int(m.image_grid_rows),
+                                m.image_coverage),
+        'voltage_axes': [a.strip() for a in m.voltage_axes.split(',')] if m.voltage_axes
+        else [],
+        'voltage_extent': _finite_or_none(extent),
+        'voltage_coverage': _grid('voltage', int(m.voltage_grid_cols),
+                                  int(m.voltage_grid_rows), m.voltage_coverage),
+        'view_stamp': m.view_stamp.sec + m.view_stamp.nanosec * 1e-9,
+        'view_points': len(uv), 'view_accepted': bool(m.view_accepted),
+        'view_reason': m.view_reason}
+    view_ns = int(m.view_stamp.sec) * 1_000_000_000 + int(m.view_stamp.nanosec)
+    return progress, (view_ns, uv, bool(m.view_accepted), m.view_reason)
+
+
 def _stamp(header) -> float:
     """Seconds of a ``std_msgs/Header`` stamp (cdr or rosbags)."""
     stamp = getattr(header, 'stamp', header)
@@ -266,6 +399,9 @@ class ViewNode(Node):
         self._latest = {'image': None, 'galvo': None}   # newest raw bytes, not yet taken
         self._pending = None            # (stamp ns, header, image) awaiting its centres
         self._recent = OrderedDict()    # stamp ns -> raw centres, to pair a later image
+        self._frames = OrderedDict()    # stamp ns -> raw image, the last RECENT_FRAMES
+        self._view = None               # the last calibration view not yet on its own frame
+        self._operator = self.create_client(OperatorAction, 'calibration/operator')
         for msg_type, topic, qos, callback in (
                 (PointCloud2, 'points', _RELIABLE, self._on_points),
                 (PointCloud2, 'points/scan', _LATCHED, self._on_scan),
@@ -275,6 +411,10 @@ class ViewNode(Node):
                 (MarkerArray, 'markers', QoSProfile(depth=10, reliability=_RELIABLE.reliability),
                  self._forward),
                 (DiagnosticArray, 'diagnostics', _RELIABLE, self._on_diagnostics),
+                (CalibrationInstruction, 'calibration/instruction', _LATCHED,
+                 self._on_instruction),
+                (CalibrationProgress, 'calibration/progress', _LATCHED,
+                 self._on_calibration_progress),
                 *(((TFMessage, '/tf', QoSProfile(depth=100, reliability=_RELIABLE.reliability),
                     self._on_tf), (TFMessage, '/tf_static', _TF_STATIC, self._on_tf))
                   if TFMessage is not None else ())):
@@ -345,15 +485,96 @@ class ViewNode(Node):
         for tf in transform_views(data, static=topic == '/tf_static'):
             self.state.set_transform(tf)
 
+    # -- calibration -------------------------------------------------------------------------
+    def _on_instruction(self, topic: str, data) -> None:
+        self.server.log(topic, data)
+        self.state.set_instruction(instruction_fields(data))
+
+    def _on_calibration_progress(self, topic: str, data) -> None:
+        self.server.log(topic, data)
+        progress, view = progress_fields(data)
+        self.state.set_calibration_progress(progress)
+        self._view = view if view[0] or len(view[1]) else None
+        if self._view is not None:
+            self._show_view()
+
+    def _show_view(self) -> None:
+        """The pending view on its own frame if kept, else on the newest frame (unmatched)."""
+        stamp_ns, uv, accepted, reason = self._view
+        data = self._frames.get(stamp_ns)
+        matched = data is not None
+        if not matched and self._frames:
+            data = next(reversed(self._frames.values()))
+        image, image_stamp = None, 0.0
+        if data is not None:
+            raw = cdr.parse_image_cdr(data)
+            image = cdr.image_to_array(raw)
+            image_stamp = raw.stamp_sec + raw.stamp_nanosec * 1e-9
+        self.state.set_calibration_view(CalibrationView(
+            stamp_ns * 1e-9, uv, accepted, reason, image, image_stamp, matched))
+        if matched:
+            self._view = None
+
+    def operator_action(self, action: str, placement: int,
+                        timeout: float = OPERATOR_TIMEOUT_S) -> tuple[bool, str]:
+        """Send one operator action to ``calibration/operator`` and wait for its answer.
+
+        Called from the page's HTTP threads (the executor answers the future). One request,
+        never resent: a repeated "placed" could answer the next instruction.
+
+        Returns
+        -------
+        (accepted, message) of the calibration node's answer.
+
+        Raises
+        ------
+        ValueError
+            ``action`` is not one of OPERATOR_ACTIONS, or ``placement`` not a uint32.
+        LookupError
+            No ``calibration/operator`` service on the graph.
+        TimeoutError
+            No answer within ``timeout`` [s] (the request is withdrawn).
+        """
+        if action not in OPERATOR_ACTIONS:
+            raise ValueError(f'unknown action {action!r}; one of {", ".join(OPERATOR_ACTIONS)}')
+        if isinstance(placement, bool) or not isinstance(placement, int) \
+                or not 0 <= placement < 2**32:
+            raise ValueError(f'placement must be an integer in 0..{2**32 - 1}, got {placement!r}')
+        client = self._operator
+        if not client.wait_for_service(timeout_sec=min(timeout, 2.0)):
+            raise LookupError(f'{client.srv_name} is not available: no calibration node on '
+                              'this ROS domain (galvoscan run --nodes ...,calibration)')
+        answered = threading.Event()
+        future = client.call_async(OperatorAction.Request(action=action, placement=placement))
+        future.add_done_callback(lambda _f: answered.set())
+        if not answered.wait(timeout):
+            if not future.done():
+                future.cancel()
+                client.remove_pending_request(future)
+            raise TimeoutError(f'{client.srv_name} did not answer within {timeout:g} s')
+        resp = future.result()
+        if resp is None:
+            raise TimeoutError(f'{client.srv_name}: the request was withdrawn')
+        return bool(resp.accepted), str(resp.message)
+
     # -- camera image and its stripe ------------------------------------------------------
     def _on_image(self, topic: str, data) -> None:
         self._latest['image'] = data
+        stamp_ns = cdr.read_header(cdr.Reader(data)).stamp_ns
+        self._frames[stamp_ns] = data
+        self._frames.move_to_end(stamp_ns)
+        while len(self._frames) > RECENT_FRAMES:
+            self._frames.popitem(last=False)
+        if self._view is not None and self._view[0] == stamp_ns:
+            self._show_view()
 
     def _take_image(self) -> None:
         """The newest image: to Foxglove and the page; its stripe drawn once it is known."""
         data, self._latest['image'] = self._latest['image'], None
         if data is None:
             return
+        if self._view is not None:   # its own frame never came: on the newest frame
+            self._show_view()
         self.server.log('/camera/image_raw', data)
         raw = cdr.parse_image_cdr(data)
         image = cdr.image_to_array(raw)
@@ -415,6 +636,17 @@ def _rate(text: str) -> float:
     return rate
 
 
+def _timeout(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a number') from None
+    lo, hi = OPERATOR_TIMEOUT_RANGE_S
+    if not lo <= value <= hi:
+        raise argparse.ArgumentTypeError(f'{text} s is outside {lo}..{hi} s')
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='galvoscan view', description=(
         'Serve the running graph to Foxglove / Lichtblick (Foxglove WebSocket) and a browser.'))
@@ -427,6 +659,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--no-browser-page', action='store_true', help='serve Foxglove only')
     p.add_argument('--image-rate', type=_rate, default=IMAGE_RATE_HZ,
                    help='camera images taken per second [Hz] (default %(default)s)')
+    p.add_argument('--operator-timeout', type=_timeout, default=OPERATOR_TIMEOUT_S,
+                   help="longest wait for the calibration node's answer to a button of the "
+                        'calibration view [s] (default %(default)s)')
     return p
 
 
@@ -461,7 +696,14 @@ def main(argv=None) -> int:
         print(f'galvoscan view: Foxglove WebSocket on ws://{args.host}:{server.port}'
               + ('' if page is None else f', browser page on http://{args.host}:'
                  f'{getattr(page, "port", args.http_port)}'), flush=True)
-        run_node(lambda: ViewNode(state, server, image_rate=args.image_rate))
+        def make_node():
+            node = ViewNode(state, server, image_rate=args.image_rate)
+            if page is not None:
+                page.operator = lambda action, placement: node.operator_action(
+                    action, placement, args.operator_timeout)
+            return node
+
+        run_node(make_node)
     finally:
         if page is not None:
             page.shutdown()

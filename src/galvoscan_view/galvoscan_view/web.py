@@ -20,11 +20,27 @@ a compact API read from the state:
 ``GET /api/image``         the camera image as a :func:`framed` message: metadata, the
                            stripe centres float32 (M, 2) [px] (column, row), then the image
                            as an 8-bit grey PNG
+``GET /api/calibration/view``  the last calibration view as a :func:`framed` message:
+                           metadata (view stamp, accepted, reason, whether the image is the
+                           view's own frame), the detected centres float32 (N, 2) [px]
+                           (column, row), then the image as an 8-bit grey PNG (absent
+                           before any image)
 ``POST /api/reference``    ``?from=cloud``: the current cloud becomes the reference;
                            otherwise the body is a binary PLY or PCD file as galvoscan
                            writes it (``?name=FILE.ply`` tells which)
 ``DELETE /api/reference``  no reference
+``POST /api/operator``     ``?action=placed|undo|skip|done&placement=N[&sequence=S]``: the
+                           operator's answer, sent to the calibration node's
+                           ``calibration/operator``; JSON ``{accepted, message, action,
+                           placement}`` of its answer (200, also when it refuses). With
+                           ``sequence`` (the instruction the page shows) a 409 when the
+                           node has issued another instruction since; 503 without a
+                           calibration node, 504 when it does not answer in time
 =========================  ================================================================
+
+The summary's ``calibration`` holds ``instruction`` (calibration/instruction),
+``progress`` (calibration/progress without its points: standard errors against targets,
+coverage grids, advice) and ``view`` (the last view's stamp, number of points, verdict).
 
 A bad request gets a 4xx answer with a one-line message (text/plain); a failure inside a
 handler a 500 with its message: the server and the view go on.
@@ -67,7 +83,10 @@ CONTENT_SECURITY_POLICY = ("default-src 'self'; script-src 'self'; style-src 'se
                            "img-src 'self' blob: data:; connect-src 'self'; "
                            "object-src 'none'; base-uri 'none'; frame-ancestors 'none'")
 #: Keys of :meth:`ViewState.version` reported by ``/api/state``.
-VERSION_KEYS = ('cloud', 'image', 'galvo', 'tf', 'progress', 'diagnostics', 'reference')
+VERSION_KEYS = ('cloud', 'image', 'galvo', 'tf', 'progress', 'diagnostics', 'reference',
+                'instruction', 'calibration_progress', 'calibration_view')
+#: The operator's actions the page may send (galvoscan_msgs/OperatorAction ``action``).
+OPERATOR_ACTIONS = ('placed', 'undo', 'skip', 'done')
 
 log = logging.getLogger('galvoscan_view.web')
 
@@ -203,8 +222,22 @@ def state_summary(state: ViewState) -> dict:
                                'translation': np.asarray(tf.parent_T_child)[:3, 3].tolist()}
                        for child, tf in snap['transforms'].items()},
         'progress': snap['progress'], 'diagnostics': snap['diagnostics'],
-        'counts': snap['counts']}
+        'counts': snap['counts'],
+        'calibration': {'instruction': snap['instruction'],
+                        'progress': snap['calibration_progress'],
+                        'view': _view_summary(snap['calibration_view'])}}
     return json.loads(json.dumps(out, default=_plain))   # fails here, not half-way out
+
+
+def _view_summary(view) -> dict | None:
+    if view is None:
+        return None
+    out = {'stamp': view.stamp, 'points': len(view.uv), 'accepted': bool(view.accepted),
+           'reason': view.reason, 'matched': bool(view.matched), 'image_stamp': view.image_stamp,
+           'width': None, 'height': None}
+    if view.image is not None:
+        out['height'], out['width'] = (int(n) for n in view.image.shape[:2])
+    return out
 
 
 def _plain(value):
@@ -315,8 +348,9 @@ class _Handler(BaseHTTPRequestHandler):
     protocol_version = 'HTTP/1.1'
     page: PageServer   # set on the subclass made per server
     #: method -> path -> name of the handler method
-    routes = {'GET': {'/api/state': '_state', '/api/cloud': '_cloud', '/api/image': '_image'},
-              'POST': {'/api/reference': '_set_reference'},
+    routes = {'GET': {'/api/state': '_state', '/api/cloud': '_cloud', '/api/image': '_image',
+                      '/api/calibration/view': '_calibration_view'},
+              'POST': {'/api/reference': '_set_reference', '/api/operator': '_operator'},
               'DELETE': {'/api/reference': '_clear_reference'}}
 
     # -- plumbing --------------------------------------------------------------------------
@@ -429,6 +463,43 @@ class _Handler(BaseHTTPRequestHandler):
     def _image(self):
         self._send(200, self.page.image_message(), 'application/octet-stream')
 
+    def _calibration_view(self):
+        self._send(200, self.page.calibration_view_message(), 'application/octet-stream')
+
+    def _operator(self):
+        query = _query(self.path)
+        self._body(4096)   # a body is not used; read so that the connection stays in step
+        action = query.get('action', '')
+        if action not in OPERATOR_ACTIONS:
+            raise RequestError(400, f'action={action!r}: one of {", ".join(OPERATOR_ACTIONS)}')
+        if 'placement' not in query:
+            raise RequestError(400, "placement=N is required (the instruction's placement)")
+        placement = _number(query, 'placement', 0, int, 0, 2**32 - 1)
+        sequence = _number(query, 'sequence', None, int, 0, 2**32 - 1)
+        shown = self.page.state.snapshot()['instruction']
+        if sequence is not None and (shown is None or shown['sequence'] != sequence):
+            now = 'none yet' if shown is None else (
+                f"sequence {shown['sequence']}: {shown['state']} {shown['text']}")
+            raise RequestError(409, f'the instruction changed since sequence {sequence} '
+                                    f'(now {now}); look again before answering')
+        operator = self.page.operator
+        if operator is None:
+            raise RequestError(503, 'this page has no calibration/operator client '
+                                    '(run it with galvoscan view)')
+        try:
+            accepted, message = operator(action, placement)
+        except ValueError as exc:
+            raise RequestError(400, str(exc)) from None
+        except LookupError as exc:
+            raise RequestError(503, str(exc)) from None
+        except TimeoutError as exc:
+            raise RequestError(504, str(exc)) from None
+        log.info('operator %s (placement %d): %s, %s', action, placement,
+                 'accepted' if accepted else 'refused', message)
+        body = {'accepted': bool(accepted), 'message': str(message), 'action': action,
+                'placement': placement}
+        self._send(200, json.dumps(body).encode(), 'application/json')
+
     def _set_reference(self):
         query = _query(self.path)
         state = self.page.state
@@ -469,10 +540,15 @@ class _HTTPServer6(_HTTPServer):
 class PageServer:
     """The page's HTTP server, serving on its own thread; see :func:`serve_page`."""
 
-    def __init__(self, state: ViewState, host: str, port: int):
+    def __init__(self, state: ViewState, host: str, port: int, operator=None):
         self.state, self.static, self.closing = state, _StaticFiles(STATIC_DIR), threading.Event()
+        #: ``f(action, placement) -> (accepted, message)``: the calibration node's answer
+        #: (ValueError: bad request, LookupError: no node, TimeoutError: no answer); None: the
+        #: page has no operator client and answers 503
+        self.operator = operator
         self.missing = [f for f in REQUIRED_FILES if not (STATIC_DIR / f).is_file()]
         self._clouds, self._images, self._trees = _Encoded(), _Encoded(), _Encoded(1)
+        self._views = _Encoded()
         handler = type('Handler', (_Handler,), {'page': self})
         kind = _HTTPServer6 if ':' in host else _HTTPServer
         try:
@@ -548,7 +624,25 @@ class PageServer:
         return framed(meta, uv.tobytes(), png_gray(image.image))
 
 
-def serve_page(state: ViewState, host: str, port: int) -> PageServer:
+    def calibration_view_message(self) -> bytes:
+        """The ``/api/calibration/view`` answer (see the module docstring)."""
+        version = self.state.version('calibration_view')
+        view = self.state.snapshot()['calibration_view']
+        if view is None:
+            return framed({'version': version, 'stamp': None})
+        return self._views.get((view,), lambda: self._encode_view(version, view))
+
+    @staticmethod
+    def _encode_view(version, view) -> bytes:
+        uv = np.ascontiguousarray(np.asarray(view.uv, '<f4').reshape(-1, 2))
+        meta = {'version': version, **_view_summary(view), 'encoding': 'png'}
+        payloads = [uv.tobytes()]
+        if view.image is not None:
+            payloads.append(png_gray(view.image))
+        return framed(meta, *payloads)
+
+
+def serve_page(state: ViewState, host: str, port: int, operator=None) -> PageServer:
     """Serve the browser page of ``state`` on ``host``:``port`` from a background thread.
 
     Parameters
@@ -559,6 +653,10 @@ def serve_page(state: ViewState, host: str, port: int) -> PageServer:
         Address to listen on (``'0.0.0.0'`` every IPv4 interface, ``'::'`` IPv6, ...).
     port : int
         TCP port, 0 for any free one (then ``.port`` tells which).
+    operator : callable, optional
+        ``operator(action, placement) -> (accepted, message)`` for ``POST /api/operator``
+        (:meth:`galvoscan_view.view_node.ViewNode.operator_action`); may be set later as
+        ``.operator``.
 
     Returns
     -------
@@ -574,4 +672,4 @@ def serve_page(state: ViewState, host: str, port: int) -> PageServer:
     """
     if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= 65535:
         raise ValueError(f'port must be an integer in 0..65535 (0: any free port), got {port!r}')
-    return PageServer(state, host, port)
+    return PageServer(state, host, port, operator)

@@ -6,7 +6,12 @@ DevTools Protocol (CDP) with the ``websockets`` client the project already has.
     point count, takes a screenshot and reads the 3D canvas back;
 (b) end to end: the simulated graph (``galvoscan run --one-process``) and ``galvoscan view``
     as processes on a private ROS domain, scans started with ``galvoscan scan``, the page
-    opened on the view's HTTP port until the scanned stair block shows.
+    opened on the view's HTTP port until the scanned stair block shows;
+(c) the calibration view, end to end: the real calibration node and ``galvoscan view`` as
+    processes; a capture started over DDS, so that the node's own instruction shows; a camera
+    image and a calibration/progress published from this process over DDS; the page draws
+    the detections on their frame, the standard errors and the coverage, and its buttons
+    reach the node's calibration/operator and show its answers.
 
 Both check that the page requested nothing but its own origin, threw no exception and was
 refused nothing by its Content-Security-Policy. The last screenshot is also copied to
@@ -165,11 +170,21 @@ class Chromium:
             self._stack.close()
 
 
-@pytest.fixture
-def chromium(tmp_path):
-    browser = Chromium(tmp_path)
+@pytest.fixture(scope='module')
+def _browser(tmp_path_factory):
+    """One Chromium for the module's tests (it takes seconds to start)."""
+    browser = Chromium(tmp_path_factory.mktemp('chromium'))
     yield browser
     browser.close()
+
+
+@pytest.fixture
+def chromium(_browser):
+    """The module's Chromium on a blank page, with no events of an earlier test."""
+    _browser.navigate('about:blank')
+    _browser.events.clear()
+    yield _browser
+    _browser.navigate('about:blank')   # the page stops polling a server that goes away
 
 
 # ---- what the page shows, read back ------------------------------------------------------------
@@ -388,4 +403,225 @@ def test_page_shows_the_cloud_of_a_sim_scan(chromium, spawn, tmp_path, sim_graph
 
     view.send_signal(signal.SIGTERM)
     assert view.wait(timeout=20) == 0, view.log_path.read_text()
+    assert 'Traceback' not in view.log_path.read_text()
+
+
+# ---- (c) the calibration view, end to end ------------------------------------------------------
+
+
+#: The detected points of the published view: an 11 x 8 grid of corners, 24 px apart [px].
+VIEW_UV = np.array([(200.0 + 24 * c, 150.0 + 24 * r) for r in range(8) for c in range(11)])
+VIEW_STAMP = (1234, 500_000_000)
+
+
+def camera_image():
+    """A grey 720 x 540 mono8 frame with dark squares between the grid's corners."""
+    img = np.full((540, 720), 150, np.uint8)
+    for r in range(-1, 8):
+        for c in range(-1, 11):
+            if (r + c) % 2 == 0:
+                v0, u0 = 150 + 24 * r, 200 + 24 * c
+                img[max(v0, 0):v0 + 24, max(u0, 0):u0 + 24] = 40
+    return img
+
+
+def progress_message(accepted: bool, reason: str = ''):
+    from galvoscan_msgs.msg import CalibrationProgress
+
+    m = CalibrationProgress(stage='intrinsics', placements_done=3, placements_max=30)
+    m.header.frame_id = 'v0'
+    m.parameter_names = ['fx', 'cx', 'k1', 'l']
+    m.parameter_units = ['px', 'px', '1', 'm']
+    m.sigma = [0.8, 0.21, float('nan'), 2.0e-5]
+    m.sigma_target = [0.5, 0.5, 0.01, 5.0e-5]
+    m.targets_met = False
+    m.advice = 'tilt the board 30 deg about its vertical axis'
+    m.image_grid_cols, m.image_grid_rows = 8, 6
+    cells = np.zeros((6, 8), np.uint32)
+    cells[1:4, 2:5] = [[4, 8, 4], [8, 16, 8], [4, 8, 4]]
+    m.image_coverage = cells.ravel().tolist()
+    m.voltage_axes = 'u1x,u1y'
+    m.voltage_extent = [-1.0, 1.0, -0.8, 0.8]
+    m.voltage_grid_cols, m.voltage_grid_rows = 5, 4
+    m.voltage_coverage = [0, 1, 0, 0, 0, 0, 0, 2, 0, 0, 0, 0, 0, 0, 3, 0, 0, 0, 0, 0]
+    m.view_stamp.sec, m.view_stamp.nanosec = VIEW_STAMP
+    m.view_points_u = VIEW_UV[:, 0].tolist()
+    m.view_points_v = VIEW_UV[:, 1].tolist()
+    m.view_accepted, m.view_reason = accepted, reason
+    return m
+
+
+class CameraAndProgress:
+    """This process's node on the test's domain: publishes the camera frame of a view and
+    the view's calibration/progress (latched, as the calibration node publishes it)."""
+
+    def __init__(self, domain: int):
+        import rclpy
+        from galvoscan_msgs.msg import CalibrationProgress
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from sensor_msgs.msg import Image as ImageMsg
+
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx, domain_id=domain)
+        self.node = rclpy.create_node('calibration_view_test', context=self.ctx)
+        self.progress = self.node.create_publisher(CalibrationProgress, 'calibration/progress',
+                                                   QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.camera = self.node.create_publisher(ImageMsg, 'camera/image_raw', 5)
+        img = camera_image()
+        self.image = ImageMsg(height=540, width=720, encoding='mono8', step=720,
+                              data=img.tobytes())
+        self.image.header.stamp.sec, self.image.header.stamp.nanosec = VIEW_STAMP
+        self.image.header.frame_id = 'camera_optical'
+        self.pixels = img
+
+    def close(self):
+        import rclpy
+
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+
+
+def calibration_canvas(browser: Chromium) -> np.ndarray:
+    url = browser.evaluate("document.getElementById('calib-image').toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(',', 1)[1])))
+                      .convert('RGB')).astype(int)
+
+
+def canvas_rgb(browser: Chromium, canvas_id: str) -> np.ndarray:
+    url = browser.evaluate(f"document.getElementById('{canvas_id}').toDataURL('image/png')")
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode(url.split(',', 1)[1])))
+                      .convert('RGB')).astype(int)
+
+
+def text_of(browser: Chromium, element_id: str) -> str:
+    return browser.evaluate(f"document.getElementById('{element_id}').textContent")
+
+
+@pytest.mark.dds
+def test_the_page_shows_the_live_detection(chromium, spawn, ros_env, tmp_path, logged_port):
+    import rclpy
+    import yaml
+    from galvoscan_msgs.srv import CaptureCalibration
+
+    params = tmp_path / 'calibration.yaml'
+    params.write_text(yaml.safe_dump({'calibration': {'ros__parameters': {
+        'calibration_file': str(tmp_path / 'cal.yaml'), 'quick': True,
+        'data_dir': str(tmp_path / 'data')}}}))
+    graph = spawn([*GALVOSCAN, 'run', '--params', params, '--nodes', 'calibration'],
+                  name='calibration')
+    view = spawn([*GALVOSCAN, 'view', '--host', '127.0.0.1', '--ws-port', '0',
+                  '--http-port', '0', '--operator-timeout', '20'], name='view')
+    peer = CameraAndProgress(int(ros_env['ROS_DOMAIN_ID']))
+    executor = rclpy.executors.SingleThreadedExecutor(context=peer.ctx)
+    executor.add_node(peer.node)
+
+    def logs():
+        return (f'view:\n{view.log_path.read_text()}\n'
+                f'calibration:\n{graph.log_path.read_text()}')
+
+    try:
+        port = logged_port(view, 'browser page')
+        origin = f'http://127.0.0.1:{port}/'
+        chromium.navigate(origin + '#calibration')
+        # the node's own idle instruction, latched; a button is answered by the node itself
+        chromium.wait_for("document.getElementById('instr-state').textContent === 'idle'",
+                          60, logs)
+        assert 'no capture running' in text_of(chromium, 'instr-text')
+        chromium.evaluate("document.getElementById('op-done').click()")
+        chromium.wait_for("document.getElementById('operator-answer').dataset.action === 'done'",
+                          30, logs)
+        refused = text_of(chromium, 'operator-answer')
+
+        # a capture: the node asks for its first placement
+        capture = peer.node.create_client(CaptureCalibration, 'calibration/capture')
+        assert capture.wait_for_service(timeout_sec=30), logs()
+        captured = capture.call_async(CaptureCalibration.Request(stage='intrinsics'))
+        chromium.wait_for("document.getElementById('instr-state').textContent === 'place'",
+                          60, logs)
+        instruction = {k: text_of(chromium, k) for k in ('instr-text', 'instr-numbers',
+                                                          'instr-placement', 'calib-counters')}
+
+        # the camera frame of a view and its detections, from this process over DDS
+        peer.progress.publish(progress_message(True))
+        matched = "document.getElementById('calib-image').dataset.matched === 'true'"
+        deadline = time.monotonic() + 60
+        while not chromium.evaluate(matched):
+            assert time.monotonic() < deadline, logs()
+            peer.camera.publish(peer.image)   # best effort, as a camera: until it is shown
+            executor.spin_once(timeout_sec=0.2)
+        time.sleep(0.3)
+        kept = calibration_canvas(chromium)
+        sigma_rows = chromium.evaluate(
+            "[...document.querySelectorAll('#sigma-table tbody tr')]"
+            ".map((tr) => [...tr.children].map((td) => td.textContent))")
+        coverage = {c: chromium.evaluate(f"({{...document.getElementById('{c}').dataset}})")
+                    for c in ('coverage-image', 'coverage-voltage')}
+        image_cov = canvas_rgb(chromium, 'coverage-image')
+        advice = text_of(chromium, 'advice')
+        shot = chromium.screenshot()
+
+        # the next view is rejected: marked so, with its reason
+        peer.progress.publish(progress_message(False, 'moved'))
+        chromium.wait_for("document.getElementById('calib-image').dataset.accepted === 'false'",
+                          30, logs)
+        time.sleep(0.3)
+        rejected = calibration_canvas(chromium)
+        verdict = text_of(chromium, 'view-verdict')
+
+        # skip: the node takes it and asks for the next placement; done ends the capture
+        chromium.evaluate("document.getElementById('op-skip').click()")
+        chromium.wait_for("document.getElementById('operator-answer').dataset.action === 'skip'",
+                          30, logs)
+        skipped = text_of(chromium, 'operator-answer')
+        chromium.wait_for("document.getElementById('instr-placement').textContent"
+                          ".startsWith('placement 2 ')", 30, logs)
+        chromium.evaluate("document.getElementById('op-done').click()")
+        chromium.wait_for("document.getElementById('operator-answer').dataset.action === 'done'"
+                          " && document.getElementById('operator-answer').textContent"
+                          ".includes('accepted')", 30, logs)
+        executor.spin_until_future_complete(captured, timeout_sec=30)
+        problems = chromium.problems(origin)
+    finally:
+        executor.shutdown()
+        peer.close()
+    save_screenshot(shot, tmp_path / 'view_calibration.png')
+
+    assert problems == []
+    assert 'refused: no capture is waiting for the operator' in refused, refused
+    # the instruction in words and numbers, as the node issued it
+    assert 'checkerboard' in instruction['instr-text'], instruction
+    assert instruction['instr-placement'].startswith('placement 1 of '), instruction
+    for words in ('region centre', 'depth z', 'mm ±', 'tilt to the scanner', '°', 'hold still',
+                  'square'):
+        assert words in instruction['instr-numbers'], instruction
+    assert 'placements kept / planned0 / ' in instruction['calib-counters'], instruction
+
+    # the detections drawn on their own frame: a green mark on each point, the image between
+    green = np.array([0x3f, 0xb9, 0x50])
+    red = np.array([0xf8, 0x51, 0x49])
+    u, v = np.rint(VIEW_UV).astype(int).T
+    assert kept.shape == (540, 720, 3)
+    assert (np.abs(kept[v, u] - green).max(axis=1) < 40).all()
+    assert (np.abs(rejected[v, u] - red).max(axis=1) < 40).all()
+    far = kept[500:530, 600:700]      # no mark there: the published frame itself
+    assert np.abs(far - peer.pixels[500:530, 600:700, None]).max() <= 2
+    assert verdict == 'rejected: moved'
+    # standard errors against targets (SI values shown in mm, um, ...)
+    assert sigma_rows == [['fx', 'px', '0.80', '0.50', '✗'], ['cx', 'px', '0.21', '0.50', '✓'],
+                          ['k1', '1', 'not yet', '0.010', '✗'], ['l', 'µm', '20.0', '50.0', '✓']]
+    assert 'tilt the board 30 deg' in advice and '3 of at most 30' in advice
+    # coverage: 9 of 48 image cells, 3 of 20 voltage cells, the fullest cell bright
+    assert coverage['coverage-image'] == {'covered': '9', 'cells': '48', 'max': '16'}
+    assert coverage['coverage-voltage'] == {'covered': '3', 'cells': '20', 'max': '3'}
+    cell_h, cell_w = image_cov.shape[0] / 6, image_cov.shape[1] / 8
+    top = image_cov[int(2.5 * cell_h), int(3.5 * cell_w)]
+    empty = image_cov[int(5.5 * cell_h), int(7.5 * cell_w)]
+    assert top[0] > 200 and top[1] > 200 and top[2] < 100, top   # viridis' yellow
+    assert np.abs(empty - [0x2a, 0x2f, 0x37]).max() < 10, empty
+    # the buttons reached the node: skip taken for placement 1, done ended the capture
+    assert 'skip (placement 1): accepted: skip: received' in skipped, skipped
+    assert captured.done(), logs()
+    assert graph.poll() is None and view.poll() is None
     assert 'Traceback' not in view.log_path.read_text()

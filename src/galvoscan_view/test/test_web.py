@@ -20,7 +20,7 @@ import pytest
 from PIL import Image
 
 from galvoscan_view import web
-from galvoscan_view.state import CloudView, ImageView, ViewState
+from galvoscan_view.state import CalibrationView, CloudView, ImageView, ViewState
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud
 
 STATIC = Path(web.__file__).with_name('static')
@@ -247,6 +247,16 @@ def test_state_summary_and_long_poll(page):
     ('POST', '/api/cloud', 405, 'allowed: GET, HEAD'),
     ('POST', '/api/reference?from=cloud', 409, 'no cloud'),
     ('POST', '/api/reference?from=disk', 400, "only source is 'cloud'"),
+    ('POST', '/api/operator?action=jump&placement=0', 400, 'one of placed, undo, skip, done'),
+    ('POST', '/api/operator?placement=0', 400, "action=''"),
+    ('POST', '/api/operator?action=placed', 400, 'placement=N is required'),
+    ('POST', '/api/operator?action=placed&placement=-1', 400, 'outside'),
+    ('POST', '/api/operator?action=placed&placement=4294967296', 400, 'outside'),
+    ('POST', '/api/operator?action=placed&placement=two', 400, 'not a int'),
+    ('POST', '/api/operator?action=done&placement=0&sequence=3', 409, 'instruction changed'),
+    ('POST', '/api/operator?action=done&placement=0', 503, 'no calibration/operator client'),
+    ('GET', '/api/operator', 405, 'allowed: POST'),
+    ('POST', '/api/calibration/view', 405, 'allowed: GET, HEAD'),
 ])
 def test_bad_requests_get_a_4xx_with_a_message_and_change_nothing(page, method, path, status,
                                                                   message):
@@ -327,3 +337,69 @@ def test_reference_tree_refuses_what_is_not_points():
             web.reference_tree(bad)
     assert web.nearest_distances(np.zeros((0, 3)), web.reference_tree(np.ones((1, 3)))).shape \
         == (0,)
+
+
+# ---- the calibration view --------------------------------------------------------------------
+
+
+INSTRUCTION = {'sequence': 7, 'stage': 'intrinsics', 'state': 'place', 'placement': 2,
+               'text': 'Place the checkerboard'}
+
+
+def test_calibration_summary_and_view_with_its_detections(page):
+    state, server = page
+    summary = json.loads(request(server, 'GET', '/api/state')[2])
+    assert summary['calibration'] == {'instruction': None, 'progress': None, 'view': None}
+    assert unframe(request(server, 'GET', '/api/calibration/view')[2])[0]['stamp'] is None
+
+    state.set_instruction(INSTRUCTION)
+    state.set_calibration_progress({'stage': 'intrinsics', 'parameters': [
+        {'name': 'k1', 'unit': '1', 'sigma': None, 'target': 0.01, 'met': False}]})
+    image = (np.arange(540 * 720) % 251).astype(np.uint8).reshape(540, 720)
+    uv = np.array([[10.5, 20.25], [700.0, 530.0]])
+    state.set_calibration_view(CalibrationView(12.5, uv, False, 'moved', image, 12.5, True))
+    summary = json.loads(request(server, 'GET', '/api/state')[2])
+    cal = summary['calibration']
+    assert cal['instruction'] == INSTRUCTION
+    assert cal['progress']['parameters'][0]['sigma'] is None
+    assert cal['view'] == {'stamp': 12.5, 'points': 2, 'accepted': False, 'reason': 'moved',
+                           'matched': True, 'image_stamp': 12.5, 'width': 720, 'height': 540}
+    assert summary['versions']['calibration_view'] == state.version('calibration_view')
+
+    meta, (points, png) = unframe(request(server, 'GET', '/api/calibration/view')[2])
+    assert meta['points'] == 2 and meta['reason'] == 'moved' and not meta['accepted']
+    np.testing.assert_array_equal(np.frombuffer(points, '<f4').reshape(-1, 2), uv)
+    np.testing.assert_array_equal(np.asarray(Image.open(io.BytesIO(png))), image)
+
+    # a view with no image yet: its points alone
+    state.set_calibration_view(CalibrationView(13.0, uv[:1], True, '', None, 0.0, False))
+    meta, payloads = unframe(request(server, 'GET', '/api/calibration/view')[2])
+    assert len(payloads) == 1 and meta['width'] is None and not meta['matched']
+
+
+def test_operator_answers_and_failures_are_passed_on(page):
+    state, server = page
+    state.set_instruction(INSTRUCTION)
+    calls = []
+
+    def operator(action, placement):
+        calls.append((action, placement))
+        if placement == 9:
+            raise TimeoutError('calibration/operator did not answer within 1 s')
+        if placement == 8:
+            raise LookupError('calibration/operator is not available')
+        return action == 'placed', f'{action}: received' if action == 'placed' else 'no'
+
+    server.operator = operator
+    status, _, body = request(server, 'POST', '/api/operator?action=placed&placement=2&sequence=7')
+    assert status == 200 and json.loads(body) == {'accepted': True, 'message': 'placed: received',
+                                                  'action': 'placed', 'placement': 2}
+    status, _, body = request(server, 'POST', '/api/operator?action=undo&placement=2')
+    assert status == 200 and not json.loads(body)['accepted']
+    assert request(server, 'POST', '/api/operator?action=skip&placement=9')[0] == 504
+    status, _, body = request(server, 'POST', '/api/operator?action=skip&placement=8')
+    assert status == 503 and b'not available' in body
+    # a page showing an older instruction is not passed on
+    status, _, body = request(server, 'POST', '/api/operator?action=placed&placement=2&sequence=6')
+    assert status == 409 and b'now sequence 7: place Place the checkerboard' in body
+    assert calls == [('placed', 2), ('undo', 2), ('skip', 9), ('skip', 8)]

@@ -1,6 +1,7 @@
 // The galvoscan view page: the live cloud in 3D, the camera image with its stripe, the scan
-// progress, the galvo state, the diagnostics and message counts, all read from the API of
-// galvoscan_view/web.py (same origin; nothing else is loaded).
+// progress, the galvo state, the diagnostics and message counts, and the calibration view
+// (instruction, last view's detections, standard errors, coverage, operator buttons), all
+// read from the API of galvoscan_view/web.py (same origin; nothing else is loaded).
 //
 // Coordinates are the cloud's frame (v0: optical, x right, y down, z away from the scanner),
 // in metres; the 3D view keeps them as they are and puts -y up on the screen.
@@ -327,6 +328,7 @@ const state = {
 
 function showSummary(s) {
   state.summary = s;
+  showCalibration(s.calibration || {});
   showProgress(s.progress);
   showGalvo(s.galvo);
   showDiagnostics(s.diagnostics || {});
@@ -408,6 +410,7 @@ async function pollLoop() {
       showSummary(s);
       cloudLoop();
       imageLoop();
+      calibrationViewLoop();
       await sleep(POLL_GAP_MS);
     } catch (err) {
       setConnection(false, 'disconnected: retrying');
@@ -447,6 +450,281 @@ function initControls() {
   });
 }
 
+// ---- the calibration view -------------------------------------------------------------------
+
+const MARK_KEPT = '#3fb950', MARK_REJECTED = '#f85149';
+const deg = (rad) => rad * 180 / Math.PI;
+const mm = (m) => m * 1000;
+const f1 = (x) => (Math.abs(x) < 0.05 ? 0 : x).toFixed(1);
+const calib = { viewHave: -1, shown: null };
+
+// SI value -> shown value and unit: lengths in mm or um, angles in mrad or urad, the rest as is.
+function shownUnit(unit, values) {
+  const top = Math.max(0, ...values.filter((v) => v !== null && Number.isFinite(v)).map(Math.abs));
+  if (unit === 'm') return top && top < 1e-3 ? [1e6, 'µm'] : [1e3, 'mm'];
+  if (unit === 'rad') return top && top < 1e-3 ? [1e6, 'µrad'] : [1e3, 'mrad'];
+  return [1, unit];
+}
+
+function precise(x) {
+  if (x === null || x === undefined || !Number.isFinite(x)) return '—';
+  const a = Math.abs(x);
+  return a >= 100 ? x.toFixed(0) : a >= 10 ? x.toFixed(1) : a >= 1 ? x.toFixed(2) : x.toPrecision(2);
+}
+
+function setTab(tab) {
+  const calibration = tab === 'calibration';
+  $('cloud-panel').hidden = calibration;
+  $('calib-panel').hidden = !calibration;
+  $('tab-scan').setAttribute('aria-selected', String(!calibration));
+  $('tab-calibration').setAttribute('aria-selected', String(calibration));
+  if (!calibration) resize();
+}
+
+function showInstruction(ins) {
+  if (!ins) return;
+  calib.shown = ins;
+  const badge = $('instr-state');
+  badge.textContent = ins.state || 'unknown';
+  badge.className = `badge ${{ place: 'warn', move: 'error', search: 'ok', capture: 'ok', done: 'ok', failed: 'error' }[ins.state] || 'stale'}`;
+  badge.dataset.sequence = String(ins.sequence);
+  $('instr-stage').textContent = ins.stage || '';
+  $('instr-placement').textContent = ins.stage ? `placement ${ins.placement + 1} of ${ins.placements_planned}` : '';
+  $('instr-text').textContent = ins.text || '';
+  $('instr-direction').textContent = ins.state === 'move' && ins.direction ? `→ ${ins.direction}` : '';
+  $('calib-tab-state').textContent = ins.stage ? `${ins.stage}: ${ins.state}` : '';
+  const rows = [];
+  if (ins.target) {
+    const spec = ins.target_spec;
+    rows.push(['target', `${ins.target}${ins.by_robot ? ' (by the robot)' : ''}`]);
+    if (spec) rows.push(['target size', spec.replace(/[{}]/g, '')]);
+  }
+  if (ins.stage && !ins.by_robot && ins.state !== 'done' && ins.state !== 'failed') {
+    const [x, y, z] = ins.centre.map(mm), [ex, ey, ez] = ins.extents.map(mm);
+    rows.push([`region centre (${ins.frame_id || 'v0'})`, `x ${f1(x)}, y ${f1(y)} mm`]);
+    rows.push(['depth z', `${f1(z)} mm ± ${f1(ez)} mm`]);
+    rows.push(['region extents', `± ${f1(ex)} mm (x), ± ${f1(ey)} mm (y)`]);
+    rows.push(['tilt to the scanner', `${deg(ins.tilt).toFixed(1)}° ± ${deg(ins.tilt_tolerance).toFixed(1)}°`]);
+    rows.push(['on the laser line', ins.on_laser_line ? 'yes: its centre on the visible line' : 'no']);
+    rows.push(['hold still', ins.hold_still ? 'yes, until the capture ends' : 'no']);
+    if (ins.move.some((v) => v !== 0)) {
+      rows.push(['move by', ins.move.map((v, k) => `${'xyz'[k]} ${f1(mm(v))}`).join(', ') + ' mm']);
+    }
+  }
+  rows.push(['sequence', String(ins.sequence)]);
+  fillTable($('instr-numbers'), rows);
+  fillTable($('calib-counters'), ins.stage ? [
+    ['placements kept / planned', `${ins.placements_done} / ${ins.placements_planned}`],
+    ['views kept', String(ins.views_captured)],
+    ['views rejected', String(ins.views_rejected)],
+    ['search views', String(ins.searches)],
+  ] : [['no capture running', '']]);
+  const reasons = Object.keys(ins.rejected || {});
+  fillTable($('rejected-reasons'), reasons.map((r) => [`rejected: ${r}`, String(ins.rejected[r])]));
+  $('op-placed').classList.toggle('primary', ins.state === 'place' || ins.state === 'move');
+}
+
+function showSigma(p) {
+  const body = $('sigma-table').querySelector('tbody');
+  if (!p) return;
+  body.replaceChildren(...p.parameters.map((q) => {
+    const [k, unit] = shownUnit(q.unit, [q.sigma, q.target]);
+    const tr = el('tr');
+    tr.dataset.name = q.name;
+    tr.append(el('td', q.name), el('td', unit),
+      el('td', q.sigma === null ? 'not yet' : precise(q.sigma * k), 'num'),
+      el('td', precise(q.target === null ? null : q.target * k), 'num'),
+      el('td', q.met ? '✓' : '✗', q.met ? 'met' : 'unmet'));
+    return tr;
+  }));
+  const met = $('targets-met');
+  met.textContent = p.stage ? (p.targets_met ? `${p.stage}: every target met` : `${p.stage}: not yet`) : 'idle';
+  met.className = `badge ${p.targets_met ? 'ok' : 'warn'}`;
+  const placements = p.placements_max ? ` (placements ${p.placements_done} of at most ${p.placements_max})` : '';
+  $('advice').textContent = (p.advice ? `Next: ${p.advice}` : '') + placements;
+}
+
+// One coverage grid: cells coloured by count (viridis over 1..max), empty cells dark grey.
+function drawCoverage(canvas, grid, width, height) {
+  if (canvas.width !== width || canvas.height !== height) {
+    canvas.width = width;
+    canvas.height = height;
+  }
+  const ctx = canvas.getContext('2d');
+  ctx.fillStyle = '#000';
+  ctx.fillRect(0, 0, width, height);
+  if (!grid || !grid.cols || !grid.rows) return 0;
+  const top = Math.max(1, ...grid.cells), rgb = new Float32Array(3);
+  const cw = width / grid.cols, ch = height / grid.rows;
+  let covered = 0;
+  ctx.font = `${Math.max(8, Math.min(12, ch * 0.45))}px sans-serif`;
+  ctx.textAlign = 'center';
+  ctx.textBaseline = 'middle';
+  for (let r = 0; r < grid.rows; r++) {
+    for (let c = 0; c < grid.cols; c++) {
+      const n = grid.cells[r * grid.cols + c];
+      if (n > 0) {
+        covered++;
+        viridis(top > 1 ? (n - 1) / (top - 1) : 1, rgb, 0);
+        ctx.fillStyle = `rgb(${rgb[0] * 255},${rgb[1] * 255},${rgb[2] * 255})`;
+      } else {
+        ctx.fillStyle = '#2a2f37';
+      }
+      ctx.fillRect(c * cw + 0.5, r * ch + 0.5, cw - 1, ch - 1);
+      if (n > 0 && cw > 16 && ch > 12) {
+        ctx.fillStyle = n > 0.6 * top ? '#000' : '#fff';
+        ctx.fillText(String(n), (c + 0.5) * cw, (r + 0.5) * ch);
+      }
+    }
+  }
+  canvas.dataset.covered = String(covered);
+  canvas.dataset.cells = String(grid.cols * grid.rows);
+  canvas.dataset.max = String(top);
+  return covered;
+}
+
+function showCoverage(p, view) {
+  if (!p) return;
+  const aspect = view && view.width ? view.height / view.width : 0.75;
+  const ic = p.image_coverage, vc = p.voltage_coverage;
+  const covered = drawCoverage($('coverage-image'), ic, 240, Math.round(240 * aspect));
+  $('coverage-image-caption').textContent = ic.cols
+    ? `image space: features per cell, ${covered} of ${ic.cols * ic.rows} cells covered` : 'image space: none yet';
+  const e = p.voltage_extent, axes = p.voltage_axes.length === 2 ? p.voltage_axes : ['first', 'second'];
+  const vcovered = drawCoverage($('coverage-voltage'), vc, 240, 240);
+  $('coverage-voltage-caption').textContent = vc.cols
+    ? `voltage space: views per cell, ${vcovered} of ${vc.cols * vc.rows} covered; ${axes[0]} ${precise(e[0])}…${precise(e[1])} V (→), ${axes[1]} ${precise(e[2])}…${precise(e[3])} V (↓)`
+    : 'voltage space: none yet';
+}
+
+function showCalibration(c) {
+  showInstruction(c.instruction);
+  showSigma(c.progress);
+  showCoverage(c.progress, c.view);
+}
+
+async function showCalibrationView(meta, payloads) {
+  if (meta.stamp === null) return;
+  const canvas = $('calib-image');
+  const w = meta.width || canvas.width, h = meta.height || canvas.height;
+  if (canvas.width !== w || canvas.height !== h) {
+    canvas.width = w;
+    canvas.height = h;
+  }
+  const ctx = canvas.getContext('2d');
+  if (payloads[1]) {
+    const bitmap = await createImageBitmap(new Blob([payloads[1]], { type: 'image/png' }));
+    ctx.drawImage(bitmap, 0, 0);
+    bitmap.close();
+  } else {
+    ctx.fillStyle = '#000';
+    ctx.fillRect(0, 0, w, h);
+  }
+  const uv = new Float32Array(payloads[0], 0, 2 * meta.points);
+  const colour = meta.accepted ? MARK_KEPT : MARK_REJECTED;
+  const r = Math.max(4, w / 120);
+  ctx.strokeStyle = colour;
+  ctx.fillStyle = colour;
+  ctx.lineWidth = Math.max(1.5, w / 480);
+  for (let i = 0; i < meta.points; i++) {
+    const u = uv[2 * i], v = uv[2 * i + 1];
+    ctx.beginPath();
+    ctx.arc(u, v, r, 0, 2 * Math.PI);
+    ctx.stroke();
+    ctx.fillRect(u - 1.5, v - 1.5, 3, 3);   // the centre itself
+  }
+  if (!meta.accepted) {
+    ctx.font = `${Math.round(h / 22)}px sans-serif`;
+    ctx.fillStyle = 'rgba(0,0,0,0.6)';
+    ctx.fillRect(0, 0, w, h / 14);
+    ctx.fillStyle = MARK_REJECTED;
+    ctx.textBaseline = 'middle';
+    ctx.fillText(`rejected: ${meta.reason || 'no reason given'}`, 8, h / 28);
+  }
+  canvas.dataset.stamp = String(meta.stamp);
+  canvas.dataset.points = String(meta.points);
+  canvas.dataset.accepted = String(meta.accepted);
+  canvas.dataset.matched = String(meta.matched);
+  const verdict = $('view-verdict');
+  verdict.textContent = meta.accepted ? 'kept' : `rejected: ${meta.reason || '?'}`;
+  verdict.className = `badge ${meta.accepted ? 'ok' : 'error'}`;
+  $('view-info').textContent = `${meta.points} points detected, image stamp ${meta.stamp.toFixed(3)} s`;
+  const note = $('view-note');
+  if (meta.matched) {
+    note.textContent = 'Detections drawn on the view\'s own camera frame.';
+    note.className = 'dim';
+  } else {
+    note.textContent = payloads[1]
+      ? `The view's own frame was not received: its detections are drawn on the newest frame (stamp ${meta.image_stamp.toFixed(3)} s).`
+      : 'No camera image received yet: detections only.';
+    note.className = 'warn';
+  }
+}
+
+async function calibrationViewLoop() {
+  if (state.busy.calib) return;
+  state.busy.calib = true;
+  try {
+    while (state.summary.calibration && state.summary.calibration.view
+           && state.summary.versions.calibration_view > calib.viewHave) {
+      const { meta, payloads } = await fetchFramed('api/calibration/view');
+      calib.viewHave = meta.version;
+      await showCalibrationView(meta, payloads);
+    }
+  } catch (err) {
+    console.warn('calibration view', err);
+  } finally {
+    state.busy.calib = false;
+  }
+}
+
+// A button: the action for the placement of the instruction on screen, through the view's
+// server to calibration/operator; the node's answer (or why it was not reached) is shown.
+async function sendAction(action) {
+  const answer = $('operator-answer');
+  const ins = calib.shown;
+  if (!ins) {
+    answer.textContent = 'No instruction received yet: is a calibration node running?';
+    answer.className = 'error';
+    return;
+  }
+  answer.textContent = `${action} (placement ${ins.placement + 1}): sent…`;
+  answer.className = 'dim';
+  try {
+    const response = await fetch(`api/operator?action=${action}&placement=${ins.placement}&sequence=${ins.sequence}`, { method: 'POST' });
+    const text = await response.text();
+    if (response.ok) {
+      const a = JSON.parse(text);
+      answer.textContent = `${action} (placement ${ins.placement + 1}): ${a.accepted ? 'accepted' : 'refused'}: ${a.message}`;
+      answer.className = a.accepted ? 'ok' : 'error';
+      answer.dataset.accepted = String(a.accepted);
+    } else {
+      answer.textContent = `${action}: not sent (${response.status}): ${text.trim()}`;
+      answer.className = 'error';
+      answer.dataset.accepted = 'false';
+    }
+  } catch (err) {
+    answer.textContent = `${action}: the view's server did not answer (${err.message})`;
+    answer.className = 'error';
+  }
+  answer.dataset.action = action;
+}
+
+function initCalibration() {
+  for (const button of document.querySelectorAll('.operator-buttons button')) {
+    button.addEventListener('click', () => sendAction(button.dataset.action));
+  }
+  for (const tab of document.querySelectorAll('#tabs button')) {
+    tab.addEventListener('click', () => {
+      history.replaceState(null, '', tab.dataset.tab === 'calibration' ? '#calibration' : location.pathname);
+      setTab(tab.dataset.tab);
+    });
+  }
+  window.addEventListener('hashchange', () => setTab(location.hash === '#calibration' ? 'calibration' : 'scan'));
+  setTab(location.hash === '#calibration' ? 'calibration' : 'scan');
+}
+
 initView();
 initControls();
+initCalibration();
 pollLoop();
