@@ -108,7 +108,7 @@ SCAN_GAP_S = 1.0
 #: Centres messages kept to pair with an image that arrives after them.
 RECENT_CENTRES = 64
 #: Camera images kept by stamp, to show a calibration view on its own frame.
-RECENT_FRAMES = 32
+RECENT_FRAMES = 64
 #: Default wait for the calibration node's answer to an operator action [s], and its bounds.
 OPERATOR_TIMEOUT_S, OPERATOR_TIMEOUT_RANGE_S = 10.0, (0.5, 300.0)
 #: The operator's actions (galvoscan_msgs/OperatorAction ``action``).
