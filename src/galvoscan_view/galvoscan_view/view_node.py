@@ -31,9 +31,9 @@ request per press, never resent, answered or refused within ``--operator-timeout
 
 The page's calibration view shows the last view of ``calibration/progress`` on its own
 camera frame: the last ``RECENT_FRAMES`` camera images are kept by stamp, and the view's
-detected points are paired with the image whose stamp is the view's ``view_stamp`` (if that
-frame was never received, e.g. the view started after it, the newest image stands in and
-the page says so).
+detected points are paired with the image whose stamp is the view's ``view_stamp`` (within
+``VIEW_STAMP_TOLERANCE_NS``; if that frame was never received, e.g. the view started after
+it, the newest image stands in and the page says so).
 
 and publishes to Foxglove ``/camera/image_stripe`` (sensor_msgs/Image rgb8): the sampled
 camera image with its extracted stripe centres drawn in red, the same frame as on the page.
@@ -109,6 +109,9 @@ SCAN_GAP_S = 1.0
 RECENT_CENTRES = 64
 #: Camera images kept by stamp, to show a calibration view on its own frame.
 RECENT_FRAMES = 64
+#: A frame is a view's own when their stamps differ by at most this [ns]: a stamp sent as
+#: float seconds loses ~0.2 us at today's epoch; frames are >= 1 ms apart (1000 fps at most).
+VIEW_STAMP_TOLERANCE_NS = 200_000
 #: Default wait for the calibration node's answer to an operator action [s], and its bounds.
 OPERATOR_TIMEOUT_S, OPERATOR_TIMEOUT_RANGE_S = 10.0, (0.5, 300.0)
 #: The operator's actions (galvoscan_msgs/OperatorAction ``action``).
@@ -502,6 +505,10 @@ class ViewNode(Node):
         """The pending view on its own frame if kept, else on the newest frame (unmatched)."""
         stamp_ns, uv, accepted, reason = self._view
         data = self._frames.get(stamp_ns)
+        if data is None and self._frames:
+            nearest = min(self._frames, key=lambda s: abs(s - stamp_ns))
+            if abs(nearest - stamp_ns) <= VIEW_STAMP_TOLERANCE_NS:
+                data = self._frames[nearest]
         matched = data is not None
         if not matched and self._frames:
             data = next(reversed(self._frames.values()))
@@ -565,7 +572,7 @@ class ViewNode(Node):
         self._frames.move_to_end(stamp_ns)
         while len(self._frames) > RECENT_FRAMES:
             self._frames.popitem(last=False)
-        if self._view is not None and self._view[0] == stamp_ns:
+        if self._view is not None and abs(self._view[0] - stamp_ns) <= VIEW_STAMP_TOLERANCE_NS:
             self._show_view()
 
     def _take_image(self) -> None:

@@ -412,6 +412,8 @@ def test_page_shows_the_cloud_of_a_sim_scan(chromium, spawn, tmp_path, sim_graph
 #: The detected points of the published view: an 11 x 8 grid of corners, 24 px apart [px].
 VIEW_UV = np.array([(200.0 + 24 * c, 150.0 + 24 * r) for r in range(8) for c in range(11)])
 VIEW_STAMP = (1234, 500_000_000)
+#: The stamp as calibration/progress may carry it: float seconds, rounded (0.1 us off).
+VIEW_STAMP_SENT = (1234, 500_000_100)
 
 
 def camera_image():
@@ -444,7 +446,7 @@ def progress_message(accepted: bool, reason: str = ''):
     m.voltage_extent = [-1.0, 1.0, -0.8, 0.8]
     m.voltage_grid_cols, m.voltage_grid_rows = 5, 4
     m.voltage_coverage = [0, 1, 0, 0, 0, 0, 0, 2, 0, 0, 0, 0, 0, 0, 3, 0, 0, 0, 0, 0]
-    m.view_stamp.sec, m.view_stamp.nanosec = VIEW_STAMP
+    m.view_stamp.sec, m.view_stamp.nanosec = VIEW_STAMP_SENT
     m.view_points_u = VIEW_UV[:, 0].tolist()
     m.view_points_v = VIEW_UV[:, 1].tolist()
     m.view_accepted, m.view_reason = accepted, reason

@@ -541,7 +541,7 @@ function showSigma(p) {
   met.textContent = p.stage ? (p.targets_met ? `${p.stage}: every target met` : `${p.stage}: not yet`) : 'idle';
   met.className = `badge ${p.targets_met ? 'ok' : 'warn'}`;
   const placements = p.placements_max ? ` (placements ${p.placements_done} of at most ${p.placements_max})` : '';
-  $('advice').textContent = (p.advice ? `Next: ${p.advice}` : '') + placements;
+  $('advice').textContent = (p.advice || '') + placements;
 }
 
 // One coverage grid: cells coloured by count (viridis over 1..max), empty cells dark grey.
