@@ -548,7 +548,7 @@ class ViewNode(Node):
                 or not 0 <= placement < 2**32:
             raise ValueError(f'placement must be an integer in 0..{2**32 - 1}, got {placement!r}')
         client = self._operator
-        if not client.wait_for_service(timeout_sec=min(timeout, 2.0)):
+        if not client.wait_for_service(timeout_sec=min(timeout, 5.0)):
             raise LookupError(f'{client.srv_name} is not available: no calibration node on '
                               'this ROS domain (galvoscan run --nodes ...,calibration)')
         answered = threading.Event()
