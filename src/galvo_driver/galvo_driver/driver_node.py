@@ -13,7 +13,8 @@ Services:
                    is refused
     scan/stop      galvoscan_msgs/StopScan
     scan/progress  galvoscan_msgs/GetScanProgress
-    sim/set_scene  galvoscan_msgs/SetScene (sim backend only)
+    sim/set_scene  galvoscan_msgs/SetScene (sim backend only; not offered by a driver
+                   started on ``rig``)
 
 Camera parameters (backend ``rig``), GenICam features by their SFNC names and units, as
 camera_aravis2 has them: ``ExposureTime`` [us], ``Gain``, ``PixelFormat``, ``Width``,
@@ -188,11 +189,13 @@ class GalvoDriverNode(LifecycleNode):
         self._scan_count = 0
         #: request_id -> (the request's digest, the answer given), newest last
         self._answered_starts = collections.OrderedDict()
-        for srv_type, name, callback in (
-                (StartScan, 'scan/start', self._on_start),
-                (StopScan, 'scan/stop', self._on_stop),
-                (GetScanProgress, 'scan/progress', self._on_progress),
-                (SetScene, 'sim/set_scene', self._on_set_scene)):
+        services = [(StartScan, 'scan/start', self._on_start),
+                    (StopScan, 'scan/stop', self._on_stop),
+                    (GetScanProgress, 'scan/progress', self._on_progress)]
+        # a rig has no simulator scene; a rig's twin serves sim/set_scene where it renders
+        if self.get_parameter('backend').value != 'rig':
+            services.append((SetScene, 'sim/set_scene', self._on_set_scene))
+        for srv_type, name, callback in services:
             self.create_service(srv_type, name, guard_service(
                 name, callback, self.get_logger(), self.callback_errors))
         #: totals over the node's life (the scan's own counts are in self._scan)
