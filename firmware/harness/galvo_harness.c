@@ -13,6 +13,12 @@
  *     --realtime        lock simulated time to the wall clock (16 Mcycles per second), as a
  *                       host with its own timers (heartbeat, ACK timeouts) needs
  *     --rate R          with --realtime: simulated seconds per wall-clock second (default 1)
+ *     --max-lag MS      with --realtime: when the simulation falls more than MS wall-clock
+ *                       milliseconds behind (the machine stalled the harness), slip the
+ *                       wall clock instead of catching up in a burst: a burst would hand
+ *                       the firmware the host's bytes of the whole stall at once and then
+ *                       run the board's watchdog out in fast-forward. Logged as "slip <us>".
+ *                       Default 0: always catch up.
  *     --script FILE     scripted host, in simulated time: lines "<t_us> tx <hex bytes>",
  *                       "<t_us> interlock open|closed", "<t_us> reset", "<t_us> end"
  *     --seconds S       stop after S simulated seconds
@@ -236,7 +242,9 @@ static int reset_requested;
 /* ---- the trigger wire to a camera (--edge-udp) ------------------------------------------ */
 static int edge_sock = -1;
 static struct sockaddr_in edge_addr;
-static double wall0;          /* CLOCK_MONOTONIC [s] of cycle 0 (moved by a held reset) */
+static double wall0;          /* CLOCK_MONOTONIC [s] of cycle 0 (moved by a held reset, a slip) */
+static double edge0;          /* CLOCK_MONOTONIC [s] of cycle 0 for the edges' instants */
+static double max_lag;        /* [s], 0: catch up */
 static double mono_to_real;   /* CLOCK_REALTIME - CLOCK_MONOTONIC [s] */
 
 static void put_le(uint8_t *b, uint64_t v, int n)
@@ -250,7 +258,9 @@ static void send_edge(void)
     if (edge_sock < 0)
         return;
     uint8_t b[32] = {0};
-    double t = realtime ? wall0 + avr->cycle / 16e6 / rate : 0.0;
+    /* the edges' instants follow the board's crystal from power-up: a camera's clock runs on
+     * by itself, whatever the harness's slips */
+    double t = realtime ? edge0 + avr->cycle / 16e6 / rate : 0.0;
     uint64_t ns;
     if (realtime) {
         ns = (uint64_t)((long double)(t + mono_to_real) * 1e9L);
@@ -617,6 +627,8 @@ int main(int argc, char **argv)
             realtime = 1;
         else if (!strcmp(argv[i], "--rate") && i + 1 < argc)
             rate = atof(argv[++i]);
+        else if (!strcmp(argv[i], "--max-lag") && i + 1 < argc)
+            max_lag = atof(argv[++i]) * 1e-3;
         else if (!strcmp(argv[i], "--script") && i + 1 < argc)
             script_path = argv[++i];
         else if (!strcmp(argv[i], "--seconds") && i + 1 < argc)
@@ -653,7 +665,7 @@ int main(int argc, char **argv)
     }
     if (!elf || !(rate > 0)) {
         fprintf(stderr, "usage: galvo_harness [--log F] [--pty] [--realtime] [--script F] "
-                        "[--seconds S] [--boot-count N] [--edge-udp PORT] firmware.elf\n");
+                        "[--max-lag MS] [--seconds S] [--boot-count N] [--edge-udp PORT] firmware.elf\n");
         return 2;
     }
     elf_firmware_t fw;
@@ -734,7 +746,7 @@ int main(int argc, char **argv)
     unsigned long long stop_cycle = seconds >= 0 ? (unsigned long long)(seconds * 16e6) : ~0ull;
     const unsigned chunk = POLL_CYCLES;
     avr_cycle_timer_register(avr, POLL_CYCLES, poll_tick, NULL);
-    wall0 = wall_now();
+    wall0 = edge0 = wall_now();
     double last_flush = wall0;
     while (!quit && avr->cycle < stop_cycle) {
         if (hold_until > 0) {
@@ -775,6 +787,11 @@ int main(int argc, char **argv)
         feed_uart(uart_in);
         if (realtime) {
             double ahead = avr->cycle / 16e6 / rate - (wall_now() - wall0);
+            if (max_lag > 0 && -ahead > max_lag) {
+                logline("slip %.0f", -ahead * 1e6);
+                wall0 -= ahead; /* from now on, simulated time follows the wall clock again */
+                ahead = 0;
+            }
             if (ahead > 0.0005) {
                 struct timespec ts = {0, (long)(ahead * 1e9)};
                 nanosleep(&ts, NULL);

@@ -961,7 +961,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 #: Line edges a rendering camera holds while it renders the ones before (beyond: missed).
-_RENDER_QUEUE = 256
+_RENDER_QUEUE = 4096
 #: How long a rendered frame waits for the streaming thread to take its trigger [s].
 _TRIGGER_TAKE_TIMEOUT_S = 2.0
 

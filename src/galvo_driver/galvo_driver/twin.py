@@ -52,6 +52,9 @@ AD5754R_RANGES = {0: (0.0, 5.0), 1: (0.0, 10.0), 2: (0.0, 10.8), 3: (-5.0, 5.0),
                   4: (-10.0, 10.0), 5: (-10.8, 10.8)}
 #: The DAC's bits.
 AD5754R_BITS = 16
+#: The board's simulation slips when it falls this far behind the wall clock [ms] (a loaded
+#: machine stalling it) rather than catching up in a burst that would trip its watchdog.
+MAX_LAG_MS = 10.0
 
 
 def ad5754r_volts(codes, powered: int, range_code: int) -> np.ndarray:
@@ -302,7 +305,8 @@ class Twin:
         self.camera.replug()
         try:
             self.board = SimavrBoard(str(self.board_log), boot_count=self.boot_count,
-                                     edge_udp_port=self.camera.line_port).start()
+                                     edge_udp_port=self.camera.line_port,
+                                     max_lag_ms=MAX_LAG_MS).start()
         except BaseException:
             self.close()
             raise
@@ -324,10 +328,11 @@ class Twin:
 
     def driver_parameters(self) -> dict:
         """``galvo_driver`` parameters of a ``rig`` backend on this twin: the board's pty,
-        the camera's serial, the rig's exposure, Mono8, host-clock camera stamps (the fake
-        camera stamps frames with the edge's CLOCK_REALTIME instant)."""
+        the camera's serial, the rig's exposure, Mono8. The camera stamps frames on a clock of
+        its own (``camera_clock: camera``): the board crystal's time since power-up, which
+        a loaded machine's slips (:data:`MAX_LAG_MS`) put behind the host's."""
         return {'backend': 'rig', 'serial_port': self.port, 'camera_serial': self.serial,
-                'camera_clock': 'host', 'ExposureTime': float(self.exposure_us()),
+                'camera_clock': 'camera', 'ExposureTime': float(self.exposure_us()),
                 'PixelFormat': 'Mono8'}
 
     def set_scene(self, text: str) -> int:

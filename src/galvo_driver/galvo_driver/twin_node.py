@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from pathlib import Path
 
@@ -96,10 +97,12 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         pass
     finally:
+        # a second Ctrl-C must not stop the board and the camera half-way
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        twin.close()
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
-        twin.close()
     return 0
 
 

@@ -37,7 +37,7 @@ def twin(tmp_path_factory):
 def test_each_paired_frame_is_the_exposure_at_its_own_events_codes(twin):
     from galvoscan_sim import Simulator, load_rig, load_scene
 
-    be = RigBackend(twin.port, camera_serial=twin.serial, camera_clock='host',
+    be = RigBackend(twin.port, camera_serial=twin.serial, camera_clock='camera',
                     features={'ExposureTime': twin.exposure_us(), 'PixelFormat': 'Mono8'})
     # the stripe swept over the stair block, G1 on it; neighbouring rows differ in every
     # channel, so that a frame tagged with a neighbour's EVENT cannot pass

@@ -290,16 +290,26 @@ class SimavrBoard:
         The board's trigger output wired to a camera's trigger input on this UDP port of
         127.0.0.1: each rising edge sends one datagram, stamped with the edge's wall-clock
         instant and carrying the DAC outputs and the laser level at that edge (the galvos'
-        and the laser's drive, for a simulated rig's physics: :data:`EDGE_FORMAT`).
+        and the laser's drive, for a simulated rig's physics: :data:`EDGE_FORMAT`). The
+        edges' instants follow the board's crystal from power-up (a camera clock of its own).
+    max_lag_ms : float, optional
+        When the harness falls this far behind the wall clock (the machine stalled it), it
+        slips instead of catching up in a burst, which would hand the firmware the host's
+        bytes of the stall at once and then run its watchdog out in fast-forward. The board
+        clock then runs behind the host's by the slips (a clock step for the host; the
+        serial backend resyncs before each scan). None: always catch up.
     """
 
     def __init__(self, log_path: str | None = None, boot_count: int = 1, rate: float = 1.0,
-                 edge_udp_port: int | None = None):
+                 edge_udp_port: int | None = None, max_lag_ms: float | None = None):
         if not (np.isfinite(rate) and 0 < rate <= 1):
             raise ValueError(f'rate: expected 0 < rate <= 1, got {rate}')
         if edge_udp_port is not None and not 1 <= int(edge_udp_port) <= 65535:
             raise ValueError(f'edge_udp_port: expected 1..65535, got {edge_udp_port}')
         self.edge_udp_port = None if edge_udp_port is None else int(edge_udp_port)
+        if max_lag_ms is not None and not (np.isfinite(max_lag_ms) and max_lag_ms > 0):
+            raise ValueError(f'max_lag_ms: expected > 0 ms, got {max_lag_ms}')
+        self.max_lag_ms = max_lag_ms
         self.rate = float(rate)
         self._tmp = None
         if log_path is None:
@@ -319,6 +329,7 @@ class SimavrBoard:
              self.log_path,
              '--boot-count', str(self.boot_count),
              *(['--edge-udp', str(self.edge_udp_port)] if self.edge_udp_port else []),
+             *(['--max-lag', repr(float(self.max_lag_ms))] if self.max_lag_ms else []),
              str(elf)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
             bufsize=0)
