@@ -969,6 +969,8 @@ def _by_distance(args, graph, description, nominal_mm, nominal_rmse, out, progre
 #: Frame rate of scans through the twin when ``--frame-rate`` is left at its default [Hz]:
 #: the simulator renders a 720 x 540 exposure in tens of ms on a shared 2-core machine.
 TWIN_FRAME_RATE = 10.0
+#: Frames of the twin's first scan, which starts the driver's camera-to-board clock fit.
+TWIN_FIT_FRAMES = 8
 #: How long the twin may take to come up [s] (the renderer compiles on its first run).
 TWIN_START_TIMEOUT_S = 300.0
 
@@ -1060,10 +1062,20 @@ class TwinGraph(Graph):
             self._stop_twin()
             raise
         try:
-            return super().__enter__()
+            super().__enter__()
         except BaseException:
             self._stop_twin()
             raise
+        # The twin's camera stamps frames on its own clock (camera_clock: camera), and the
+        # driver pairs a lone frame only once its clock fit exists: a first scan of a few
+        # frames makes it (the calibration's first view is a single frame).
+        try:
+            self.client.scan(np.zeros((TWIN_FIT_FRAMES, 4)), frame_rate=TWIN_FRAME_RATE,
+                             laser_on=False, timeout=30.0)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
 
     def __exit__(self, *exc):
         try:
