@@ -52,6 +52,9 @@ AD5754R_RANGES = {0: (0.0, 5.0), 1: (0.0, 10.0), 2: (0.0, 10.8), 3: (-5.0, 5.0),
                   4: (-10.0, 10.0), 5: (-10.8, 10.8)}
 #: The DAC's bits.
 AD5754R_BITS = 16
+#: How long the driver waits for a scan's last frames [s]: the renderer delays each frame
+#: by its render time (a board frame takes 0.1-0.2 s on a loaded 2-core machine).
+FRAME_TIMEOUT_S = 3.0
 #: The board's simulation slips when it falls this far behind the wall clock [ms] (a loaded
 #: machine stalling it) rather than catching up in a burst that would trip its watchdog.
 MAX_LAG_MS = 10.0
@@ -330,10 +333,11 @@ class Twin:
         """``galvo_driver`` parameters of a ``rig`` backend on this twin: the board's pty,
         the camera's serial, the rig's exposure, Mono8. The camera stamps frames on a clock of
         its own (``camera_clock: camera``): the board crystal's time since power-up, which
-        a loaded machine's slips (:data:`MAX_LAG_MS`) put behind the host's."""
+        a loaded machine's slips (:data:`MAX_LAG_MS`) put behind the host's. The frames'
+        render delay asks for a longer ``frame_timeout`` (:data:`FRAME_TIMEOUT_S`)."""
         return {'backend': 'rig', 'serial_port': self.port, 'camera_serial': self.serial,
                 'camera_clock': 'camera', 'ExposureTime': float(self.exposure_us()),
-                'PixelFormat': 'Mono8'}
+                'PixelFormat': 'Mono8', 'frame_timeout': FRAME_TIMEOUT_S}
 
     def set_scene(self, text: str) -> int:
         """Replace the rendered scene (scene YAML); returns its number of objects.
