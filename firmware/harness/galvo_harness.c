@@ -40,9 +40,10 @@
  *     the pull-up win).
  *
  * Edge datagram (--edge-udp), 32 bytes, little-endian:
- *   u64 the edge's instant, CLOCK_REALTIME [ns] (in --realtime mode the wall-clock instant
- *       of the edge's cycle, so a late datagram still carries its edge's time, as a camera
- *       latches its timestamp at the edge);
+ *   u64 the edge's instant [ns]: in --realtime mode CLOCK_REALTIME at power-up plus the
+ *       board's crystal time of the edge (so a late datagram still carries its edge's time,
+ *       as a camera latches its timestamp at the edge; the harness's slips and --rate do not
+ *       move it), otherwise CLOCK_REALTIME when the edge is simulated;
  *   u16 x 4 the AD5754R output codes at the edge (VOUTA..VOUTD);
  *   u8 powered channels (bit mask), u8 output range code of channel A (4: +-10 V),
  *   u8 laser enable level at the edge, 5 bytes 0;
@@ -258,9 +259,10 @@ static void send_edge(void)
     if (edge_sock < 0)
         return;
     uint8_t b[32] = {0};
-    /* the edges' instants follow the board's crystal from power-up: a camera's clock runs on
-     * by itself, whatever the harness's slips */
-    double t = realtime ? edge0 + avr->cycle / 16e6 / rate : 0.0;
+    /* the edges' instants follow the board's crystal from power-up (16 MHz, whatever --rate
+     * and the harness's slips): a camera clock of its own, which the host pairs against the
+     * board's clock */
+    double t = realtime ? edge0 + avr->cycle / 16e6 : 0.0;
     uint64_t ns;
     if (realtime) {
         ns = (uint64_t)((long double)(t + mono_to_real) * 1e9L);

@@ -264,6 +264,11 @@ class Twin:
         The camera's serial number (the driver's ``camera_serial``).
     boot_count : int
         The board's EEPROM boot counter (its boot id).
+    rate : float
+        The board's simulated seconds per wall-clock second (:class:`SimavrBoard`): below 1
+        a host that a loaded machine stalls has more wall-clock time before the board's
+        150 ms watchdog trips (the trigger rate in wall-clock time is ``rate`` times the
+        scan's). The camera keeps the board's crystal time.
     workdir : str, optional
         Where the board log (``board.log``) and the render log (``render.log``) go
         (default: a temporary directory, removed at :meth:`close`).
@@ -275,8 +280,10 @@ class Twin:
     """
 
     def __init__(self, rig: str = 'reference', scene: str = 'stair_block', seed: int = 0,
-                 serial: str = 'GSTWIN0', boot_count: int = 1, workdir: str | None = None):
+                 serial: str = 'GSTWIN0', boot_count: int = 1, workdir: str | None = None,
+                 rate: float = 1.0):
         self.rig, self.scene, self.seed = str(rig), str(scene), int(seed)
+        self.rate = float(rate)
         self.serial = serial
         self.boot_count = int(boot_count)
         self._tmp = None
@@ -309,7 +316,7 @@ class Twin:
         try:
             self.board = SimavrBoard(str(self.board_log), boot_count=self.boot_count,
                                      edge_udp_port=self.camera.line_port,
-                                     max_lag_ms=MAX_LAG_MS).start()
+                                     max_lag_ms=MAX_LAG_MS, rate=self.rate).start()
         except BaseException:
             self.close()
             raise

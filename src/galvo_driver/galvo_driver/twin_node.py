@@ -71,6 +71,9 @@ def main(argv=None) -> int:
     p.add_argument('--seed', type=int, default=0, help='simulator seed')
     p.add_argument('--serial', default='GSTWIN0', help="the camera's serial number")
     p.add_argument('--boot-count', type=int, default=1, help="the board's boot counter")
+    p.add_argument('--rate', type=float, default=1.0,
+                   help="the board's simulated seconds per wall-clock second (0 < rate <= 1; "
+                        'below 1 a loaded host has more time before the watchdog trips)')
     p.add_argument('--workdir', default=None,
                    help='folder of the board and render logs (default: a temporary one)')
     args, ros_args = p.parse_known_args(argv)
@@ -84,7 +87,7 @@ def main(argv=None) -> int:
     tune_this_process()
     try:
         twin = Twin(args.rig, args.scene, args.seed, serial=args.serial,
-                    boot_count=args.boot_count, workdir=args.workdir).start()
+                    boot_count=args.boot_count, workdir=args.workdir, rate=args.rate).start()
     except (ValueError, RuntimeError, OSError) as exc:
         print(f'twin: {exc}', file=sys.stderr, flush=True)
         return 1

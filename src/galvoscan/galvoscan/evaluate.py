@@ -969,6 +969,9 @@ def _by_distance(args, graph, description, nominal_mm, nominal_rmse, out, progre
 #: Frame rate of scans through the twin when ``--frame-rate`` is left at its default [Hz]:
 #: the simulator renders a 720 x 540 exposure in tens of ms on a shared 2-core machine.
 TWIN_FRAME_RATE = 10.0
+#: The twin board's simulated seconds per wall-clock second: at half speed a node that the
+#: shared machine stalls has 300 ms, not 150, before the board's watchdog trips.
+TWIN_BOARD_RATE = 0.5
 #: Frames of the twin's first scan, which starts the driver's camera-to-board clock fit.
 TWIN_FIT_FRAMES = 8
 #: How long the twin may take to come up [s] (the renderer compiles on its first run).
@@ -1006,7 +1009,8 @@ class TwinGraph(Graph):
         err = open(self.twin_dir / 'twin_node.log', 'ab')  # noqa: SIM115
         self.twin_proc = subprocess.Popen(
             [sys.executable, '-m', 'galvo_driver.twin_node', '--rig', self.rig_name,
-             '--seed', str(self.operator_seed), '--workdir', str(self.twin_dir)],
+             '--seed', str(self.operator_seed), '--workdir', str(self.twin_dir),
+             '--rate', repr(TWIN_BOARD_RATE)],
             env=child_env(self.env), stdout=subprocess.PIPE, stderr=err, text=True,
             preexec_fn=die_with_parent())
         err.close()
@@ -1112,11 +1116,12 @@ def _twin_evaluate(args) -> int:
         args.frame_rate = TWIN_FRAME_RATE
     q = args.quick
     progress = Progress()
-    progress.log(f'twin of rig {rig.name}: scans at {args.frame_rate:g} Hz'
-                 + (', quick plans' if q else ''))
+    progress.log(f'twin of rig {rig.name}: scans at {args.frame_rate:g} Hz of board time, '
+                 f'the board at {TWIN_BOARD_RATE:g} x real time' + (', quick plans' if q else ''))
     domain = os.environ.get('ROS_DOMAIN_ID') or str(private_domain())
     env = {**os.environ, 'ROS_DOMAIN_ID': domain, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
-    result = {'backend': 'rig (twin)', 'frame_rate_hz': args.frame_rate, 'quick': bool(q)}
+    result = {'backend': 'rig (twin)', 'frame_rate_hz': args.frame_rate,
+              'board_rate': TWIN_BOARD_RATE, 'quick': bool(q)}
     reached = 'start'
     try:
         with TwinGraph(args, args.rig, out, env, progress, quick=q) as graph:
