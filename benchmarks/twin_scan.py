@@ -20,8 +20,8 @@ Reported (last stdout line, JSON):
   (the harness log); ``frames_paired``: frames the driver published (each paired with its
   trigger's EVENT); ``frames_rendered``: exposures the camera rendered;
 * ``mistagged``: published frames whose image was rendered at DAC codes other than those
-  of the EVENT the driver tagged it with (the image carries its edge's instant, the render
-  log the codes at that edge); ``images_checked``;
+  of the EVENT the driver tagged it with (the render log holds each image's CRC-32 with the
+  codes at its edge); ``images_checked``;
 * ``fps``: frames paired per second of trigger time (the frame rate reached, in the board's
   time); ``frame_rate_hz``: the trigger rate asked for; ``board_rate``: the board's
   simulated seconds per wall-clock second (``galvoscan.evaluate.TWIN_BOARD_RATE``: half
@@ -88,10 +88,10 @@ class Tap:
 
     def _image(self, msg):
         if self.recording:
-            from galvo_driver.fake_camera import edge_of
+            from galvo_driver.twin import image_crc
 
-            self.images[self._stamp(msg)] = edge_of(np.frombuffer(bytes(msg.data[:8]),
-                                                                  np.uint8))
+            self.images[self._stamp(msg)] = image_crc(np.frombuffer(bytes(msg.data),
+                                                                    np.uint8))
 
 
 def _series(graph, args, rig, site, positions, frames, progress):
@@ -106,7 +106,7 @@ def _series(graph, args, rig, site, positions, frames, progress):
 
 def twin_run(ns, rig, site, positions, out, progress) -> dict:
     from galvo_driver.serial_link.protocol import codes_to_volts
-    from galvo_driver.twin import read_render_log
+    from galvo_driver.twin import read_render_log, renders_by_image
 
     args = _args(ns, out / 'twin')
     env = {**os.environ, 'ROS_DOMAIN_ID': str(private_domain()),
@@ -122,13 +122,13 @@ def twin_run(ns, rig, site, positions, out, progress) -> dict:
         graph.client.spin(1.0)  # the last messages on their way
         tap.recording = False
         after = graph.twin_counts()
-        renders = read_render_log(graph.twin_dir / 'render.log')
+        renders = renders_by_image(read_render_log(graph.twin_dir / 'render.log'))
     # the warm-up scan of calibrate() (one frame) is inside the window: count it too
     triggered = after['frames_triggered'] - before['frames_triggered']
     mistagged, checked, unknown = 0, 0, 0
-    for stamp, edge in tap.images.items():
+    for stamp, crc in tap.images.items():
         state = tap.states.get(stamp)
-        rec = renders.get(edge)
+        rec = renders.get(crc)
         if state is None or rec is None:
             unknown += 1
             continue

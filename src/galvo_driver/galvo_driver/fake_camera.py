@@ -28,8 +28,8 @@ frame itself still comes when the fake camera's thread gets to it (a loaded mach
 it), and an edge that comes while the previous one is still pending is ignored (the camera
 misses that trigger, as a busy camera does). ``TriggerSoftware`` fires the camera whatever
 the source (a real camera would ignore it under ``Line0``); such frames keep Aravis' stamp
-(the time the frame is made). The first 8 bytes of a line-triggered image carry the edge's
-instant too (little-endian ns, `edge_of`): the truth a test traces every frame back to the
+(the time the frame is made). The first 8 bytes of a line-triggered ramp image carry the
+edge's instant too (little-endian ns, `edge_of`): the truth a test traces every frame back to the
 trigger that exposed it with, whatever the driver made of it.
 
 Triggered frames are produced on a time grid: the fake camera looks for a pending
@@ -711,20 +711,12 @@ class _Fill:
         raise NotImplementedError
 
 
-def _stamp_edge(dest, edge: int) -> None:
-    """Write a line edge's instant into an image's first 8 bytes (see `edge_of`)."""
-    import numpy as np
-
-    if dest.size >= 8:
-        dest[:8] = np.frombuffer(int(edge).to_bytes(8, "little"), np.uint8)
-
-
 class _ImageFill(_Fill):
     """Frames whose images are given: each line edge taken queues (edge instant, image),
-    and the next frame the streaming thread makes carries that image, stamped with the
-    edge (exposure start) and with the edge in its first 8 bytes (`edge_of`). An image
-    that does not fit the buffer (the region of interest or the pixel format changed since
-    it was made), and a frame without a queued image (a software trigger), are sent black.
+    and the next frame the streaming thread makes carries that image as it is, stamped with
+    the edge (exposure start). An image that does not fit the buffer (the region of interest
+    or the pixel format changed since it was made), and a frame without a queued image (a
+    software trigger), are sent black.
     """
 
     def __init__(self):
@@ -749,7 +741,6 @@ class _ImageFill(_Fill):
             np.copyto(dest, np.ascontiguousarray(image).reshape(-1).view(np.uint8))
         else:
             dest[:] = 0
-        _stamp_edge(dest, edge)
 
 
 #: Bits per pixel of the pixel formats the fake camera renders (PFNC codes).

@@ -21,8 +21,9 @@ camera:
 The host never tells the twin what it commanded: the voltages an image is rendered at are
 the DAC model's outputs at the trigger edge, so a frame the driver tags with the wrong
 EVENT has an image of other voltages. Every rendered frame is logged (:func:`read_render_log`)
-with its edge instant, which the image also carries in its first 8 bytes
-(:func:`~galvo_driver.fake_camera.edge_of`): the truth a test checks the driver against.
+with its edge, the DAC codes and the CRC-32 of its image: the truth a test finds a published
+image by (:func:`renders_by_image`) and checks the driver's tag against. The image itself is
+the simulator's, untouched.
 
 What the twin does not model: the galvos' settling (the image is rendered at the outputs'
 final angles; the firmware gives them half a trigger period), the camera's Gain (the rig's
@@ -39,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import tempfile
 import threading
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +100,7 @@ class RenderRecord:
     """One frame a twin's camera rendered: ``edge_ns`` (the trigger edge's instant,
     CLOCK_REALTIME [ns]), ``cycle`` (the edge's CPU cycle in the board's log), ``index`` (the
     simulator's frame index), ``codes`` (the DAC output codes the mirrors were set from),
-    ``laser_on``, ``exposure_s``."""
+    ``laser_on``, ``exposure_s``, ``crc`` (CRC-32 of the image's bytes as sent)."""
 
     edge_ns: int
     cycle: int
@@ -106,19 +108,30 @@ class RenderRecord:
     codes: tuple
     laser_on: bool
     exposure_s: float
+    crc: int
+
+
+def image_crc(image) -> int:
+    """CRC-32 of an image's bytes (how a published image is found in the render log)."""
+    return zlib.crc32(np.ascontiguousarray(image).tobytes())
+
+
+def renders_by_image(renders: dict) -> dict[int, RenderRecord]:
+    """The records of :func:`read_render_log` by image CRC (:func:`image_crc`)."""
+    return {r.crc: r for r in renders.values()}
 
 
 def read_render_log(path) -> dict[int, RenderRecord]:
     """A render log (one line per frame: edge ns, cycle, index, 4 codes, laser, exposure
-    [us]), by edge instant."""
+    [us], image CRC-32), by edge instant."""
     out = {}
     text = Path(path).read_text(encoding='ascii') if Path(path).exists() else ''
     for line in text.splitlines():
         f = line.split()
-        if len(f) != 9:
+        if len(f) != 10:
             continue  # a line being written
         rec = RenderRecord(int(f[0]), int(f[1]), int(f[2]), tuple(int(x) for x in f[3:7]),
-                           f[7] == '1', float(f[8]) * 1e-6)
+                           f[7] == '1', float(f[8]) * 1e-6, int(f[9]))
         out[rec.edge_ns] = rec
     return out
 
@@ -238,12 +251,13 @@ class Renderer:
                 wide = image.astype(np.uint32)
                 wide = wide << (depth - src) if depth >= src else wide >> (src - depth)
                 image = wide.astype(np.uint8 if depth == 8 else '<u2')
+        image = np.ascontiguousarray(image)
         if self._log is not None:
             c = ' '.join(str(int(x)) for x in codes)
             self._log.write(f'{int(edge_ns)} {int(cycle)} {index} {c} {int(bool(laser_on))} '
-                            f'{exposure_s * 1e6:.3f}\n')
+                            f'{exposure_s * 1e6:.3f} {image_crc(image)}\n')
             self._log.flush()
-        return np.ascontiguousarray(image)
+        return image
 
     def close(self) -> None:
         if self._log is not None:

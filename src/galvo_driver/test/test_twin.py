@@ -2,10 +2,11 @@
 simavr and Aravis' GigE Vision fake camera, which renders each exposure with the simulator
 at the DAC outputs of its trigger edge.
 
-Every frame the backend pairs is traced back independently of the pairing: its image
-carries its trigger edge's instant (``edge_of``), the board's log holds the DAC outputs at
-every edge, and the image is rendered again here from the codes of the EVENT the backend
-tagged it with. A frame tagged with another trigger's EVENT fails, whatever the driver did.
+Every frame the backend pairs is traced back independently of the pairing: the camera's
+render log holds each image's CRC with the edge it was rendered for, the board's log holds
+the DAC outputs at every edge, and the image is rendered again here from the codes of the
+EVENT the backend tagged it with. A frame tagged with another trigger's EVENT fails, whatever
+the driver did.
 """
 
 from __future__ import annotations
@@ -15,10 +16,9 @@ import time
 import numpy as np
 import pytest
 
-from galvo_driver.fake_camera import edge_of
 from galvo_driver.rig_backend import RigBackend
 from galvo_driver.serial_link import protocol as p
-from galvo_driver.twin import Twin, ad5754r_volts
+from galvo_driver.twin import Twin, ad5754r_volts, image_crc, renders_by_image
 from stripe_extractor.config import ExtractorConfig
 from stripe_extractor.extractor import extract
 
@@ -57,7 +57,7 @@ def test_each_paired_frame_is_the_exposure_at_its_own_events_codes(twin):
     finally:
         be.close()
     board = twin.board.log()
-    renders = twin.renders()
+    renders = renders_by_image(twin.renders())
     assert n == ROWS
     # the camera renders every edge (it delays frames, never misses them): most pair
     assert len(frames) >= ROWS // 2, (len(frames), stats.get('pairing'), renders)
@@ -69,13 +69,13 @@ def test_each_paired_frame_is_the_exposure_at_its_own_events_codes(twin):
     for f in frames:
         codes = tuple(int(c) for c in p.volts_to_codes(f.voltages))  # the EVENT's codes
         assert codes == tuple(int(c) for c in commanded[f.seq]) and f.laser_on
-        rec = renders[edge_of(f.image)]  # the render of the edge that exposed this image
+        rec = renders[image_crc(f.image)]  # the render of the edge that exposed this image
         assert rec.cycle in edges and board.codes_at(rec.cycle) == rec.codes
         assert rec.codes == codes, f'frame {f.seq}: image of codes {rec.codes}, EVENT {codes}'
-        # the image is the simulator's exposure at those codes (its first 8 bytes: the edge)
+        # the image is the simulator's exposure at those codes
         again = sim.render(ad5754r_volts(codes, 0xF, 4), exposure=rec.exposure_s,
                            frame_index=rec.index)
-        assert np.array_equal(f.image.reshape(-1)[8:], again.image.reshape(-1)[8:])
+        assert np.array_equal(f.image, again.image)
         if len(again.truth.stripe) >= 200:
             found = extract(f.image, config)
             assert len(found) >= 100, f'frame {f.seq}: {len(found)} stripe columns'
