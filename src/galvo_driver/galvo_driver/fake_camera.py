@@ -361,9 +361,10 @@ class FakeCamera:
         datagram carries the DAC outputs and laser level at the edge (the harness's
         ``--edge-udp``, :data:`~galvo_driver.serial_link.simavr_board.EDGE_FORMAT`), and the
         image of that edge is the simulator's exposure of the scene at those outputs
-        instead of the ramp. Keys: ``rig``, ``scene``, ``seed`` and ``log`` (a file where
-        each rendered frame's edge and codes are written). The scene is changed with
-        `set_scene`. The sensor size is the rig's (``width``/``height`` are ignored).
+        (:class:`~galvo_driver.twin_render.Renderer`) instead of the ramp. Keys: ``rig``,
+        ``scene``, ``seed`` and ``log`` (a file where each rendered frame's edge, codes
+        and image CRC are written). The scene is changed with `set_scene`. The sensor
+        size is the rig's (``width``/``height`` are ignored).
 
     Use it as a context manager: it starts on entry and is stopped on exit.
     """
@@ -815,7 +816,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     renderer = None
     if args.render:
-        from galvo_driver.twin import Renderer
+        from galvo_driver.twin_render import Renderer
 
         try:
             renderer = Renderer.from_spec(json.loads(args.render))
@@ -998,8 +999,9 @@ def _render_threads(cam, fill, line, renderer, register, wake, counts, stop) -> 
                     timeout=0.2)
             except queue.Empty:
                 continue
-            roi = tuple(register(r) for r in (_REG_WIDTH, _REG_HEIGHT, _REG_OFFSET_X,
-                                              _REG_OFFSET_Y, _REG_PIXEL_FORMAT))
+            roi = (*(register(r) for r in (_REG_WIDTH, _REG_HEIGHT, _REG_OFFSET_X,
+                                           _REG_OFFSET_Y)),
+                   _PIXEL_DEPTH.get(register(_REG_PIXEL_FORMAT), 8))
             try:
                 image = renderer.render(edge, (c0, c1, c2, c3), powered, range_code,
                                         bool(laser), register(_REG_EXPOSURE_US) * 1e-6, roi,
@@ -1043,7 +1045,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--genicam", default=None, help="GenICam XML file (default: the built-in one)")
     p.add_argument("--render", default="",
                    help="JSON {rig, scene, seed, log}: render each line edge's exposure "
-                        "(galvo_driver.twin) instead of the ramp")
+                        "(galvo_driver.twin_render) instead of the ramp")
     args = p.parse_args(argv)
     if args.genicam is None:
         tmp = tempfile.TemporaryDirectory(prefix="galvoscan-fakecam-")
