@@ -24,8 +24,8 @@ Reported (last stdout line, JSON):
   codes at its edge); ``images_checked``;
 * ``fps``: frames paired per second of trigger time (the frame rate reached, in the board's
   time); ``frame_rate_hz``: the trigger rate asked for; ``board_rate``: the board's
-  simulated seconds per wall-clock second (``galvoscan.evaluate.TWIN_BOARD_RATE``: half
-  speed, so that a node the shared machine stalls keeps the board's watchdog fed);
+  simulated seconds per wall-clock second (``--board-rate``, default half speed, so that a
+  node the shared machine stalls keeps the board's watchdog fed);
   ``wall_fps``: frames paired per wall-clock second of the stair series;
 * ``stair_rmse_mm_twin``, ``stair_rmse_mm_sim`` and ``stair_rmse_ratio`` (twin / sim);
 * ``load_average``: the machine's 1-minute load at the start and the end.
@@ -52,7 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from galvoscan import metrics
-from galvoscan.evaluate import TWIN_BOARD_RATE, Evaluation, Graph, TwinGraph, _load
+from galvoscan.evaluate import Evaluation, Graph, TwinGraph, _load
 from galvoscan.progress import Progress
 from galvoscan_common.runtime import private_domain
 
@@ -112,7 +112,8 @@ def twin_run(ns, rig, site, positions, out, progress) -> dict:
     env = {**os.environ, 'ROS_DOMAIN_ID': str(private_domain()),
            'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
     (out / 'twin').mkdir(parents=True, exist_ok=True)
-    with TwinGraph(args, ns.rig, out / 'twin', env, progress, quick=True) as graph:
+    with TwinGraph(args, ns.rig, out / 'twin', env, progress, quick=True,
+                   board_rate=ns.board_rate) as graph:
         tap = Tap(graph.client.node)
         graph.client.spin(1.0)
         before = graph.twin_counts()
@@ -164,6 +165,8 @@ def main(argv=None) -> int:
                    help='stair positions across the working point (a row of the grid)')
     p.add_argument('--frames', type=int, default=8, help='stripe lines per view (3 views)')
     p.add_argument('--frame-rate', type=float, default=10.0, help='trigger rate [Hz]')
+    p.add_argument('--board-rate', type=float, default=0.5,
+                   help="the twin board's simulated seconds per wall-clock second")
     p.add_argument('--out', default=None, help='folder for logs (default: temporary)')
     ns = p.parse_args(argv)
     load0 = os.getloadavg()[0]
@@ -189,7 +192,7 @@ def main(argv=None) -> int:
         'images_checked': twin['images_checked'],
         'images_unmatched': twin['images_unmatched'],
         'frame_rate_hz': ns.frame_rate,
-        'board_rate': TWIN_BOARD_RATE,
+        'board_rate': ns.board_rate,
         'fps': (twin['frames_paired'] * ns.frame_rate / twin['frames_triggered']
                 if twin['frames_triggered'] else 0.0),
         'wall_fps': twin['frames_paired'] / twin['wall'] if twin['wall'] > 0 else 0.0,

@@ -969,9 +969,9 @@ def _by_distance(args, graph, description, nominal_mm, nominal_rmse, out, progre
 #: Frame rate of scans through the twin when ``--frame-rate`` is left at its default [Hz]:
 #: the simulator renders a 720 x 540 exposure in tens of ms on a shared 2-core machine.
 TWIN_FRAME_RATE = 10.0
-#: The twin board's simulated seconds per wall-clock second: at half speed a node that the
-#: shared machine stalls has 300 ms, not 150, before the board's watchdog trips.
-TWIN_BOARD_RATE = 0.5
+#: The twin board's simulated seconds per wall-clock second: at a quarter speed a node that
+#: the shared machine stalls has 600 ms, not 150, before the board's watchdog trips.
+TWIN_BOARD_RATE = 0.25
 #: Frames of the twin's first scan, which starts the driver's camera-to-board clock fit.
 TWIN_FIT_FRAMES = 8
 #: How long the twin may take to come up [s] (the renderer compiles on its first run).
@@ -989,9 +989,11 @@ class TwinGraph(Graph):
     calibration node starts from the rig's design values, as a real rig's would.
     """
 
-    def __init__(self, args, rig, out, env, progress, quick=False):
+    def __init__(self, args, rig, out, env, progress, quick=False,
+                 board_rate=TWIN_BOARD_RATE):
         super().__init__(args, rig, out, env, progress, quick=quick)
         self.rig_name = str(rig)
+        self.board_rate = float(board_rate)
         self.twin_dir = self.out / 'twin'
         self.twin_proc = None
         #: The driver parameters the twin printed (backend rig, serial port, camera...).
@@ -1010,7 +1012,7 @@ class TwinGraph(Graph):
         self.twin_proc = subprocess.Popen(
             [sys.executable, '-m', 'galvo_driver.twin_node', '--rig', self.rig_name,
              '--seed', str(self.operator_seed), '--workdir', str(self.twin_dir),
-             '--rate', repr(TWIN_BOARD_RATE)],
+             '--rate', repr(self.board_rate)],
             env=child_env(self.env), stdout=subprocess.PIPE, stderr=err, text=True,
             preexec_fn=die_with_parent())
         err.close()
