@@ -13,11 +13,21 @@
  *     --realtime        lock simulated time to the wall clock (16 Mcycles per second), as a
  *                       host with its own timers (heartbeat, ACK timeouts) needs
  *     --rate R          with --realtime: simulated seconds per wall-clock second (default 1)
+ *     --max-lag MS      with --realtime: when the simulation falls more than MS wall-clock
+ *                       milliseconds behind (the machine stalled the harness), slip the
+ *                       wall clock instead of catching up in a burst: a burst would hand
+ *                       the firmware the host's bytes of the whole stall at once and then
+ *                       run the board's watchdog out in fast-forward. Logged as "slip <us>".
+ *                       Default 0: always catch up.
  *     --script FILE     scripted host, in simulated time: lines "<t_us> tx <hex bytes>",
  *                       "<t_us> interlock open|closed", "<t_us> reset", "<t_us> end"
  *     --seconds S       stop after S simulated seconds
  *     --boot-count N    the EEPROM boot counter before power-up (so each run has its own
  *                       boot id)
+ *     --edge-udp PORT   at each rising edge of the camera trigger, one UDP datagram to
+ *                       127.0.0.1:PORT (a camera's trigger input, e.g. the fake GigE Vision
+ *                       camera's Line0), carrying what the rig's physics needs at that
+ *                       instant (below)
  *
  * Models:
  *   - AD5754R on the SPI: 24-bit words framed by /SYNC (PL0); output range, power control
@@ -29,11 +39,25 @@
  *     PA0 (pulled down), interlock PE4 (a switch to GND: closed drives it low, open lets
  *     the pull-up win).
  *
+ * Edge datagram (--edge-udp), 32 bytes, little-endian:
+ *   u64 the edge's instant [ns]: in --realtime mode CLOCK_REALTIME at power-up plus the
+ *       board's crystal time of the edge (so a late datagram still carries its edge's time,
+ *       as a camera latches its timestamp at the edge; the harness's slips and --rate do not
+ *       move it), otherwise CLOCK_REALTIME when the edge is simulated;
+ *   u16 x 4 the AD5754R output codes at the edge (VOUTA..VOUTD);
+ *   u8 powered channels (bit mask), u8 output range code of channel A (4: +-10 V),
+ *   u8 laser enable level at the edge, 5 bytes 0;
+ *   u64 the edge's CPU cycle.
+ *   The trigger line carries only the edge; the DAC outputs are the galvos' drive voltages,
+ *   which a simulated rig needs to place its mirrors (the physics, not a message a board
+ *   sends).
+ *
  * Log lines ("<cycle> <what> ..."), cycle = AVR clock cycles at 16 MHz since power-up:
  *   boot | dac <24-bit word hex> | out <c0> <c1> <c2> <c3> <powered mask> <range code> |
  *   trig 0|1 | laser 0|1 | interlock open|closed | rx <hex> | tx <hex frame> | end
  */
 #define _GNU_SOURCE
+#include <arpa/inet.h>
 #include <errno.h>
 #include <stdarg.h>
 #include <fcntl.h>
@@ -43,6 +67,8 @@
 #include <string.h>
 #include <termios.h>
 #include <time.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include "avr_eeprom.h"
@@ -214,12 +240,57 @@ static int trig_level, laser_level;
 static long long reset_after_event = -1;
 static int reset_requested;
 
+/* ---- the trigger wire to a camera (--edge-udp) ------------------------------------------ */
+static int edge_sock = -1;
+static struct sockaddr_in edge_addr;
+static double wall0;          /* CLOCK_MONOTONIC [s] of cycle 0 (moved by a held reset, a slip) */
+static double edge0;          /* CLOCK_MONOTONIC [s] of cycle 0 for the edges' instants */
+static double max_lag;        /* [s], 0: catch up */
+static double mono_to_real;   /* CLOCK_REALTIME - CLOCK_MONOTONIC [s] */
+
+static void put_le(uint8_t *b, uint64_t v, int n)
+{
+    for (int i = 0; i < n; i++)
+        b[i] = (uint8_t)(v >> (8 * i));
+}
+
+static void send_edge(void)
+{
+    if (edge_sock < 0)
+        return;
+    uint8_t b[32] = {0};
+    /* the edges' instants follow the board's crystal from power-up (16 MHz, whatever --rate
+     * and the harness's slips): a camera clock of its own, which the host pairs against the
+     * board's clock */
+    double t = realtime ? edge0 + avr->cycle / 16e6 : 0.0;
+    uint64_t ns;
+    if (realtime) {
+        ns = (uint64_t)((long double)(t + mono_to_real) * 1e9L);
+    } else {
+        struct timespec ts;
+        clock_gettime(CLOCK_REALTIME, &ts);
+        ns = (uint64_t)ts.tv_sec * 1000000000ull + (uint64_t)ts.tv_nsec;
+    }
+    put_le(b, ns, 8);
+    for (int c = 0; c < 4; c++)
+        put_le(b + 8 + 2 * c, dac.dac[c], 2);
+    b[16] = dac.power;
+    b[17] = dac.range[0];
+    b[18] = (uint8_t)laser_level;
+    put_le(b + 24, avr->cycle, 8);
+    /* a camera that is not listening loses the edge, as on a wire to a dead camera */
+    (void)sendto(edge_sock, b, sizeof b, MSG_DONTWAIT, (struct sockaddr *)&edge_addr,
+                 sizeof edge_addr);
+}
+
 static void set_trig(int level)
 {
     if (level == trig_level)
         return;
     trig_level = level;
     logline("trig %d", level);
+    if (level)
+        send_edge();
 }
 
 /* The trigger pin OC1A as the ATmega2560 drives it: while COM1A selects an output mode, the
@@ -548,6 +619,7 @@ int main(int argc, char **argv)
     int use_pty = 0;
     double seconds = -1;
     long boot_count = -1;
+    int edge_port = 0;
     for (int i = 1; i < argc; i++) {
         if (!strcmp(argv[i], "--log") && i + 1 < argc)
             log_path = argv[++i];
@@ -557,12 +629,16 @@ int main(int argc, char **argv)
             realtime = 1;
         else if (!strcmp(argv[i], "--rate") && i + 1 < argc)
             rate = atof(argv[++i]);
+        else if (!strcmp(argv[i], "--max-lag") && i + 1 < argc)
+            max_lag = atof(argv[++i]) * 1e-3;
         else if (!strcmp(argv[i], "--script") && i + 1 < argc)
             script_path = argv[++i];
         else if (!strcmp(argv[i], "--seconds") && i + 1 < argc)
             seconds = atof(argv[++i]);
         else if (!strcmp(argv[i], "--boot-count") && i + 1 < argc)
             boot_count = atol(argv[++i]);
+        else if (!strcmp(argv[i], "--edge-udp") && i + 1 < argc)
+            edge_port = atoi(argv[++i]);
         else if (argv[i][0] != '-')
             elf = argv[i];
         else {
@@ -570,9 +646,28 @@ int main(int argc, char **argv)
             return 2;
         }
     }
+    if (edge_port < 0 || edge_port > 65535) {
+        fprintf(stderr, "galvo_harness: --edge-udp: port %d outside 1..65535\n", edge_port);
+        return 2;
+    }
+    if (edge_port) {
+        edge_sock = socket(AF_INET, SOCK_DGRAM, 0);
+        if (edge_sock < 0) {
+            perror("socket");
+            return 2;
+        }
+        memset(&edge_addr, 0, sizeof edge_addr);
+        edge_addr.sin_family = AF_INET;
+        edge_addr.sin_port = htons((uint16_t)edge_port);
+        edge_addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+        struct timespec rt, mo;
+        clock_gettime(CLOCK_REALTIME, &rt);
+        clock_gettime(CLOCK_MONOTONIC, &mo);
+        mono_to_real = (rt.tv_sec - mo.tv_sec) + (rt.tv_nsec - mo.tv_nsec) * 1e-9;
+    }
     if (!elf || !(rate > 0)) {
         fprintf(stderr, "usage: galvo_harness [--log F] [--pty] [--realtime] [--script F] "
-                        "[--seconds S] [--boot-count N] firmware.elf\n");
+                        "[--max-lag MS] [--seconds S] [--boot-count N] [--edge-udp PORT] firmware.elf\n");
         return 2;
     }
     elf_firmware_t fw;
@@ -653,7 +748,8 @@ int main(int argc, char **argv)
     unsigned long long stop_cycle = seconds >= 0 ? (unsigned long long)(seconds * 16e6) : ~0ull;
     const unsigned chunk = POLL_CYCLES;
     avr_cycle_timer_register(avr, POLL_CYCLES, poll_tick, NULL);
-    double wall0 = wall_now(), last_flush = wall0;
+    wall0 = edge0 = wall_now();
+    double last_flush = wall0;
     while (!quit && avr->cycle < stop_cycle) {
         if (hold_until > 0) {
             /* held in reset: nothing runs; the host's bytes are lost, as a bootloader
@@ -693,6 +789,11 @@ int main(int argc, char **argv)
         feed_uart(uart_in);
         if (realtime) {
             double ahead = avr->cycle / 16e6 / rate - (wall_now() - wall0);
+            if (max_lag > 0 && -ahead > max_lag) {
+                logline("slip %.0f", -ahead * 1e6);
+                wall0 -= ahead; /* from now on, simulated time follows the wall clock again */
+                ahead = 0;
+            }
             if (ahead > 0.0005) {
                 struct timespec ts = {0, (long)(ahead * 1e9)};
                 nanosleep(&ts, NULL);

@@ -13,7 +13,8 @@ Services:
                    is refused
     scan/stop      galvoscan_msgs/StopScan
     scan/progress  galvoscan_msgs/GetScanProgress
-    sim/set_scene  galvoscan_msgs/SetScene (sim backend only)
+    sim/set_scene  galvoscan_msgs/SetScene (sim backend only; not offered by a driver
+                   started on ``rig``)
 
 Camera parameters (backend ``rig``), GenICam features by their SFNC names and units, as
 camera_aravis2 has them: ``ExposureTime`` [us], ``Gain``, ``PixelFormat``, ``Width``,
@@ -85,7 +86,7 @@ _CONFIGURE_ONLY = ('rig', 'scene', 'seed', 'exposure', 'laser_power', 'auto_expo
                    'serial_port',
                    'replay_bag',
                    'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
-                   'calibration_file')
+                   'frame_timeout', 'calibration_file')
 #: Poll period of the backend while a scan runs [s] (frames at up to 1 kHz).
 SCAN_POLL_PERIOD = 0.001
 #: Poll period while no scan runs [s]: backend faults are still seen within 0.1 s, and an
@@ -119,7 +120,8 @@ def make_backend(name: str, params: dict):
         return RigBackend(params['serial_port'], camera_serial=params.get('camera_serial'),
                           camera_user_id=params.get('camera_user_id'), features=features,
                           trigger_source=params.get('trigger_source', 'Line0'),
-                          camera_clock=params.get('camera_clock', 'camera'))
+                          camera_clock=params.get('camera_clock', 'camera'),
+                          frame_timeout=params.get('frame_timeout', 0.3))
     raise ValueError(f"backend: unknown '{name}'; known: {', '.join(BACKENDS)}")
 
 
@@ -159,6 +161,8 @@ class GalvoDriverNode(LifecycleNode):
         d('trigger_source', 'Line0', 'rig: camera input wired to the board trigger output')
         d('camera_clock', 'camera', "rig: 'host' if the camera stamps in host time (PTP), "
           "else 'camera'")
+        d('frame_timeout', 0.3, "rig: how long the scan's frames are waited for after the "
+          "board's last trigger and the camera's last frame [s]", floats=(0.01, 60.0))
         d('calibration_file', '', 'camera_info from this calibration file (the '
           "reconstructor's calibration_file); '': from the simulator's rig (sim)")
         for name, (default, rng, text) in CAMERA_PARAMS.items():
@@ -188,11 +192,13 @@ class GalvoDriverNode(LifecycleNode):
         self._scan_count = 0
         #: request_id -> (the request's digest, the answer given), newest last
         self._answered_starts = collections.OrderedDict()
-        for srv_type, name, callback in (
-                (StartScan, 'scan/start', self._on_start),
-                (StopScan, 'scan/stop', self._on_stop),
-                (GetScanProgress, 'scan/progress', self._on_progress),
-                (SetScene, 'sim/set_scene', self._on_set_scene)):
+        services = [(StartScan, 'scan/start', self._on_start),
+                    (StopScan, 'scan/stop', self._on_stop),
+                    (GetScanProgress, 'scan/progress', self._on_progress)]
+        # a rig has no simulator scene; a rig's twin serves sim/set_scene where it renders
+        if self.get_parameter('backend').value != 'rig':
+            services.append((SetScene, 'sim/set_scene', self._on_set_scene))
+        for srv_type, name, callback in services:
             self.create_service(srv_type, name, guard_service(
                 name, callback, self.get_logger(), self.callback_errors))
         #: totals over the node's life (the scan's own counts are in self._scan)
@@ -260,7 +266,7 @@ class GalvoDriverNode(LifecycleNode):
             'auto_exposure_frames', 'max_laser_power', 'hdr_ratio', 'serial_port',
             'replay_bag', 'replay_rate',
             'camera_serial', 'camera_user_id', 'trigger_source', 'camera_clock',
-            *CAMERA_PARAMS)}
+            'frame_timeout', *CAMERA_PARAMS)}
 
     # -- lifecycle --------------------------------------------------------------------
     def on_configure(self, state):

@@ -28,8 +28,8 @@ frame itself still comes when the fake camera's thread gets to it (a loaded mach
 it), and an edge that comes while the previous one is still pending is ignored (the camera
 misses that trigger, as a busy camera does). ``TriggerSoftware`` fires the camera whatever
 the source (a real camera would ignore it under ``Line0``); such frames keep Aravis' stamp
-(the time the frame is made). The first 8 bytes of a line-triggered image carry the edge's
-instant too (little-endian ns, `edge_of`): the truth a test traces every frame back to the
+(the time the frame is made). The first 8 bytes of a line-triggered ramp image carry the
+edge's instant too (little-endian ns, `edge_of`): the truth a test traces every frame back to the
 trigger that exposed it with, whatever the driver made of it.
 
 Triggered frames are produced on a time grid: the fake camera looks for a pending
@@ -67,6 +67,10 @@ _REG_WIDTH = 0x100
 _REG_HEIGHT = 0x104
 _REG_EXPOSURE_US = 0x120
 _REG_FRAME_PERIOD_US = 0x138
+_REG_ACQUISITION = 0x124
+_REG_OFFSET_X = 0x130
+_REG_OFFSET_Y = 0x134
+_REG_PIXEL_FORMAT = 0x128
 _REG_TRIGGER_MODE = 0x300
 # Aravis' own trigger-source register: kept at 1 (software) so that the fake camera takes
 # a trigger whenever TriggerSoftware is set; the source a client selects lives in
@@ -77,6 +81,9 @@ _REG_TRIGGER_SOURCE_SELECTED = 0x310
 _GVBS_USER_DEFINED_NAME = 0xE8
 _GVBS_USER_DEFINED_NAME_SIZE = 16
 _READY = "FAKE_CAMERA_READY"
+#: The child's answer to a scene change (render cameras): "FAKE_CAMERA_SCENE ok <n>" or
+#: "FAKE_CAMERA_SCENE error <message>".
+_SCENE = "FAKE_CAMERA_SCENE"
 #: The child's last stderr line: what became of the line's edges, and the frames it made
 _LINE_REPORT = "FAKE_CAMERA_LINE"
 _GVCP_PORT = 3956
@@ -349,6 +356,15 @@ class FakeCamera:
         its trigger is pending (see ``_serve``): the camera then makes a frame for nearly
         every edge at 500 Hz, at the price of GVCP traffic beside the client's and more CPU
         (``benchmarks/camera_trigger.py`` uses it). Off, it misses edges as Aravis does.
+    render : dict, optional
+        Make the camera a simulated rig's camera (:mod:`galvo_driver.twin`): each line edge
+        datagram carries the DAC outputs and laser level at the edge (the harness's
+        ``--edge-udp``, :data:`~galvo_driver.serial_link.simavr_board.EDGE_FORMAT`), and the
+        image of that edge is the simulator's exposure of the scene at those outputs
+        (:class:`~galvo_driver.twin_render.Renderer`) instead of the ramp. Keys: ``rig``,
+        ``scene``, ``seed`` and ``log`` (a file where each rendered frame's edge, codes
+        and image CRC are written). The scene is changed with `set_scene`. The sensor
+        size is the rig's (``width``/``height`` are ignored).
 
     Use it as a context manager: it starts on entry and is stopped on exit.
     """
@@ -362,6 +378,7 @@ class FakeCamera:
         trigger_frequency_hz: float = 4000.0,
         start_timeout_s: float = 10.0,
         wake_on_edge: bool = False,
+        render: dict | None = None,
     ):
         for name, text in (("serial", serial), ("user_id", user_id or "")):
             if len(text.encode()) >= _GVBS_USER_DEFINED_NAME_SIZE or not text.isprintable():
@@ -383,6 +400,13 @@ class FakeCamera:
         self.trigger_frequency_hz = float(trigger_frequency_hz)
         self.start_timeout_s = float(start_timeout_s)
         self.wake_on_edge = bool(wake_on_edge)
+        self.render = dict(render) if render else None
+        if self.render is not None:
+            unknown = sorted(set(self.render) - {"rig", "scene", "seed", "log"})
+            if unknown or "rig" not in self.render:
+                raise ValueError(f"FakeCamera: render needs 'rig' (and may have 'scene', "
+                                 f"'seed', 'log'); unknown {unknown}")
+        self._ctl_lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
         self._xml_dir: tempfile.TemporaryDirectory | None = None
         self._line_port: int | None = None
@@ -440,6 +464,8 @@ class FakeCamera:
             cmd += ["--user-id", self.user_id]
         if self.wake_on_edge:
             cmd += ["--wake-on-edge"]
+        if self.render is not None:
+            cmd += ["--render", json.dumps(self.render)]
         self._proc = subprocess.Popen(
             cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
@@ -453,6 +479,49 @@ class FakeCamera:
                 f"FakeCamera {self.serial}: not discoverable on loopback within "
                 f"{self.start_timeout_s} s (another fake camera on GVCP port 3956?)"
             )
+
+    def set_scene(self, text: str, timeout: float = 30.0) -> int:
+        """Replace the rendered scene (``render`` cameras) with simulator scene YAML;
+        returns its number of objects.
+
+        Raises
+        ------
+        ValueError
+            The scene is malformed (the camera keeps the scene it had).
+        RuntimeError
+            Not a rendering camera, not running, or no answer within ``timeout`` [s].
+        """
+        if self.render is None:
+            raise RuntimeError(f"FakeCamera {self.serial}: not a rendering camera")
+        data = str(text).encode("utf-8")
+        with self._ctl_lock:
+            if not self.running:
+                raise RuntimeError(f"FakeCamera {self.serial}: not running")
+            assert self._proc is not None and self._proc.stdin and self._proc.stdout
+            try:
+                self._proc.stdin.write(f"scene {len(data)}\n")
+                self._proc.stdin.flush()
+                self._proc.stdin.buffer.write(data)
+                self._proc.stdin.buffer.flush()
+            except (BrokenPipeError, OSError) as err:
+                raise RuntimeError(f"FakeCamera {self.serial}: {err}") from err
+            deadline = time.monotonic() + timeout
+            while time.monotonic() < deadline:
+                ready, _, _ = select.select([self._proc.stdout], [], [], 0.1)
+                if not ready:
+                    if not self.running:
+                        break
+                    continue
+                line = self._proc.stdout.readline()
+                if not line:
+                    break
+                words = line.rstrip("\n").split(" ", 2)
+                if words[0] != _SCENE:
+                    continue
+                if words[1] == "ok":
+                    return int(words[2])
+                raise ValueError(words[2] if len(words) > 2 else "scene refused")
+        raise RuntimeError(f"FakeCamera {self.serial}: no answer to the scene change")
 
     def unplug(self) -> None:
         """Cut the camera off as a pulled cable or power loss would: SIGKILL the process."""
@@ -582,15 +651,12 @@ def edge_of(image) -> int | None:
     return int.from_bytes(raw[:8].tobytes(), "little") if raw.size >= 8 else None
 
 
-class _RampFill:
-    """The image the fake camera sends: a diagonal ramp moving one grey level per frame.
+class _Fill:
+    """A fill for Aravis' fake camera: the callback that writes each frame's image.
 
-    Pixel (y, x) of frame f is ``((x + y + f) % 255) * scale`` in 8 bits (x16 for Mono12,
-    x256 for Mono16), clamped, with ``scale = (1 + Gain) * ExposureTime / 10 ms``. It
-    replaces Aravis' own pattern, which spends ~5 ms per 720x540 frame and so caps the
-    camera near 200 fps. Registered through ctypes (the GObject binding of this callback
-    is scope "call" and cannot outlive the call that registers it); it runs on the fake
-    camera's streaming thread.
+    Registered through ctypes (the GObject binding of this callback is scope "call" and
+    cannot outlive the call that registers it); it runs on the fake camera's streaming
+    thread. Subclasses write the image in :meth:`_fill`.
     """
 
     def __init__(self):
@@ -607,8 +673,6 @@ class _RampFill:
         lib.arv_buffer_get_frame_id.argtypes = [ctypes.c_void_p]
         lib.arv_buffer_set_timestamp.restype = None
         lib.arv_buffer_set_timestamp.argtypes = [ctypes.c_void_p, ctypes.c_uint64]
-        #: Instants [ns] of the line edges taken and not yet turned into a frame, oldest first.
-        self.edges: collections.deque = collections.deque()
         #: Frames filled (made by the streaming thread), line-triggered or not.
         self.frames = 0
         self._proto = ctypes.CFUNCTYPE(
@@ -627,12 +691,77 @@ class _RampFill:
         ]
         self._lib = lib
         self._callback = self._proto(self._fill)  # kept alive as long as this object
-        self._ramps: dict[tuple, object] = {}
 
     def install(self, fake_camera) -> None:
         """Make `fake_camera` (an Aravis.FakeCamera) call this fill for every frame."""
         # PyGObject's hash of a GObject wrapper is the address of the C object.
         self._lib.arv_fake_camera_set_fill_pattern(hash(fake_camera), self._callback, None)
+
+    def _dest(self, buffer, item: int):
+        """(width, height, the buffer's bytes as a uint8 array) of an Aravis buffer."""
+        import numpy as np
+
+        lib = self._lib
+        w = lib.arv_buffer_get_image_width(buffer)
+        h = lib.arv_buffer_get_image_height(buffer)
+        size = self._ct.c_size_t(0)  # the received size: not yet set while filling
+        addr = lib.arv_buffer_get_data(buffer, self._ct.byref(size))
+        return w, h, np.ctypeslib.as_array((self._ct.c_uint8 * (w * h * item)).from_address(addr))
+
+    def _fill(self, buffer, _data, exposure_us, gain, pixel_format) -> None:
+        raise NotImplementedError
+
+
+class _ImageFill(_Fill):
+    """Frames whose images are given: each line edge taken queues (edge instant, image),
+    and the next frame the streaming thread makes carries that image as it is, stamped with
+    the edge (exposure start). An image that does not fit the buffer (the region of interest
+    or the pixel format changed since it was made), and a frame without a queued image (a
+    software trigger), are sent black.
+    """
+
+    def __init__(self):
+        super().__init__()
+        #: (edge instant [ns], image ndarray) of the edges taken and not yet sent.
+        self.images: collections.deque = collections.deque()
+
+    def _fill(self, buffer, _data, exposure_us, gain, pixel_format) -> None:
+        import numpy as np
+
+        self.frames += 1
+        item = self.images.popleft() if self.images else None
+        depth = _PIXEL_DEPTH.get(int(pixel_format), 8)
+        nbytes = 1 if depth == 8 else 2
+        w, h, dest = self._dest(buffer, nbytes)
+        if item is None:
+            dest[:] = 0
+            return
+        edge, image = item
+        self._lib.arv_buffer_set_timestamp(buffer, edge)
+        if image.shape == (h, w) and image.itemsize == nbytes and dest.size == image.nbytes:
+            np.copyto(dest, np.ascontiguousarray(image).reshape(-1).view(np.uint8))
+        else:
+            dest[:] = 0
+
+
+#: Bits per pixel of the pixel formats the fake camera renders (PFNC codes).
+_PIXEL_DEPTH = {0x01080001: 8, 0x01100005: 12, 0x01100007: 16}
+
+
+class _RampFill(_Fill):
+    """The image the fake camera sends: a diagonal ramp moving one grey level per frame.
+
+    Pixel (y, x) of frame f is ``((x + y + f) % 255) * scale`` in 8 bits (x16 for Mono12,
+    x256 for Mono16), clamped, with ``scale = (1 + Gain) * ExposureTime / 10 ms``. It
+    replaces Aravis' own pattern, which spends ~5 ms per 720x540 frame and so caps the
+    camera near 200 fps.
+    """
+
+    def __init__(self):
+        super().__init__()
+        #: Instants [ns] of the line edges taken and not yet turned into a frame, oldest first.
+        self.edges: collections.deque = collections.deque()
+        self._ramps: dict[tuple, object] = {}
 
     def _ramp(self, exposure_us: int, gain: int, pixel_format: int, length: int):
         import numpy as np
@@ -685,6 +814,16 @@ def _serve(args: argparse.Namespace) -> int:
     gi.require_version("Aravis", "0.8")
     from gi.repository import Aravis
 
+    renderer = None
+    if args.render:
+        from galvo_driver.twin_render import Renderer
+
+        try:
+            renderer = Renderer.from_spec(json.loads(args.render))
+        except (ValueError, OSError) as err:
+            print(f"fake camera {args.serial}: render: {err}", file=sys.stderr, flush=True)
+            return 1
+        args.width, args.height = renderer.size
     gv = Aravis.GvFakeCamera.new_full("lo", args.serial, args.genicam)
     if gv is None or not gv.is_running():
         print(
@@ -711,9 +850,10 @@ def _serve(args: argparse.Namespace) -> int:
     cam.write_register(_REG_ARAVIS_TRIGGER_SOURCE, 1)
     cam.write_register(_REG_TRIGGER_SOURCE_SELECTED, 0)  # Line0, a camera's usual default
 
-    fill = _RampFill()
+    fill = _RampFill() if renderer is None else _ImageFill()
     fill.install(cam)
     line = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    line.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
     line.bind(("127.0.0.1", 0))
 
     def register(address: int) -> int:
@@ -774,14 +914,29 @@ def _serve(args: argparse.Namespace) -> int:
                     wake_streaming_thread()
                     pending = True
 
-    threading.Thread(target=trigger_line, daemon=True).start()
-
     stop = threading.Event()
+    if renderer is None:
+        threading.Thread(target=trigger_line, daemon=True).start()
+    else:
+        _render_threads(cam, fill, line, renderer, register, wake_streaming_thread, counts,
+                        stop)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     signal.signal(signal.SIGINT, lambda *_: stop.set())
 
     def watch_parent() -> None:  # the parent holds our stdin: EOF means it has gone
-        sys.stdin.read()
+        inp = sys.stdin.buffer
+        while True:
+            cmd = inp.readline()
+            if not cmd:
+                break
+            words = cmd.split()
+            if renderer is not None and len(words) == 2 and words[0] == b"scene":
+                text = inp.read(int(words[1])).decode("utf-8", "replace")
+                try:
+                    answer = f"ok {renderer.set_scene(text)}"
+                except ValueError as err:
+                    answer = "error " + " ".join(str(err).split())
+                print(f"{_SCENE} {answer}", flush=True)
         stop.set()
 
     threading.Thread(target=watch_parent, daemon=True).start()
@@ -790,9 +945,87 @@ def _serve(args: argparse.Namespace) -> int:
         pass
     del gv  # stops the GVCP/GVSP thread and closes the sockets
     counts["frames made"] = fill.frames
+    if renderer is not None:
+        renderer.close()
     print(f"{_LINE_REPORT} {json.dumps(dict(counts), sort_keys=True)}", file=sys.stderr,
           flush=True)
     return 0
+
+
+#: Line edges a rendering camera holds while it renders the ones before (beyond: missed).
+_RENDER_QUEUE = 4096
+#: How long a rendered frame waits for the streaming thread to take its trigger [s].
+_TRIGGER_TAKE_TIMEOUT_S = 2.0
+
+
+def _render_threads(cam, fill, line, renderer, register, wake, counts, stop) -> None:
+    """Start a rendering camera's line and render threads.
+
+    The line thread reads every edge datagram at once and queues it; the render thread
+    renders the exposure at the edge's DAC outputs and laser level, then hands the image to
+    the streaming thread as a software trigger, one at a time. So the simulator's render
+    time delays frames but loses no edge (a camera that keeps up with its trigger); only
+    more than ``_RENDER_QUEUE`` edges waiting are missed.
+    """
+    import queue
+
+    from galvo_driver.serial_link.simavr_board import EDGE_FORMAT
+
+    pending: queue.Queue = queue.Queue(_RENDER_QUEUE)
+
+    def line_thread() -> None:
+        while True:
+            try:
+                data = line.recv(64)
+            except OSError:
+                return
+            counts["edges"] += 1
+            if register(_REG_TRIGGER_MODE) != 1 or register(_REG_TRIGGER_SOURCE_SELECTED) != 0:
+                counts["ignored (not the trigger source)"] += 1
+            elif register(_REG_ACQUISITION) != 1:
+                counts["ignored (not acquiring)"] += 1
+            elif len(data) < EDGE_FORMAT.size:
+                counts["ignored (no DAC outputs in the datagram)"] += 1
+            else:
+                try:
+                    pending.put_nowait(EDGE_FORMAT.unpack_from(data))
+                except queue.Full:
+                    counts["missed (render queue full)"] += 1
+
+    def render_thread() -> None:
+        while not stop.is_set():
+            try:
+                edge, c0, c1, c2, c3, powered, range_code, laser, cycle = pending.get(
+                    timeout=0.2)
+            except queue.Empty:
+                continue
+            roi = (*(register(r) for r in (_REG_WIDTH, _REG_HEIGHT, _REG_OFFSET_X,
+                                           _REG_OFFSET_Y)),
+                   _PIXEL_DEPTH.get(register(_REG_PIXEL_FORMAT), 8))
+            try:
+                image = renderer.render(edge, (c0, c1, c2, c3), powered, range_code,
+                                        bool(laser), register(_REG_EXPOSURE_US) * 1e-6, roi,
+                                        cycle)
+            except (ValueError, RuntimeError) as err:
+                counts["not rendered"] += 1
+                print(f"fake camera: edge {edge} not rendered: {err}", file=sys.stderr,
+                      flush=True)
+                continue
+            deadline = time.monotonic() + _TRIGGER_TAKE_TIMEOUT_S
+            while register(_REG_TRIGGER_SOFTWARE) != 0 and time.monotonic() < deadline:
+                wake()  # the previous frame is still being made
+                time.sleep(_WAKE_PERIOD_S)
+            if register(_REG_TRIGGER_SOFTWARE) != 0:
+                cam.write_register(_REG_TRIGGER_SOFTWARE, 0)  # not acquiring: withdrawn
+                fill.images.clear()
+                counts["missed (not acquiring)"] += 1
+            fill.images.append((edge, image))
+            counts["taken"] += 1
+            cam.write_register(_REG_TRIGGER_SOFTWARE, 1)
+            wake()
+
+    threading.Thread(target=line_thread, daemon=True).start()
+    threading.Thread(target=render_thread, daemon=True).start()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -810,6 +1043,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wake-on-edge", action="store_true",
                    help="wake the streaming thread on each line edge (see FakeCamera)")
     p.add_argument("--genicam", default=None, help="GenICam XML file (default: the built-in one)")
+    p.add_argument("--render", default="",
+                   help="JSON {rig, scene, seed, log}: render each line edge's exposure "
+                        "(galvo_driver.twin_render) instead of the ramp")
     args = p.parse_args(argv)
     if args.genicam is None:
         tmp = tempfile.TemporaryDirectory(prefix="galvoscan-fakecam-")

@@ -966,6 +966,202 @@ def _by_distance(args, graph, description, nominal_mm, nominal_rmse, out, progre
     return rows
 
 
+#: Frame rate of scans through the twin when ``--frame-rate`` is left at its default [Hz]:
+#: the simulator renders a 720 x 540 exposure in tens of ms on a shared 2-core machine.
+TWIN_FRAME_RATE = 10.0
+#: The twin board's simulated seconds per wall-clock second: at a quarter speed a node that
+#: the shared machine stalls has 600 ms, not 150, before the board's watchdog trips.
+TWIN_BOARD_RATE = 0.25
+#: Frames of the twin's first scan, which starts the driver's camera-to-board clock fit.
+TWIN_FIT_FRAMES = 8
+#: How long the twin may take to come up [s] (the renderer compiles on its first run).
+TWIN_START_TIMEOUT_S = 300.0
+
+
+class TwinGraph(Graph):
+    """The graph on the rig's hardware-in-the-loop twin (:mod:`galvo_driver.twin`).
+
+    The driver runs the ``rig`` backend against the twin's board (the firmware in simavr,
+    behind a pty) and camera (Aravis' GigE Vision fake camera, rendering each triggered
+    exposure with the simulator at the DAC outputs of its trigger edge). The twin runs as
+    its own process (``python -m galvo_driver.twin_node``), which serves ``sim/set_scene``
+    for the simulated operator; the board and render logs go to ``out/twin``. The
+    calibration node starts from the rig's design values, as a real rig's would.
+    """
+
+    def __init__(self, args, rig, out, env, progress, quick=False,
+                 board_rate=TWIN_BOARD_RATE):
+        super().__init__(args, rig, out, env, progress, quick=quick)
+        self.rig_name = str(rig)
+        self.board_rate = float(board_rate)
+        self.twin_dir = self.out / 'twin'
+        self.twin_proc = None
+        #: The driver parameters the twin printed (backend rig, serial port, camera...).
+        self.driver_params = {}
+
+    def _start_twin(self):
+        import subprocess
+
+        from galvoscan_common.runtime import child_env, die_with_parent
+
+        self.twin_dir.mkdir(parents=True, exist_ok=True)
+        self.progress.log(f'starting the twin of rig {self.rig_name} (firmware in simavr, '
+                          f'GigE Vision camera rendering the simulator), logs in '
+                          f'{self.twin_dir}')
+        err = open(self.twin_dir / 'twin_node.log', 'ab')  # noqa: SIM115
+        self.twin_proc = subprocess.Popen(
+            [sys.executable, '-m', 'galvo_driver.twin_node', '--rig', self.rig_name,
+             '--seed', str(self.operator_seed), '--workdir', str(self.twin_dir),
+             '--rate', repr(self.board_rate)],
+            env=child_env(self.env), stdout=subprocess.PIPE, stderr=err, text=True,
+            preexec_fn=die_with_parent())
+        err.close()
+        import select
+
+        deadline = time.monotonic() + TWIN_START_TIMEOUT_S
+        while time.monotonic() < deadline:
+            ready, _, _ = select.select([self.twin_proc.stdout], [], [], 0.5)
+            if ready:
+                line = self.twin_proc.stdout.readline()
+                if line.startswith('TWIN_READY '):
+                    self.driver_params = json.loads(line.split(' ', 1)[1])
+                    return
+                if not line:
+                    break
+            if self.twin_proc.poll() is not None:
+                break
+        self._stop_twin()
+        raise RuntimeError(f'the twin did not start (see {self.twin_dir / "twin_node.log"})')
+
+    def _stop_twin(self):
+        import signal
+        import subprocess
+
+        proc, self.twin_proc = self.twin_proc, None
+        if proc is None:
+            return
+        for sig in (signal.SIGINT, signal.SIGKILL):
+            if proc.poll() is None:
+                proc.send_signal(sig)
+            try:
+                proc.wait(timeout=15.0)
+                break
+            except subprocess.TimeoutExpired:
+                continue
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+    def __enter__(self):
+        from galvoscan import bringup
+
+        self._start_twin()
+        try:
+            params_path = Path(self.sup.params_file)
+            params = bringup.load_params(params_path)
+            driver = dict(self.driver_params)
+            params['galvo_driver'] = {'ros__parameters': driver}
+            twin_params = self.out / 'twin_params.yaml'
+            twin_params.write_text(yaml.safe_dump(params, sort_keys=False))
+            self.sup = bringup.Supervisor(self.nodes, twin_params, env=self.env,
+                                          log_dir=self.out / 'logs')
+        except BaseException:
+            self._stop_twin()
+            raise
+        try:
+            super().__enter__()
+        except BaseException:
+            self._stop_twin()
+            raise
+        # The twin's camera stamps frames on its own clock (camera_clock: camera), and the
+        # driver pairs a lone frame only once its clock fit exists: a first scan of a few
+        # frames makes it (the calibration's first view is a single frame).
+        try:
+            self.client.scan(np.zeros((TWIN_FIT_FRAMES, 4)), frame_rate=TWIN_FRAME_RATE,
+                             laser_on=False, timeout=30.0)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        try:
+            super().__exit__(*exc)
+        finally:
+            self._stop_twin()
+        return False
+
+    def twin_counts(self) -> dict:
+        """Trigger edges the board fired and frames the camera rendered so far."""
+        from galvo_driver.serial_link.simavr_board import parse_log
+        from galvo_driver.twin import read_render_log
+
+        board = self.twin_dir / 'board.log'
+        edges = len(parse_log(board).rising_edges()) if board.exists() else 0
+        return {'frames_triggered': edges,
+                'frames_rendered': len(read_render_log(self.twin_dir / 'render.log'))}
+
+
+def _twin_evaluate(args) -> int:
+    """``galvoscan evaluate --twin``: the rig's twin as the graph's backend; calibrate it
+    through the calibration node and the simulated operator (or use the simulator truth with
+    ``--truth-calibration``), then scan the stair block at the working point. Writes
+    ``metrics.json`` (and ``failure.json`` when it stops) into ``--out``."""
+    t0 = time.monotonic()
+    try:
+        rig, _, site, wd, out = _load(args)
+    except (ValueError, OSError) as exc:
+        print(f'galvoscan evaluate: {exc}', file=sys.stderr)
+        return 2
+    for stale in ('failure.json', 'metrics.json'):
+        (out / stale).unlink(missing_ok=True)
+    if args.frame_rate == build_parser().get_default('frame_rate'):
+        args.frame_rate = TWIN_FRAME_RATE
+    q = args.quick
+    progress = Progress()
+    progress.log(f'twin of rig {rig.name}: scans at {args.frame_rate:g} Hz of board time, '
+                 f'the board at {TWIN_BOARD_RATE:g} x real time' + (', quick plans' if q else ''))
+    domain = os.environ.get('ROS_DOMAIN_ID') or str(private_domain())
+    env = {**os.environ, 'ROS_DOMAIN_ID': domain, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    result = {'backend': 'rig (twin)', 'frame_rate_hz': args.frame_rate,
+              'board_rate': TWIN_BOARD_RATE, 'quick': bool(q)}
+    reached = 'start'
+    try:
+        with TwinGraph(args, args.rig, out, env, progress, quick=q) as graph:
+            reached = 'calibration'
+            t_cal = time.monotonic()
+            cal, stage_info = graph.calibrate(args, rig, quick=q)
+            from galvoscan.calibrate_client import true_transfer_error_mm
+
+            result.update({'calibration_source': cal.source,
+                           'calibration_s': time.monotonic() - t_cal,
+                           'transfer_matrix_error_rmse_mm': true_transfer_error_mm(cal.model,
+                                                                                   rig),
+                           'joint_error_after_mm': stage_info.get('joint_error_after_mm')})
+            reached = 'stair'
+            ev = Evaluation(args, graph.client, progress, cal.model, rig.W_T_V0, site)
+            rows, clouds = ev.stair_series(
+                f'twin: stair block at the working point ({site.depth * 1e3:.0f} mm deep)',
+                site.stair_grid(2 if q else 6, 1 if q else 5), 4 if q else 8)
+            errors = [r['error_mm'] for r in rows if r['error_mm'] is not None]
+            result.update({'stair_step_error_rmse_mm': metrics.rmse(errors),
+                           'stair_positions_used': len(errors),
+                           'stair_positions_total': len(rows), 'frames_lost': ev.lost_frames,
+                           **graph.twin_counts()})
+            reached = 'done'
+    except (RuntimeError, ValueError) as exc:
+        progress.log(f'twin evaluation stopped at {reached}: {exc}')
+        (out / 'failure.json').write_text(json.dumps(
+            {'stage': getattr(exc, 'stage', None) or reached, 'message': str(exc)}, indent=1))
+        return 1
+    result.update({'working_distance_mm': wd * 1e3, 'runtime_s': time.monotonic() - t0})
+    if clouds:
+        save_cloud(np.concatenate(clouds), out / 'stair_working_point.ply')
+    (out / 'metrics.json').write_text(json.dumps(result, indent=1, default=float))
+    progress.log(f'wrote {out}/metrics.json in {time.monotonic() - t0:.0f} s')
+    print(json.dumps(result, default=float))
+    return 0
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog='galvoscan evaluate', description=__doc__.split('\n')[0])
     p.add_argument('--rig', default='reference', help='rig name or YAML (default: reference)')
@@ -989,6 +1185,11 @@ def build_parser():
     p.add_argument('--exact-operator', action='store_true',
                    help='the zero-error simulated operator: every target exactly where the '
                         'instruction asks (the reference for the operator\'s imprecision)')
+    p.add_argument('--twin', action='store_true',
+                   help="run on the rig's hardware-in-the-loop twin (backend rig: the board "
+                        'firmware in simavr, a GigE Vision camera rendering the simulator): '
+                        'calibrate and scan the stair block through it, at '
+                        f'{TWIN_FRAME_RATE:g} Hz unless --frame-rate is given')
     p.add_argument('--demo', action='store_true', help=argparse.SUPPRESS)
     return p
 
@@ -1054,6 +1255,8 @@ def _write_failure(out, exc):
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
+    if args.twin:
+        return _twin_evaluate(args)
     from galvoscan import report
     from galvoscan.simulated_rig import nominal_rig
 

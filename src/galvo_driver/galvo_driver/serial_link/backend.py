@@ -84,6 +84,10 @@ class _Scan:
     started: bool = False  # ACK of SCAN_START seen
     next_index: int = 0
     active: bool = True
+    period_us: int = 0
+    # the host saw every EVENT before the board's STATUS DONE: the board is still scanning
+    # until half a period after the last edge (laser off), and refuses a new scan until then
+    board_busy: bool = False
 
 
 class SerialBackend(GalvoBackend):
@@ -372,11 +376,16 @@ class SerialBackend(GalvoBackend):
         if self._session_lost:
             log.warning('board was reset while idle; re-establishing the session')
             self._handshake()
+        prev = self._scan
+        if prev is not None and prev.board_busy:  # its last edge came a moment ago
+            with self._cond:
+                self._cond.wait_for(lambda: not prev.board_busy or self._fault is not None,
+                                    timeout=prev.period_us * 1e-6 + 0.5)
         gen = self._abort_gen
         self._sync_clock(gen)
         scan_id = self._next_scan_id
         self._next_scan_id = (scan_id + 1) & 0xFFFF
-        scan = _Scan(scan_id, n, codes, self._seq_base)
+        scan = _Scan(scan_id, n, codes, self._seq_base, period_us=period_us)
         with self._cond:
             self._scan = scan
 
@@ -761,6 +770,7 @@ class SerialBackend(GalvoBackend):
             laser_on=ev.laser_on, status=status, image=None))
         scan.next_index = ev.index + 1
         if scan.next_index == scan.n:
+            scan.board_busy = True
             self._end_scan(scan, aborted=False)
             log.info('scan %d complete (%d frames, %d lost in total)', scan.scan_id, scan.n,
                      self._counters['lost_events'])
@@ -773,6 +783,9 @@ class SerialBackend(GalvoBackend):
         self._clock.arrival(self._rx_time, st.uptime_us)  # every heartbeat's answer
         self._board_status = st
         scan = self._scan
+        if scan is not None and st.scan_id == scan.scan_id and st.state != p.STATE_SCANNING:
+            scan.board_busy = False
+            self._cond.notify_all()
         if scan is None or not scan.active or not scan.started or st.scan_id != scan.scan_id:
             return
         if st.state == p.STATE_DONE:

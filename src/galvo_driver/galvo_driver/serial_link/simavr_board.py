@@ -25,6 +25,7 @@ from __future__ import annotations
 import bisect
 import os
 import select
+import struct
 import subprocess
 import tempfile
 import time
@@ -37,6 +38,10 @@ from galvo_driver.serial_link import protocol as p
 
 #: CPU clock of the simulated ATmega2560 [Hz].
 F_CPU = 16_000_000
+#: The harness's datagram for each rising trigger edge (``--edge-udp``; the layout is in
+#: ``galvo_harness.c``): edge instant [ns, CLOCK_REALTIME], the four DAC output codes, the
+#: powered-channel mask, the output range code, the laser level, 5 pad bytes, the CPU cycle.
+EDGE_FORMAT = struct.Struct('<Q4HBBB5xQ')
 
 
 def firmware_dir() -> Path:
@@ -281,11 +286,30 @@ class SimavrBoard:
         Simulated seconds per wall-clock second (1: real time). Below 1 the board's
         watchdog (150 ms of board time) gives a host that a loaded machine stalls more
         wall-clock time; board times (trigger stamps) stay exact.
+    edge_udp_port : int, optional
+        The board's trigger output wired to a camera's trigger input on this UDP port of
+        127.0.0.1: each rising edge sends one datagram, stamped with the edge's wall-clock
+        instant and carrying the DAC outputs and the laser level at that edge (the galvos'
+        and the laser's drive, for a simulated rig's physics: :data:`EDGE_FORMAT`). The
+        edges' instants follow the board's crystal from power-up (a camera clock of its own).
+    max_lag_ms : float, optional
+        When the harness falls this far behind the wall clock (the machine stalled it), it
+        slips instead of catching up in a burst, which would hand the firmware the host's
+        bytes of the stall at once and then run its watchdog out in fast-forward. The board
+        clock then runs behind the host's by the slips (a clock step for the host; the
+        serial backend resyncs before each scan). None: always catch up.
     """
 
-    def __init__(self, log_path: str | None = None, boot_count: int = 1, rate: float = 1.0):
+    def __init__(self, log_path: str | None = None, boot_count: int = 1, rate: float = 1.0,
+                 edge_udp_port: int | None = None, max_lag_ms: float | None = None):
         if not (np.isfinite(rate) and 0 < rate <= 1):
             raise ValueError(f'rate: expected 0 < rate <= 1, got {rate}')
+        if edge_udp_port is not None and not 1 <= int(edge_udp_port) <= 65535:
+            raise ValueError(f'edge_udp_port: expected 1..65535, got {edge_udp_port}')
+        self.edge_udp_port = None if edge_udp_port is None else int(edge_udp_port)
+        if max_lag_ms is not None and not (np.isfinite(max_lag_ms) and max_lag_ms > 0):
+            raise ValueError(f'max_lag_ms: expected > 0 ms, got {max_lag_ms}')
+        self.max_lag_ms = max_lag_ms
         self.rate = float(rate)
         self._tmp = None
         if log_path is None:
@@ -303,7 +327,10 @@ class SimavrBoard:
         self._proc = subprocess.Popen(
             [str(harness), '--pty', '--realtime', '--rate', repr(self.rate), '--log',
              self.log_path,
-             '--boot-count', str(self.boot_count), str(elf)],
+             '--boot-count', str(self.boot_count),
+             *(['--edge-udp', str(self.edge_udp_port)] if self.edge_udp_port else []),
+             *(['--max-lag', repr(float(self.max_lag_ms))] if self.max_lag_ms else []),
+             str(elf)],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
             bufsize=0)
         # unbuffered reads: a buffered reader would swallow the pty line that select waits for
