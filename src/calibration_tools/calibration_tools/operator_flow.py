@@ -869,6 +869,74 @@ def features(p: Placement, image) -> np.ndarray | None:
     return None if blob is None else blob[4][None]
 
 
+#: The reprojection gate: a board view whose detected pattern, fitted by its own pose with
+#: the current model's camera, leaves an RMS above this [px] is rejected (the intrinsics
+#: stage's own limit for a view, ``calibrate_intrinsics(max_view_rms_px)``): a corner
+#: detected on the wrong square, a warped or partly covered board.
+REPROJECTION_MAX_PX = 1.0
+#: The motion-blur gate: a view whose target edges spread over more than this many times
+#: those of the still check view taken after it (same target, same depth, laser off) is
+#: rejected: the target moved during the exposure (an optical blur is the same in both).
+BLUR_RATIO_MAX = 1.5
+
+
+def reprojection_rms_px(model, p: Placement, pts) -> float:
+    """RMS [px] of a board view's detected pattern ``pts`` about its own best pose (PnP with
+    the model's camera); NaN for targets without an identified pattern in one view (the
+    circle board, the sphere)."""
+    import cv2
+
+    if p.kind not in ('checkerboard', 'circle_grid') or pts is None or len(pts) < 6:
+        return math.nan
+    obj = p.target.object_points()
+    if len(obj) != len(pts):
+        return math.nan
+    intr = model.intrinsics
+    K = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+    dist = np.asarray(intr.dist, np.float64)
+    img = np.asarray(pts, np.float64).reshape(-1, 1, 2)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return math.inf
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    proj = cv2.projectPoints(obj, rvec, tvec, K, dist)[0].reshape(-1, 2)
+    return float(np.sqrt(np.mean(np.sum((proj - img.reshape(-1, 2)) ** 2, axis=1))))
+
+
+def edge_spread_px(image, pts=None) -> float:
+    """How many pixels the target's edges spread over: its contrast over the steepest
+    gradients (the 99th percentile) within the box around ``pts`` (the whole frame when
+    None). A still, focused target: about 2 px; motion during the exposure widens it."""
+    g = np.asarray(image, dtype=np.float64)
+    if pts is not None and len(pts):
+        q = np.asarray(pts, np.float64).reshape(-1, 2)
+        pad = 10
+        x0, y0 = (max(int(v) - pad, 0) for v in q.min(axis=0))
+        x1, y1 = (int(v) + pad for v in q.max(axis=0))
+        g = g[y0:y1 + 1, x0:x1 + 1]
+    if g.shape[0] < 3 or g.shape[1] < 3:
+        return math.nan
+    gy, gx = np.gradient(g)
+    steep = float(np.percentile(np.hypot(gx, gy), 99))
+    contrast = float(np.percentile(g, 98) - np.percentile(g, 2))
+    return contrast / steep if steep > 0 else math.inf
+
+
+def gate_view(model, p: Placement, image, still_spread: float):
+    """The gates of one laser-off view of a placement: ``(features, reason)`` with reason
+    '' when kept, else ``reprojection_outlier`` or ``motion_blur`` (``not_detected`` when
+    the target's features are not found in it)."""
+    pts = features(p, image)
+    if pts is None or len(pts) == 0:
+        return None, 'not_detected'
+    if reprojection_rms_px(model, p, pts) > REPROJECTION_MAX_PX:
+        return pts, 'reprojection_outlier'
+    if p.kind != 'sphere' and math.isfinite(still_spread) and still_spread > 0:
+        if edge_spread_px(image, pts) > BLUR_RATIO_MAX * still_spread:
+            return pts, 'motion_blur'
+    return pts, ''
+
+
 def feature_shift_px(a, b) -> float:
     """Median shift [px] between two feature sets of one target seen at the same voltages
     (nearest neighbours); inf when either is missing."""
@@ -940,7 +1008,8 @@ def new_stats(planned: int) -> dict:
     """A capture's operator figures (the node fills them in)."""
     return {'planned': int(planned), 'placed': 0, 'skipped': 0, 'undone': 0,
             'instructions': 0, 'views': 0, 'search_scans': 0, 'search_views': 0,
-            'refused': {}, 'rejected': {}, 'seconds': 0.0, 'done_early': False}
+            'refused': {}, 'rejected': {}, 'seconds': 0.0, 'done_early': False,
+            'placements_max': int(planned), 'targets_met': False}
 
 
 def stats_line(stats: dict) -> str:
@@ -949,4 +1018,6 @@ def stats_line(stats: dict) -> str:
     rej = ', '.join(f'{k} {v}' for k, v in stats['rejected'].items()) or 'none'
     return (f"{stats['placed']}/{stats['planned']} placements kept, {stats['skipped']} "
             f"skipped, {stats['instructions']} instructions, {stats['search_views']} search "
-            f"views; placements refused: {ref}; views rejected: {rej}")
+            f"views; placements refused: {ref}; views rejected: {rej}; standard errors "
+            f"{'met' if stats.get('targets_met') else 'not all met'} (at most "
+            f"{stats.get('placements_max', stats['planned'])} placements)")
