@@ -178,7 +178,7 @@ def refine_corners_symmetric(image, corners, radius_px: float = 10.0, iterations
     return c
 
 
-def detect_target(image, board) -> np.ndarray | None:
+def detect_target(image, board, fast: bool = False) -> np.ndarray | None:
     """Features of an intrinsics target, in ``board.object_points()`` order.
 
     Checkerboards use ``findChessboardCornersSB``, refined by
@@ -191,13 +191,16 @@ def detect_target(image, board) -> np.ndarray | None:
     ----------
     image : ndarray, shape (H, W), uint8 or uint16
     board : Checkerboard or CircleGrid
+    fast : bool
+        A checkerboard's quicker first search (:func:`~calibration_tools.small_board.
+        detect_board`), for finding and gating views; the refinement is the same.
 
     Returns
     -------
     ndarray, shape (cols * rows, 2), pixels, or None when the whole target is not found
     """
     if isinstance(board, Checkerboard):
-        corners = detect_board(board, image)
+        corners = detect_board(board, image, fast=fast)
         if corners is None:
             return None
         # Symmetry refinement over a window of ~0.4 square sides (from the corner spacing).

@@ -491,7 +491,7 @@ def _board_pose(model, board, img, u):
     from calibration_tools.intrinsics import detect_target
     from reconstructor.model import v0_T_v
 
-    pts = detect_target(img, board)
+    pts = detect_target(img, board, fast=True)
     if pts is None:
         return None
     obj = board.object_points()
@@ -861,7 +861,7 @@ def features(p: Placement, image) -> np.ndarray | None:
     if p.kind in ('checkerboard', 'circle_grid'):
         from calibration_tools.intrinsics import detect_target
 
-        return detect_target(image, p.target)
+        return detect_target(image, p.target, fast=True)
     if p.kind == 'circle_board':
         d = detect_circles(as_uint8_image(np.asarray(image)), dark_circles=True)
         return d.centres if len(d) >= 4 else None
@@ -906,7 +906,8 @@ def reprojection_rms_px(model, p: Placement, pts) -> float:
 def edge_spread_px(image, pts=None) -> float:
     """How many pixels the target's edges spread over: its contrast over the steepest
     gradients (the 99th percentile) within the box around ``pts`` (the whole frame when
-    None). A still, focused target: about 2 px; motion during the exposure widens it."""
+    None), the larger of the two image directions (a motion widens the edges across it
+    only). A still, focused target: about 2 px."""
     g = np.asarray(image, dtype=np.float64)
     if pts is not None and len(pts):
         q = np.asarray(pts, np.float64).reshape(-1, 2)
@@ -916,10 +917,12 @@ def edge_spread_px(image, pts=None) -> float:
         g = g[y0:y1 + 1, x0:x1 + 1]
     if g.shape[0] < 3 or g.shape[1] < 3:
         return math.nan
-    gy, gx = np.gradient(g)
-    steep = float(np.percentile(np.hypot(gx, gy), 99))
     contrast = float(np.percentile(g, 98) - np.percentile(g, 2))
-    return contrast / steep if steep > 0 else math.inf
+    spread = 0.0
+    for grad in np.gradient(g):  # along rows and columns: a motion blurs the edges across it
+        steep = float(np.percentile(np.abs(grad), 99))
+        spread = max(spread, contrast / steep if steep > 0 else math.inf)
+    return spread
 
 
 def gate_view(model, p: Placement, image, still_spread: float):
