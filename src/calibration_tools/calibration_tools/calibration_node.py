@@ -502,7 +502,7 @@ class CalibrationNode(Node):
         kept, measured = [], {}
         order = list(range(len(places)))  # placements still to ask for, next first
         progress = stopping.Progress(stage, model, most)
-        assessment = self._assess(stage, model, targets, places, kept, order)
+        assessment = self._assess(stage, model, targets, places, kept, order, progress)
         self._publish_progress(progress, stats, assessment)
         moves, frames, wanted, counter = 0, 0, 0, first
         state, text, move = 'place', '', None
@@ -532,7 +532,7 @@ class CalibrationNode(Node):
                     stats['undone'] += 1
                     order.insert(0, places.index(q))
                     progress.forget(q.index)
-                    assessment = self._assess(stage, model, targets, places, kept, order)
+                    assessment = self._assess(stage, model, targets, places, kept, order, progress)
                     self._publish_progress(progress, stats, assessment)
                 state, text, moves = 'place', 'Undone: ' if action == 'undo' else '', 0
                 continue
@@ -568,12 +568,12 @@ class CalibrationNode(Node):
                 got, n = self._run_steps(stage, views, run_dir, t0, mine, after_step,
                                          first=counter)
                 counter += len(views)
-                shift, reason, seen = 0.0, '', []
+                shift, reason, seen, fits = 0.0, '', [], []
                 if not p.by_robot:
                     after, still = self._check(p, loc.check_voltages, run_dir, counter)
                     shift = operator_flow.feature_shift_px(loc.features, after)
-                    reason, seen = self._gate(model, p, mine, still, progress, stats,
-                                              assessment)
+                    reason, seen, fits = self._gate(model, p, mine, still, progress, stats,
+                                                    assessment)
             except BaseException:
                 for bag in mine:
                     shutil.rmtree(bag, ignore_errors=True)
@@ -601,12 +601,12 @@ class CalibrationNode(Node):
             kept.append((p, mine, got, n, T))
             if T is not None:
                 measured[p.index] = T
-            progress.keep(p.index, seen, [v.voltages for v in views])
+            progress.keep(p.index, seen, [v.voltages for v in views], fits)
             stats['placed'] += 1
             stats['views'] += got
             order.pop(0)
             state, text, moves = 'place', '', 0
-            assessment = self._assess(stage, model, targets, places, kept, order)
+            assessment = self._assess(stage, model, targets, places, kept, order, progress)
             self._publish_progress(progress, stats, assessment)
             if stats['placed'] >= least and assessment.targets_met:
                 stats['targets_met'] = True
@@ -632,13 +632,14 @@ class CalibrationNode(Node):
         self._publish_progress(progress, stats, assessment)
         return frames, wanted, stats['placed']
 
-    def _assess(self, stage, model, targets, places, kept, order):
+    def _assess(self, stage, model, targets, places, kept, order, progress):
         """The stage's standard errors against its targets and the advice (the placements
         still to ask for are the candidates)."""
         try:
             return stopping.assess(stage, model, targets,
                                    [(q, T) for q, _, _, _, T in kept if T is not None],
-                                   [places[k] for k in order], places)
+                                   [places[k] for k in order], places,
+                                   noise_px=progress.feature_noise_px())
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.get_logger().warning(f'{stage}: standard errors not predicted: {exc}')
             return stopping.assess('', model, targets, [], [places[k] for k in order])
@@ -646,14 +647,17 @@ class CalibrationNode(Node):
     def _gate(self, model, p, bags, still, progress, stats, assessment):
         """The reprojection and motion-blur gates on the placement's laser-off views (read
         back from ``bags``); each view is published on calibration/progress. Returns (the
-        first rejection's reason or '', the kept views' features)."""
-        seen, reason = [], ''
+        first rejection's reason or '', the kept views' features, their boards' reprojection
+        RMS [px])."""
+        seen, reason, fits = [], '', []
         try:
             views = [v for v in stage_runner.views_from_bags(bags) if not v.laser_on]
         except ValueError:
-            return '', seen
+            return '', seen, fits
         for v in views:
-            pts, why = operator_flow.gate_view(model, p, v.image, still)
+            pts, why, rms = operator_flow.gate_view(model, p, v.image, still)
+            if not why and math.isfinite(rms):
+                fits.append(rms)
             if why == 'not_detected' and p.kind in ('circle_board', 'sphere'):
                 why = ''  # a raster view off the board, or the sphere's: the stage judges
             if why:
@@ -663,7 +667,7 @@ class CalibrationNode(Node):
                 seen.append(pts)
             self._publish_progress(progress, stats, assessment,
                                    (pts, not why, why, v.stamp))
-        return reason, seen
+        return reason, seen, fits
 
     def _check(self, p, voltages, run_dir, counter):
         """The motion gate's view of the target after its views: its features, and how far

@@ -64,6 +64,10 @@ MOVED_PX = 0.75
 #: (+-0.1 V, about +-5 mm at 650 mm) must hold the node of the placement before it, so the
 #: scanner tells the operator how far to move it until it is this close.
 SPHERE_MAX_OFFSET = 0.004
+#: A region's depth extent keeps this far [m] inside the focus range, and is at least
+#: :data:`MIN_DEPTH_EXTENT` (a person judges depth to about a centimetre).
+FOCUS_MARGIN = 0.005
+MIN_DEPTH_EXTENT = 0.01
 #: Largest |U1| the scanner aims at [V].
 MAX_ABS_VOLTAGE = cp.MAX_ABS_VOLTAGE
 
@@ -111,6 +115,8 @@ class Placement:
     by_robot: bool = False
     max_offset: float = math.inf
     plan_steps: list = field(default_factory=list)
+    #: depths [m] the target is in focus between (None: not limited)
+    focus: tuple | None = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -161,6 +167,10 @@ class Placement:
         e = np.full(3, REGION_HALF_EXTENT)
         if self.on_laser_line:
             e[1] = LASER_LINE_HALF_EXTENT
+        if self.focus is not None:  # in depth no farther than the focus range allows
+            z = float(self.centre[2])
+            room = min(z - self.focus[0], self.focus[1] - z) - FOCUS_MARGIN
+            e[2] = min(e[2], max(room, MIN_DEPTH_EXTENT))
         return e
 
     def tilt(self) -> float:
@@ -244,6 +254,8 @@ def placements(stage: str, steps, by_robot: bool = False) -> list[Placement]:
     ValueError
         A step without a scene before it, or a scene the rows cannot be split over.
     """
+    t = getattr(steps, 'targets', None)
+    focus = None if t is None else tuple(f * t.depth for f in cp.FOCUS_RANGE)
     groups: list[tuple[str, list]] = []
     for s in steps:
         if s.scene_yaml is not None:
@@ -289,7 +301,7 @@ def placements(stage: str, steps, by_robot: bool = False) -> list[Placement]:
             lit = any(v[1] for v in views)
             out.append(Placement(stage, len(out), kind, target, T, views, lit, gap,
                                  max_offset=SPHERE_MAX_OFFSET if kind == 'sphere'
-                                 else math.inf))
+                                 else math.inf, focus=focus))
     return out
 
 
@@ -926,18 +938,20 @@ def edge_spread_px(image, pts=None) -> float:
 
 
 def gate_view(model, p: Placement, image, still_spread: float):
-    """The gates of one laser-off view of a placement: ``(features, reason)`` with reason
-    '' when kept, else ``reprojection_outlier`` or ``motion_blur`` (``not_detected`` when
-    the target's features are not found in it)."""
+    """The gates of one laser-off view of a placement: ``(features, reason, rms)`` with
+    reason '' when kept, else ``reprojection_outlier`` or ``motion_blur`` (``not_detected``
+    when the target's features are not found in it); ``rms`` is the board's reprojection
+    RMS [px] (NaN for the circle board and the sphere)."""
     pts = features(p, image)
     if pts is None or len(pts) == 0:
-        return None, 'not_detected'
-    if reprojection_rms_px(model, p, pts) > REPROJECTION_MAX_PX:
-        return pts, 'reprojection_outlier'
+        return None, 'not_detected', math.nan
+    rms = reprojection_rms_px(model, p, pts)
+    if rms > REPROJECTION_MAX_PX:
+        return pts, 'reprojection_outlier', rms
     if p.kind != 'sphere' and math.isfinite(still_spread) and still_spread > 0:
         if edge_spread_px(image, pts) > BLUR_RATIO_MAX * still_spread:
-            return pts, 'motion_blur'
-    return pts, ''
+            return pts, 'motion_blur', rms
+    return pts, '', rms
 
 
 def feature_shift_px(a, b) -> float:

@@ -49,9 +49,13 @@ import numpy as np
 BUDGET_M = 15e-6
 #: Design working distance the budget is stated at [m].
 BUDGET_DEPTH = 0.65
-#: Noise of a detected checkerboard corner or circle centre [px] (sub-pixel refinement on
-#: a sharp 8-bit image: 0.05-0.1 px; the larger is taken).
+#: Noise of a detected checkerboard corner or circle centre [px] before any view is kept
+#: (sub-pixel refinement on a sharp 8-bit image: 0.05-0.1 px; the larger is taken); then
+#: the kept views' own reprojection residual (:meth:`Progress.feature_noise_px`).
 FEATURE_NOISE_PX = 0.1
+#: The least feature noise the prediction takes from the kept views [px] (their fitted
+#: residual is an estimate; below this a few views could promise too much).
+MIN_FEATURE_NOISE_PX = 0.02
 #: Noise of one stripe centre across the stripe [px] (the extractor's centre of a 0.6 mm
 #: line on a matte board).
 STRIPE_NOISE_PX = 0.1
@@ -172,7 +176,7 @@ def _schur(info: np.ndarray, k: int) -> np.ndarray:
     return A - B @ np.linalg.pinv(C) @ B.T
 
 
-def _intrinsics_info(model, board, T) -> np.ndarray | None:
+def _intrinsics_info(model, board, T, noise_px=FEATURE_NOISE_PX) -> np.ndarray | None:
     import cv2
 
     from calibration_tools.intrinsics import INTRINSIC_PARAMS, projection_jacobian
@@ -193,7 +197,7 @@ def _intrinsics_info(model, board, T) -> np.ndarray | None:
         return None
     _, J = projection_jacobian([obj[inside]], [proj[inside]], K, d, [rvec], [tvec])
     cols = [INTRINSIC_PARAMS.index(n) for n in INTRINSICS_NAMES] + list(range(9, 15))
-    J = J[:, cols] / FEATURE_NOISE_PX
+    J = J[:, cols] / noise_px
     return _schur(J.T @ J, len(INTRINSICS_NAMES))
 
 
@@ -377,7 +381,8 @@ def _describe(model, p) -> str:
             f'mm, tilted {math.degrees(p.tilt()):.0f} deg')
 
 
-def assess(stage: str, model, targets, kept, candidates, planned=()) -> Assessment:
+def assess(stage: str, model, targets, kept, candidates, planned=(),
+           noise_px=None) -> Assessment:
     """The stage's standard errors after the placements ``kept`` and its advice.
 
     Parameters
@@ -393,7 +398,10 @@ def assess(stage: str, model, targets, kept, candidates, planned=()) -> Assessme
     planned : sequence of Placement
         Every placement of the stage's plan (the region its targets are stated over; the
         laser stages).
+    noise_px : float, optional
+        The features' noise the kept views show [px] (default :data:`FEATURE_NOISE_PX`).
     """
+    noise = FEATURE_NOISE_PX if noise_px is None else float(noise_px)
     if stage not in PREDICTED:
         return Assessment(stage, [], [], np.zeros(0), np.zeros(0),
                           best=0 if candidates else None,
@@ -405,7 +413,7 @@ def assess(stage: str, model, targets, kept, candidates, planned=()) -> Assessme
         prior = _intrinsics_prior()
 
         def info(p, T):
-            return _intrinsics_info(model, p.target, T)
+            return _intrinsics_info(model, p.target, T, noise)
     else:
         region = []
         for p in planned or [*(q for q, _ in kept), *candidates]:
@@ -488,14 +496,28 @@ class Progress:
         self.extent = (-MAX_ABS_VOLTAGE, MAX_ABS_VOLTAGE, -MAX_ABS_VOLTAGE, MAX_ABS_VOLTAGE)
         self._points: dict = {}
         self._volts: dict = {}
+        self._fits: dict = {}
 
-    def keep(self, index: int, points, voltages) -> None:
-        """Placement ``index`` kept: its views' detected features (list of (n, 2) px) and
-        its views' voltages (list of (m, 4) V)."""
+    def feature_noise_px(self) -> float | None:
+        """The detected features' noise [px] the kept views show: the median of their
+        reprojection RMS about their own pose (88 corners, 6 pose parameters: scaled by
+        sqrt(176 / 170)), floored at :data:`MIN_FEATURE_NOISE_PX`; None before any."""
+        fits = [r for rs in self._fits.values() for r in rs]
+        if not fits:
+            return None
+        return max(float(np.median(fits)) * math.sqrt(176.0 / 170.0),
+                   MIN_FEATURE_NOISE_PX)
+
+    def keep(self, index: int, points, voltages, fits=()) -> None:
+        """Placement ``index`` kept: its views' detected features (list of (n, 2) px), its
+        views' voltages (list of (m, 4) V) and its boards' reprojection RMS [px] (the
+        gates' own PnP fits)."""
+        self._fits[index] = [float(r) for r in fits]
         self._points[index] = [np.asarray(p, np.float64).reshape(-1, 2) for p in points]
         self._volts[index] = [np.asarray(v, np.float64).reshape(-1, 4) for v in voltages]
 
     def forget(self, index: int) -> None:
+        self._fits.pop(index, None)
         self._points.pop(index, None)
         self._volts.pop(index, None)
 

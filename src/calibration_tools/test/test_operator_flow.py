@@ -133,15 +133,16 @@ def test_view_gates_reject_motion_blur_and_reprojection_outliers(bench):
     step = of.views_for(model, p, T, targets)[0]
     off = CaptureStep(0, None, step.voltages[:1], False)
     still = execute_in_process(sim, [off])[0][0].image
-    pts, why = of.gate_view(model, p, still, of.edge_spread_px(still, of.features(p, still)))
-    assert why == '' and pts is not None
+    pts, why, rms = of.gate_view(model, p, still,
+                                 of.edge_spread_px(still, of.features(p, still)))
+    assert why == '' and pts is not None and rms < 0.3
     frames = []
     for dx in np.linspace(-0.00025, 0.00025, 9):
         _place(sim, p, _off(p, [dx, 0.0, 0.0], 0.0))
         frames.append(execute_in_process(sim, [off])[0][0].image.astype(np.float64))
     blurred = np.mean(frames, axis=0).round().astype(still.dtype)
     spread = of.edge_spread_px(still, pts)
-    _, why = of.gate_view(model, p, blurred, spread)
+    _, why, _ = of.gate_view(model, p, blurred, spread)
     assert why == 'motion_blur', (of.edge_spread_px(blurred, pts), spread)
     bad = pts.copy()
     bad[[0, 7, 20, 40, 60, 80]] += 5.0
