@@ -32,12 +32,16 @@ def test_targets_are_stated_and_sigma_falls_as_placements_are_kept(stage):
     kept, worst = [], math.inf
     for p in places:
         kept.append((p, p.V0_T_target))
-        a = stopping.assess(stage, MODEL, TARGETS, kept, [], places)
+        # corners as the simulator's views show them (their own fits: 0.03-0.04 px)
+        a = stopping.assess(stage, MODEL, TARGETS, kept, [], places, noise_px=0.04)
         if np.all(np.isfinite(a.sigma)):
             assert a.worst <= worst * (1 + 1e-9), (stage, len(kept))
             worst = a.worst
-    # the whole plan at the poses asked for meets every target on the reference rig
+    # the whole plan at the poses asked for meets every target on the reference rig, and
+    # noisier corners need more
     assert a.targets_met, (stage, a.table())
+    if stage == 'intrinsics':
+        assert not stopping.assess(stage, MODEL, TARGETS, kept, [], places).targets_met
     assert 'meets its target' in a.advice
 
 
