@@ -58,9 +58,9 @@ def detect_board(board, image, fast: bool = False) -> np.ndarray | None:
     image : ndarray, shape (H, W), uint8 or uint16
     fast : bool
         A checkerboard: OpenCV's plain search first (about a fifth of the time of its
-        exhaustive, accurate one; the corners within a few hundredths of a pixel), the
-        exhaustive one only when it finds nothing. For finding a board and gating its
-        views, not for a stage's data.
+        exhaustive, accurate one; its corners within a few hundredths of a pixel, so
+        refine them: :func:`~calibration_tools.intrinsics.detect_target` does), the
+        exhaustive one only when it finds nothing.
 
     Returns
     -------
