@@ -63,14 +63,12 @@ STRIPE_NOISE_PX = 0.1
 #: (a principal-point shift is a turn of the camera; the dynamic camera's mirror angles
 #: take it up, so the intrinsics need not pin it tighter).
 PRINCIPAL_POINT_TARGET_PX = 10.0 / math.sqrt(3.0)
-#: Target of the focal lengths' standard errors, relative to them. A narrow field (a few
-#: degrees) barely separates the focal length from the board's distance, and the error
-#: carries into the dynamic camera's l and the laser sheet: on the reference rig (quick
-#: plans, the operator's placements against exact ones) a focal length 8 px off (0.1 %)
-#: left l 0.9 mm and the sheet 0.07 mm off at the working point, one 2.5 px off 0.07 mm
-#: and 0.01 mm. 0.1 % (7.8 px there) is what about a dozen views give with corners good
-#: to 0.04 px (the full plan's 30 views: 0.065 %); the dynamic camera refines fx and fy
-#: further from the large board wherever it determines them better.
+#: Target of the focal lengths' standard errors, relative to them: 0.1 %, about what a
+#: dozen views give with corners good to 0.04 px (the reference rig's full plan of 30
+#: views: 0.065 %). A narrow field (a few degrees) barely separates the focal length from
+#: the board's distance, and what is left carries into the dynamic camera's l; that stage
+#: refines fx and fy from the large board's 740 mm lever wherever it determines them
+#: better, with this stage's value as their prior.
 FOCAL_TARGET_REL = 0.001
 #: The most placements a stage asks for (also never more than its plan has): the full
 #: plans' counts, which calibrated the reference rig and the drawn rigs.
