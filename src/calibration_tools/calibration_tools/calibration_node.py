@@ -358,7 +358,9 @@ class CalibrationNode(Node):
             self._publish(CalibrationInstruction(stage=stage, state='failed',
                                                  text=resp.message))
             return resp
-        self._last_bags[stage] = bags
+        # in name order, as an offline re-solve of the run folder reads them (the stage
+        # asks for its placements in the order that helps most, not the plan's)
+        self._last_bags[stage] = sorted(bags, key=lambda b: Path(b).name)
         self.counters['captures'] += 1
         self.counters['frames_recorded'] += frames
         resp.success = frames > 0

@@ -503,7 +503,7 @@ def _board_pose(model, board, img, u):
     from calibration_tools.intrinsics import detect_target
     from reconstructor.model import v0_T_v
 
-    pts = detect_target(img, board)
+    pts = detect_target(img, board, fast=True)
     if pts is None:
         return None
     obj = board.object_points()
@@ -873,7 +873,7 @@ def features(p: Placement, image) -> np.ndarray | None:
     if p.kind in ('checkerboard', 'circle_grid'):
         from calibration_tools.intrinsics import detect_target
 
-        return detect_target(image, p.target)
+        return detect_target(image, p.target, fast=True)
     if p.kind == 'circle_board':
         d = detect_circles(as_uint8_image(np.asarray(image)), dark_circles=True)
         return d.centres if len(d) >= 4 else None
