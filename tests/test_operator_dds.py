@@ -12,13 +12,13 @@ import time
 import pytest
 import rclpy
 import yaml
-from galvoscan_msgs.msg import CalibrationInstruction
+from galvoscan_msgs.msg import CalibrationInstruction, CalibrationProgress
 from galvoscan_msgs.srv import CaptureCalibration, ComputeCalibration, OperatorAction
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from galvoscan.offline import main
-from galvoscan.operator import SimulatedOperator, console
+from galvoscan.operator import SimulatedOperator, console, progress_text
 from galvoscan_common.executor import ServiceClients
 from reconstructor import calibration_file
 
@@ -44,6 +44,10 @@ def test_operator_places_the_scanner_finds_a_moved_target_is_retaken(spawn, ros_
     seen = []
     node.create_subscription(CalibrationInstruction, 'calibration/instruction', seen.append,
                              QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE,
+                                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    progress = []
+    node.create_subscription(CalibrationProgress, 'calibration/progress', progress.append,
+                             QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE,
                                         durability=DurabilityPolicy.TRANSIENT_LOCAL))
     services = ServiceClients(node, ex, on_error=lambda exc: AssertionError(
         f'{exc}\n' + proc.log_path.read_text()))
@@ -106,6 +110,23 @@ def test_operator_places_the_scanner_finds_a_moved_target_is_retaken(spawn, ros_
         assert dict(zip(done.rejected_reasons, done.rejected_counts, strict=True))['moved'] >= 1
         assert [m.sequence for m in seen] == sorted({m.sequence for m in seen})
         assert operator.stats['mistakes']['moved_during_capture'] == 1
+        # calibration/progress: the sigma table against its targets, the coverage, the
+        # advice and every view's detections with its verdict
+        mine = [m for m in progress if m.stage == 'intrinsics']
+        last = mine[-1]
+        assert last.placements_done == 5 and last.placements_max == 5
+        assert list(last.parameter_names[:4]) == ['fx', 'fy', 'cx', 'cy']
+        assert len(last.sigma) == len(last.sigma_target) == len(last.parameter_units) == \
+            len(last.parameter_names)
+        assert all(s > 0 for s in last.sigma) and all(t > 0 for t in last.sigma_target)
+        assert last.image_grid_rows * last.image_grid_cols == len(last.image_coverage)
+        assert sum(last.image_coverage) >= 5 * 88 and sum(last.voltage_coverage) >= 5
+        assert last.voltage_axes == 'u1x,u1y' and last.header.frame_id == 'v0'
+        views = [m for m in mine if m.view_points_u]
+        assert any(m.view_accepted and len(m.view_points_u) == 88 for m in views)
+        assert all(len(m.view_points_u) == len(m.view_points_v) for m in views)
+        assert all(m.view_accepted == (m.view_reason == '') for m in views)
+        assert 'fx' in progress_text(last) and last.advice in progress_text(last)
         assert proc.poll() is None
     finally:
         operator.stop()

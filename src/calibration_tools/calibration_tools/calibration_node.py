@@ -43,6 +43,7 @@ data between ROS and them.
 
 from __future__ import annotations
 
+import math
 import shutil
 import time
 from dataclasses import dataclass, field
@@ -50,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from galvoscan_msgs.msg import CalibrationInstruction, GalvoState
+from galvoscan_msgs.msg import CalibrationInstruction, CalibrationProgress, GalvoState
 from galvoscan_msgs.srv import (
     CaptureCalibration,
     ComputeCalibration,
@@ -67,7 +68,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from sensor_msgs.msg import Image
 
-from calibration_tools import operator_flow, robot_poses, stage_runner
+from calibration_tools import operator_flow, robot_poses, stage_runner, stopping
 from calibration_tools.registry import OVERRIDABLE, plan
 from calibration_tools.registry import stage as stage_entry
 from calibration_tools.stages import KNOWN_STAGES, CaptureStep, apply_result
@@ -87,6 +88,7 @@ class _Capture(Node):
         self.writer = None
         self.frames = 0
         self.states = 0
+        self.dropped = 0  # messages that arrived while nothing was recorded
         qos = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
         log = self.get_logger()
         self.create_subscription(Image, 'camera/image_raw', guard_subscription(
@@ -138,11 +140,15 @@ class _Capture(Node):
         if self.writer is not None:
             self.writer.write('/camera/image_raw', data, time.time_ns())
             self.frames += 1
+        else:
+            self.dropped += 1
 
     def _on_state(self, data):
         if self.writer is not None:
             self.writer.write('/galvo/state', data, time.time_ns())
             self.states += 1
+        else:
+            self.dropped += 1
 
 
 @dataclass
@@ -216,6 +222,10 @@ class CalibrationNode(Node):
             CalibrationInstruction, 'calibration/instruction',
             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self._progress = self.create_publisher(
+            CalibrationProgress, 'calibration/progress',
+            QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self._sequence = 0
         self.operator_stats: dict[str, dict] = {}
         self.calibration = self._initial()
@@ -243,6 +253,10 @@ class CalibrationNode(Node):
         # between captures the operator service still answers (that nothing waits)
         self.create_timer(0.1, lambda: self._cap_executor.spin_once(timeout_sec=0.0))
         self._publish(CalibrationInstruction(state='idle', text='no capture running'))
+        idle = CalibrationProgress()
+        idle.header.stamp = self.get_clock().now().to_msg()
+        idle.header.frame_id = 'v0'
+        self._progress.publish(idle)
 
     def _initial(self):
         path = self.get_parameter('initial_calibration').value
@@ -267,10 +281,14 @@ class CalibrationNode(Node):
         cap = self._cap
         if step.scene_yaml:  # targets are placed by the operator, never by the node
             raise ValueError(f'a capture step that places a target itself: {step.note}')
-        # drop frames of earlier scans still queued in the subscriptions
+        # drop frames of earlier scans still queued in the subscriptions: until a spin
+        # finds none (at most 0.2 s)
         quiet = time.monotonic() + 0.2
         while time.monotonic() < quiet:
-            self._cap_executor.spin_once(timeout_sec=0.02)
+            before = cap.dropped
+            self._cap_executor.spin_once(timeout_sec=0.005)
+            if cap.dropped == before:
+                break
         writer = BagWriter(bag_dir)
         writer.open()
         writer.add_topic('/camera/image_raw', 'sensor_msgs/msg/Image')
@@ -340,7 +358,9 @@ class CalibrationNode(Node):
             self._publish(CalibrationInstruction(stage=stage, state='failed',
                                                  text=resp.message))
             return resp
-        self._last_bags[stage] = bags
+        # in name order, as an offline re-solve of the run folder reads them (the stage
+        # asks for its placements in the order that helps most, not the plan's)
+        self._last_bags[stage] = sorted(bags, key=lambda b: Path(b).name)
         self.counters['captures'] += 1
         self.counters['frames_recorded'] += frames
         resp.success = frames > 0
@@ -360,6 +380,43 @@ class CalibrationNode(Node):
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = msg.header.frame_id or 'v0'
         self._instruction.publish(msg)
+
+    def _publish_progress(self, progress, stats, assessment, view=None):
+        """``calibration/progress``: the stage's standard errors against their targets, its
+        coverage, the advice and (``view``: (features (n, 2) px or None, kept, reason[,
+        stamp s])) the last view."""
+        msg = CalibrationProgress()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = 'v0'
+        msg.stage = progress.stage
+        msg.placements_done = int(stats['placed'])
+        msg.placements_max = int(progress.most)
+        a = assessment
+        msg.parameter_names, msg.parameter_units = list(a.names), list(a.units)
+        msg.sigma = [float(x) for x in a.sigma]
+        msg.sigma_target = [float(x) for x in a.target]
+        msg.targets_met = a.targets_met
+        msg.advice = a.advice
+        img, volt = progress.image_coverage(), progress.voltage_coverage()
+        msg.image_grid_rows, msg.image_grid_cols = (int(x) for x in img.shape)
+        msg.image_coverage = [int(x) for x in img.ravel()]
+        msg.voltage_axes = progress.axes
+        msg.voltage_extent = [float(x) for x in progress.extent]
+        msg.voltage_grid_rows, msg.voltage_grid_cols = (int(x) for x in volt.shape)
+        msg.voltage_coverage = [int(x) for x in volt.ravel()]
+        if view is not None:
+            pts, ok, why = view[:3]
+            if len(view) > 3 and view[3]:
+                sec = int(view[3])
+                msg.view_stamp.sec, msg.view_stamp.nanosec = sec, int((view[3] - sec) * 1e9)
+            else:
+                msg.view_stamp = msg.header.stamp
+            if pts is not None:
+                q = np.asarray(pts, np.float64).reshape(-1, 2)
+                msg.view_points_u = [float(x) for x in q[:, 0]]
+                msg.view_points_v = [float(x) for x in q[:, 1]]
+            msg.view_accepted, msg.view_reason = bool(ok), str(why)
+        self._progress.publish(msg)
 
     def _instruct(self, stats, p, state, text, move=None):
         fields = operator_flow.instruction_fields(
@@ -429,22 +486,31 @@ class CalibrationNode(Node):
 
     def _operator_capture(self, stage, steps, run_dir, t0, bags, by_robot=False,
                           after_step=None, first=0):
-        """Every placement of the plan through the operator (see the module); returns
-        (frames, frames wanted, placements kept)."""
+        """The plan's placements through the operator (see the module), until the stage's
+        standard errors meet their targets (:mod:`calibration_tools.stopping`), its most
+        placements are kept or the operator says done; returns (frames, frames wanted,
+        placements kept)."""
         from calibration_tools import capture_plans as cp
 
         model = cp.current_model(self.calibration)
         targets = getattr(steps, 'targets', None) or cp.choose_targets(model)
         places = operator_flow.placements(stage, steps, by_robot)
         stats = operator_flow.new_stats(len(places))
+        most = stopping.stage_max(stage, len(places))
+        least = stopping.stage_min(stage, len(places))
+        stats['placements_max'] = most
         self.operator_stats[stage] = stats
         max_moves = int(self.get_parameter('max_moves').value)
         kept, measured = [], {}
-        i, moves, frames, wanted, counter = 0, 0, 0, 0, first
+        order = list(range(len(places)))  # placements still to ask for, next first
+        progress = stopping.Progress(stage, model, most)
+        assessment = self._assess(stage, model, targets, places, kept, order, progress)
+        self._publish_progress(progress, stats, assessment)
+        moves, frames, wanted, counter = 0, 0, 0, first
         state, text, move = 'place', '', None
         t_start = time.monotonic()
-        while i < len(places):
-            p = places[i]
+        while order and stats['placed'] < most:
+            p = places[order[0]]
             if state == 'place':
                 self._instruct(stats, p, 'place', operator_flow.describe(p, text))
             else:
@@ -456,9 +522,9 @@ class CalibrationNode(Node):
             if action in ('skip', 'undo'):
                 if action == 'skip':
                     stats['skipped'] += 1
-                    i += 1
+                    order.pop(0)
                 elif kept:
-                    q, mine, got, n = kept.pop()
+                    q, mine, got, n, _ = kept.pop()
                     for bag in mine:
                         shutil.rmtree(bag, ignore_errors=True)
                         bags.remove(bag)
@@ -466,7 +532,10 @@ class CalibrationNode(Node):
                     measured.pop(q.index, None)
                     stats['placed'] -= 1
                     stats['undone'] += 1
-                    i = places.index(q)
+                    order.insert(0, places.index(q))
+                    progress.forget(q.index)
+                    assessment = self._assess(stage, model, targets, places, kept, order, progress)
+                    self._publish_progress(progress, stats, assessment)
                 state, text, moves = 'place', 'Undone: ' if action == 'undo' else '', 0
                 continue
             T, why, views, loc = None, None, p.plan_steps, None
@@ -474,6 +543,10 @@ class CalibrationNode(Node):
                 self._instruct(stats, p, 'search', 'Searching for the target: keep it still.')
                 loc, why = self._search(p, model, targets, run_dir, stats)
                 T = None if loc is None else loc.V0_T_target
+                if loc is not None and loc.features is not None:
+                    self._publish_progress(progress, stats, assessment,
+                                           (loc.features, why is None, '' if why is None
+                                            else why.reason))
                 if why is None:
                     try:
                         views = operator_flow.views_for(model, p, T, targets)
@@ -486,7 +559,8 @@ class CalibrationNode(Node):
                     self.get_logger().warning(f'{stage} placement {p.index} skipped after '
                                               f'{max_moves} moves: {why.words}')
                     stats['skipped'] += 1
-                    i, state, text, moves = i + 1, 'place', '', 0
+                    order.pop(0)
+                    state, text, moves = 'place', '', 0
                     continue
                 state, text, move = 'move', why.words, why
                 continue
@@ -496,33 +570,55 @@ class CalibrationNode(Node):
                 got, n = self._run_steps(stage, views, run_dir, t0, mine, after_step,
                                          first=counter)
                 counter += len(views)
-                shift = 0.0
+                shift, reason, seen, fits = 0.0, '', [], []
                 if not p.by_robot:
-                    after = self._check(p, loc.check_voltages, run_dir, counter)
+                    after, still = self._check(p, loc.check_voltages, run_dir, counter)
                     shift = operator_flow.feature_shift_px(loc.features, after)
+                    reason, seen, fits = self._gate(model, p, mine, still, progress, stats,
+                                                    assessment)
             except BaseException:
                 for bag in mine:
                     shutil.rmtree(bag, ignore_errors=True)
                 raise
-            if shift > operator_flow.MOVED_PX:
+            if shift > operator_flow.MOVED_PX or reason:
                 for bag in mine:
                     shutil.rmtree(bag, ignore_errors=True)
-                stats['rejected']['moved'] = stats['rejected'].get('moved', 0) + got
+                if shift > operator_flow.MOVED_PX:
+                    reason = 'moved'
+                    stats['rejected']['moved'] = stats['rejected'].get('moved', 0) + got
                 moves += 1
                 state, move = 'place', None
-                text = (f'The target moved during the capture ({shift:.1f} px): its views '
-                        'are retaken. ')
+                text = {'moved': f'The target moved during the capture ({shift:.1f} px): '
+                                 'its views are retaken. ',
+                        'motion_blur': 'A view was blurred by motion: hold the target '
+                                       'still; its views are retaken. ',
+                        'reprojection_outlier': 'Its pattern did not fit one flat board '
+                                                '(warped, covered or misdetected): '
+                                                'its views are retaken. '}.get(
+                    reason, f'A view was rejected ({reason}): its views are retaken. ')
                 self.get_logger().warning(f'{stage} placement {p.index}: {text}')
                 continue
             bags += mine
             frames, wanted = frames + got, wanted + n
-            kept.append((p, mine, got, n))
+            kept.append((p, mine, got, n, T))
             if T is not None:
                 measured[p.index] = T
+            progress.keep(p.index, seen, [v.voltages for v in views], fits)
             stats['placed'] += 1
             stats['views'] += got
-            i, state, text, moves = i + 1, 'place', '', 0
+            order.pop(0)
+            state, text, moves = 'place', '', 0
+            assessment = self._assess(stage, model, targets, places, kept, order, progress)
+            self._publish_progress(progress, stats, assessment)
+            if stats['placed'] >= least and assessment.targets_met:
+                stats['targets_met'] = True
+                self.get_logger().info(f'{stage}: every standard error meets its target '
+                                       f'after {stats["placed"]} placements')
+                break
+            if assessment.best is not None and order:
+                order.insert(0, order.pop(assessment.best))
         stats['seconds'] = time.monotonic() - t_start
+        stats['targets_met'] = bool(assessment.targets_met)
         if measured:
             operator_flow.write_measured_poses(run_dir / operator_flow.MEASURED_POSES, measured)
         done = CalibrationInstruction(stage=stage, state='done', text=(
@@ -535,14 +631,57 @@ class CalibrationNode(Node):
         done.rejected_counts = [int(v) for v in stats['rejected'].values()]
         done.searches = stats['search_views']
         self._publish(done)
+        self._publish_progress(progress, stats, assessment)
         return frames, wanted, stats['placed']
 
+    def _assess(self, stage, model, targets, places, kept, order, progress):
+        """The stage's standard errors against its targets and the advice (the placements
+        still to ask for are the candidates)."""
+        try:
+            return stopping.assess(stage, model, targets,
+                                   [(q, T) for q, _, _, _, T in kept if T is not None],
+                                   [places[k] for k in order], places,
+                                   noise_px=progress.feature_noise_px())
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.get_logger().warning(f'{stage}: standard errors not predicted: {exc}')
+            return stopping.assess('', model, targets, [], [places[k] for k in order])
+
+    def _gate(self, model, p, bags, still, progress, stats, assessment):
+        """The reprojection and motion-blur gates on the placement's laser-off views (read
+        back from ``bags``); each view is published on calibration/progress. Returns (the
+        first rejection's reason or '', the kept views' features, their boards' reprojection
+        RMS [px])."""
+        seen, reason, fits = [], '', []
+        try:
+            views = [v for v in stage_runner.views_from_bags(bags) if not v.laser_on]
+        except ValueError:
+            return '', seen, fits
+        for v in views:
+            pts, why, rms = operator_flow.gate_view(model, p, v.image, still)
+            if not why and math.isfinite(rms):
+                fits.append(rms)
+            if why == 'not_detected' and p.kind in ('circle_board', 'sphere'):
+                why = ''  # a raster view off the board, or the sphere's: the stage judges
+            if why:
+                stats['rejected'][why] = stats['rejected'].get(why, 0) + 1
+                reason = reason or why
+            elif pts is not None:
+                seen.append(pts)
+            self._publish_progress(progress, stats, assessment,
+                                   (pts, not why, why, v.stamp))
+        return reason, seen, fits
+
     def _check(self, p, voltages, run_dir, counter):
-        """The motion gate's view of the target (its features) after its views."""
+        """The motion gate's view of the target after its views: its features, and how far
+        its edges spread when still (the motion-blur gate's reference)."""
         step = operator_flow.check_step(p, voltages)
         got = self._look(p, step.voltages, run_dir / 'checks' /
                          f'place{p.index:03d}_{counter:03d}', step.note)
-        return operator_flow.features(p, got[0].image) if got else None
+        if not got:
+            return None, math.nan
+        pts = operator_flow.features(p, got[0].image)
+        return pts, (operator_flow.edge_spread_px(got[0].image, pts) if pts is not None
+                     else math.nan)
 
     def _run_steps(self, stage, steps, run_dir, t0, bags: list, after_step=None, first=0):
         """Record every step into its own bag under ``run_dir`` (numbered from ``first``),

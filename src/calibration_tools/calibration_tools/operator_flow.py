@@ -64,6 +64,10 @@ MOVED_PX = 0.75
 #: (+-0.1 V, about +-5 mm at 650 mm) must hold the node of the placement before it, so the
 #: scanner tells the operator how far to move it until it is this close.
 SPHERE_MAX_OFFSET = 0.004
+#: A region's depth extent keeps this far [m] inside the focus range, and is at least
+#: :data:`MIN_DEPTH_EXTENT` (a person judges depth to about a centimetre).
+FOCUS_MARGIN = 0.005
+MIN_DEPTH_EXTENT = 0.01
 #: Largest |U1| the scanner aims at [V].
 MAX_ABS_VOLTAGE = cp.MAX_ABS_VOLTAGE
 
@@ -111,6 +115,8 @@ class Placement:
     by_robot: bool = False
     max_offset: float = math.inf
     plan_steps: list = field(default_factory=list)
+    #: depths [m] the target is in focus between (None: not limited)
+    focus: tuple | None = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -161,6 +167,10 @@ class Placement:
         e = np.full(3, REGION_HALF_EXTENT)
         if self.on_laser_line:
             e[1] = LASER_LINE_HALF_EXTENT
+        if self.focus is not None:  # in depth no farther than the focus range allows
+            z = float(self.centre[2])
+            room = min(z - self.focus[0], self.focus[1] - z) - FOCUS_MARGIN
+            e[2] = min(e[2], max(room, MIN_DEPTH_EXTENT))
         return e
 
     def tilt(self) -> float:
@@ -244,6 +254,8 @@ def placements(stage: str, steps, by_robot: bool = False) -> list[Placement]:
     ValueError
         A step without a scene before it, or a scene the rows cannot be split over.
     """
+    t = getattr(steps, 'targets', None)
+    focus = None if t is None else tuple(f * t.depth for f in cp.FOCUS_RANGE)
     groups: list[tuple[str, list]] = []
     for s in steps:
         if s.scene_yaml is not None:
@@ -289,7 +301,7 @@ def placements(stage: str, steps, by_robot: bool = False) -> list[Placement]:
             lit = any(v[1] for v in views)
             out.append(Placement(stage, len(out), kind, target, T, views, lit, gap,
                                  max_offset=SPHERE_MAX_OFFSET if kind == 'sphere'
-                                 else math.inf))
+                                 else math.inf, focus=focus))
     return out
 
 
@@ -491,7 +503,7 @@ def _board_pose(model, board, img, u):
     from calibration_tools.intrinsics import detect_target
     from reconstructor.model import v0_T_v
 
-    pts = detect_target(img, board)
+    pts = detect_target(img, board, fast=True)
     if pts is None:
         return None
     obj = board.object_points()
@@ -861,12 +873,85 @@ def features(p: Placement, image) -> np.ndarray | None:
     if p.kind in ('checkerboard', 'circle_grid'):
         from calibration_tools.intrinsics import detect_target
 
-        return detect_target(image, p.target)
+        return detect_target(image, p.target, fast=True)
     if p.kind == 'circle_board':
         d = detect_circles(as_uint8_image(np.asarray(image)), dark_circles=True)
         return d.centres if len(d) >= 4 else None
     blob = _bright_blob(image, min_area=50)
     return None if blob is None else blob[4][None]
+
+
+#: The reprojection gate: a board view whose detected pattern, fitted by its own pose with
+#: the current model's camera, leaves an RMS above this [px] is rejected (the intrinsics
+#: stage's own limit for a view, ``calibrate_intrinsics(max_view_rms_px)``): a corner
+#: detected on the wrong square, a warped or partly covered board.
+REPROJECTION_MAX_PX = 1.0
+#: The motion-blur gate: a view whose target edges spread over more than this many times
+#: those of the still check view taken after it (same target, same depth, laser off) is
+#: rejected: the target moved during the exposure (an optical blur is the same in both).
+BLUR_RATIO_MAX = 1.5
+
+
+def reprojection_rms_px(model, p: Placement, pts) -> float:
+    """RMS [px] of a board view's detected pattern ``pts`` about its own best pose (PnP with
+    the model's camera); NaN for targets without an identified pattern in one view (the
+    circle board, the sphere)."""
+    import cv2
+
+    if p.kind not in ('checkerboard', 'circle_grid') or pts is None or len(pts) < 6:
+        return math.nan
+    obj = p.target.object_points()
+    if len(obj) != len(pts):
+        return math.nan
+    intr = model.intrinsics
+    K = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+    dist = np.asarray(intr.dist, np.float64)
+    img = np.asarray(pts, np.float64).reshape(-1, 1, 2)
+    ok, rvec, tvec = cv2.solvePnP(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return math.inf
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec, tvec)
+    proj = cv2.projectPoints(obj, rvec, tvec, K, dist)[0].reshape(-1, 2)
+    return float(np.sqrt(np.mean(np.sum((proj - img.reshape(-1, 2)) ** 2, axis=1))))
+
+
+def edge_spread_px(image, pts=None) -> float:
+    """How many pixels the target's edges spread over: its contrast over the steepest
+    gradients (the 99th percentile) within the box around ``pts`` (the whole frame when
+    None), the larger of the two image directions (a motion widens the edges across it
+    only). A still, focused target: about 2 px."""
+    g = np.asarray(image, dtype=np.float64)
+    if pts is not None and len(pts):
+        q = np.asarray(pts, np.float64).reshape(-1, 2)
+        pad = 10
+        x0, y0 = (max(int(v) - pad, 0) for v in q.min(axis=0))
+        x1, y1 = (int(v) + pad for v in q.max(axis=0))
+        g = g[y0:y1 + 1, x0:x1 + 1]
+    if g.shape[0] < 3 or g.shape[1] < 3:
+        return math.nan
+    contrast = float(np.percentile(g, 98) - np.percentile(g, 2))
+    spread = 0.0
+    for grad in np.gradient(g):  # along rows and columns: a motion blurs the edges across it
+        steep = float(np.percentile(np.abs(grad), 99))
+        spread = max(spread, contrast / steep if steep > 0 else math.inf)
+    return spread
+
+
+def gate_view(model, p: Placement, image, still_spread: float):
+    """The gates of one laser-off view of a placement: ``(features, reason, rms)`` with
+    reason '' when kept, else ``reprojection_outlier`` or ``motion_blur`` (``not_detected``
+    when the target's features are not found in it); ``rms`` is the board's reprojection
+    RMS [px] (NaN for the circle board and the sphere)."""
+    pts = features(p, image)
+    if pts is None or len(pts) == 0:
+        return None, 'not_detected', math.nan
+    rms = reprojection_rms_px(model, p, pts)
+    if rms > REPROJECTION_MAX_PX:
+        return pts, 'reprojection_outlier', rms
+    if p.kind != 'sphere' and math.isfinite(still_spread) and still_spread > 0:
+        if edge_spread_px(image, pts) > BLUR_RATIO_MAX * still_spread:
+            return pts, 'motion_blur', rms
+    return pts, '', rms
 
 
 def feature_shift_px(a, b) -> float:
@@ -940,7 +1025,8 @@ def new_stats(planned: int) -> dict:
     """A capture's operator figures (the node fills them in)."""
     return {'planned': int(planned), 'placed': 0, 'skipped': 0, 'undone': 0,
             'instructions': 0, 'views': 0, 'search_scans': 0, 'search_views': 0,
-            'refused': {}, 'rejected': {}, 'seconds': 0.0, 'done_early': False}
+            'refused': {}, 'rejected': {}, 'seconds': 0.0, 'done_early': False,
+            'placements_max': int(planned), 'targets_met': False}
 
 
 def stats_line(stats: dict) -> str:
@@ -949,4 +1035,6 @@ def stats_line(stats: dict) -> str:
     rej = ', '.join(f'{k} {v}' for k, v in stats['rejected'].items()) or 'none'
     return (f"{stats['placed']}/{stats['planned']} placements kept, {stats['skipped']} "
             f"skipped, {stats['instructions']} instructions, {stats['search_views']} search "
-            f"views; placements refused: {ref}; views rejected: {rej}")
+            f"views; placements refused: {ref}; views rejected: {rej}; standard errors "
+            f"{'met' if stats.get('targets_met') else 'not all met'} (at most "
+            f"{stats.get('placements_max', stats['planned'])} placements)")

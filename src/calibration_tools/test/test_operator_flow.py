@@ -121,6 +121,35 @@ def test_motion_gate_catches_a_moved_board_and_passes_a_still_one(bench):
     assert of.feature_shift_px(loc.features, of.features(p, moved.image)) > 5 * of.MOVED_PX
 
 
+def test_view_gates_reject_motion_blur_and_reprojection_outliers(bench):
+    """A still view passes both gates; the same view with the board moving 0.5 mm during
+    the exposure (the frames of the motion averaged: what the sensor integrates) is
+    rejected as motion blur; a pattern whose corners do not fit one flat board (six moved
+    by 5 px) is a reprojection outlier."""
+    _, cal, model, targets, sim = bench
+    p = of.placements('intrinsics', plan('intrinsics', cal, quick=True))[1]
+    T = p.V0_T_target.copy()
+    _place(sim, p, T)
+    step = of.views_for(model, p, T, targets)[0]
+    off = CaptureStep(0, None, step.voltages[:1], False)
+    still = execute_in_process(sim, [off])[0][0].image
+    pts, why, rms = of.gate_view(model, p, still,
+                                 of.edge_spread_px(still, of.features(p, still)))
+    assert why == '' and pts is not None and rms < 0.3
+    frames = []
+    for dx in np.linspace(-0.00025, 0.00025, 9):
+        _place(sim, p, _off(p, [dx, 0.0, 0.0], 0.0))
+        frames.append(execute_in_process(sim, [off])[0][0].image.astype(np.float64))
+    blurred = np.mean(frames, axis=0).round().astype(still.dtype)
+    spread = of.edge_spread_px(still, pts)
+    _, why, _ = of.gate_view(model, p, blurred, spread)
+    assert why == 'motion_blur', (of.edge_spread_px(blurred, pts), spread)
+    bad = pts.copy()
+    bad[[0, 7, 20, 40, 60, 80]] += 5.0
+    assert of.reprojection_rms_px(model, p, pts) < 0.3
+    assert of.reprojection_rms_px(model, p, bad) > of.REPROJECTION_MAX_PX
+
+
 def test_placements_of_the_plans_and_their_instructions(bench):
     """Every stage's plan becomes placements whose instructions name a kit target, a region
     around the plan's pose and a tilt; the laser stages' boards go on the laser line."""

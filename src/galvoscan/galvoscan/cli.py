@@ -11,7 +11,8 @@
                                 node's instructions and answer them from the keyboard; --sim:
                                 place the targets in the simulator as a person would)
     galvoscan evaluate [--rig FILE] [--seed N] [--quick] [--out DIR]
-    galvoscan demo [--out DIR]  (evaluate on the reference rig; what `make demo` runs)
+    galvoscan demo [--out DIR]  (the main job on the reference rig: calibrate through the simulated
+                                operator, scan, score; what `make demo` runs)
     galvoscan rig random --seed N [--distance Z] --out FILE  (draw a plausible rig)
     galvoscan view [--ws-port 8765] [--http-port 8080] [--host 0.0.0.0] [--no-browser-page]
                                 (Foxglove WebSocket and a browser page on the running graph)

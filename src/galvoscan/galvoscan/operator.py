@@ -375,6 +375,23 @@ class SimulatedOperator:
         self._set_scene(scene_text(instr0['target'], yaml.safe_load(spec_yaml) or {}, draw.T))
 
 
+def progress_text(msg) -> str:
+    """A ``calibration/progress`` message as the console shows it: the placements, the
+    standard errors against their targets and the advice."""
+    lines = [f'  [{msg.stage} progress] {msg.placements_done} of at most '
+             f'{msg.placements_max} placements kept; standard errors '
+             + ('meet their targets' if msg.targets_met else 'not all at target yet')]
+    if msg.parameter_names:
+        lines.append(f'    {"parameter":>14s} {"sigma":>11s} {"target":>11s}')
+        for n, u, s, t in zip(msg.parameter_names, msg.parameter_units, msg.sigma,
+                              msg.sigma_target, strict=False):
+            mark = 'ok' if s <= t else '--'
+            lines.append(f'    {n:>14s} {s:11.3g} {t:11.3g} {u:5s} {mark}')
+    if msg.advice:
+        lines.append(f'    advice: {msg.advice}')
+    return '\n'.join(lines)
+
+
 def console(domain_id: int, stdin=None, out=None) -> int:
     """A person at the console plays the operator: every instruction is printed, and a line
     typed answers it (``p``/``placed``, ``u``/``undo``, ``s``/``skip``, ``d``/``done``,
@@ -382,7 +399,7 @@ def console(domain_id: int, stdin=None, out=None) -> int:
     import queue
 
     import rclpy
-    from galvoscan_msgs.msg import CalibrationInstruction
+    from galvoscan_msgs.msg import CalibrationInstruction, CalibrationProgress
     from galvoscan_msgs.srv import OperatorAction
     from rclpy.node import Node
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -413,6 +430,18 @@ def console(domain_id: int, stdin=None, out=None) -> int:
 
     node.create_subscription(CalibrationInstruction, 'calibration/instruction', show,
                              QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE,
+                                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
+    shown = {'key': None}
+
+    def show_progress(msg):
+        key = (msg.stage, msg.placements_done, msg.advice)
+        if not msg.stage or key == shown['key']:
+            return
+        shown['key'] = key
+        print(progress_text(msg), file=out, flush=True)
+
+    node.create_subscription(CalibrationProgress, 'calibration/progress', show_progress,
+                             QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                                         durability=DurabilityPolicy.TRANSIENT_LOCAL))
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=lambda: [lines.put(x) for x in iter(stdin.readline, '')]

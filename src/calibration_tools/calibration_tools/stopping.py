@@ -1,0 +1,576 @@
+"""When a stage has enough placements, and which one would help most next (no rclpy).
+
+Each stage states, once and here, standard-error targets for its parameters
+(:func:`sigma_targets`) and the most placements it ever asks for (:data:`MAX_PLACEMENTS`).
+After every placement kept, :func:`assess` predicts the parameters' standard errors from the
+placements taken so far, at the poses the scanner measured for them, and says whether every
+one meets its target; while one does not, it ranks the placements still to be asked for by
+how far each would bring down the worst ratio of standard error to target, and names the
+best one (its depth, tilt and position) as the advice.
+
+The prediction is the Fisher information of the stage's observations with respect to its
+parameters, each placement's own pose taken out (Schur complement):
+
+- ``intrinsics``: the checkerboard's corners in the image (OpenCV's projection Jacobian, the
+  stage's own lens prior added), corner noise :data:`FEATURE_NOISE_PX`;
+- ``laser_plane`` and ``laser_axis``: the stripe points where the laser sheet of the
+  placement's G2 voltage crosses the board, their distance from the sheet differentiated
+  with respect to the sheet's parameters; each point's noise is the stripe centre's
+  (:data:`STRIPE_NOISE_PX`), and all points of one board share its pose's error along its
+  normal (from its pattern's corners; :func:`_board_depth_sigma`).
+
+The targets follow from one budget, :data:`BUDGET_M` at the design working distance (scaled
+with the working depth, as the targets and views are): a parameter's target is the
+standard error that alone moves what it describes (a ray's pixel, the laser sheet) by the
+budget, as an RMS over the region the stage serves (the image; the stripe points of the
+stage's whole plan). The principal point and the focal lengths are the exceptions: a shift
+of the principal point is a turn of the camera, which the dynamic camera's mirror angles
+take up, so its target is the lens prior's (:data:`PRINCIPAL_POINT_TARGET_PX`); the focal
+lengths' is set by how far their error carries into the dynamic camera and the laser
+sheet (:data:`FOCAL_TARGET_REL`).
+
+``dynamic_camera`` (one to five circle-board placements, each a whole raster of views) and
+``joint_correction`` (sphere positions chained through shared G1 grid nodes) need every
+placement of their plan: their standard errors come from the stage's own solution
+(``calibration/compute``), and :func:`assess` reports them as not estimable before it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: Budget of each parameter's standard error: how far it may move a ray or the laser sheet
+#: at the design working distance (650 mm) [m]; scaled with the working depth. A tenth of
+#: the paper's 0.165 mm stair error: a dozen parameters at their targets add up (root sum
+#: of squares) to under a third of it.
+BUDGET_M = 15e-6
+#: Design working distance the budget is stated at [m].
+BUDGET_DEPTH = 0.65
+#: Noise of a detected checkerboard corner or circle centre [px] before any view is kept
+#: (sub-pixel refinement on a sharp 8-bit image: 0.05-0.1 px; the larger is taken); then
+#: the kept views' own reprojection residual (:meth:`Progress.feature_noise_px`).
+FEATURE_NOISE_PX = 0.1
+#: The least feature noise the prediction takes from the kept views [px] (their fitted
+#: residual is an estimate; below this a few views could promise too much).
+MIN_FEATURE_NOISE_PX = 0.02
+#: Noise of one stripe centre across the stripe [px] (the extractor's centre of a 0.6 mm
+#: line on a matte board).
+STRIPE_NOISE_PX = 0.1
+#: Target of the principal point's standard error [px]: the lens prior's +-10 px bound
+#: (a principal-point shift is a turn of the camera; the dynamic camera's mirror angles
+#: take it up, so the intrinsics need not pin it tighter).
+PRINCIPAL_POINT_TARGET_PX = 10.0 / math.sqrt(3.0)
+#: Target of the focal lengths' standard errors, relative to them: 0.1 %, about what a
+#: dozen views give with corners good to 0.04 px (the reference rig's full plan of 30
+#: views: 0.065 %). A narrow field (a few degrees) barely separates the focal length from
+#: the board's distance, and what is left carries into the dynamic camera's l; that stage
+#: refines fx and fy from the large board's 740 mm lever wherever it determines them
+#: better, with this stage's value as their prior.
+FOCAL_TARGET_REL = 0.001
+#: The most placements a stage asks for (also never more than its plan has): the full
+#: plans' counts, which calibrated the reference rig and the drawn rigs.
+MAX_PLACEMENTS = {'intrinsics': 30, 'dynamic_camera': 5, 'laser_plane': 8,
+                  'laser_axis': 36, 'joint_correction': 9}
+#: Placements a stage takes before it may stop: what its solver needs, with one spare
+#: (intrinsics: 4 views; the laser plane: 2 boards; the laser axis: 3 planes of 2 boards,
+#: and :data:`ROW_BOARDS` on every plane of its plan).
+MIN_PLACEMENTS = {'intrinsics': 5, 'laser_plane': 3, 'laser_axis': 6}
+#: The laser axis's solver fits one plane per G2 voltage of its plan from at least this
+#: many boards, then the axis and G2's response (with its curvature) from those planes:
+#: the stage asks for every plane of its plan (they span G2's range, which the curvature
+#: needs) before its standard errors count.
+ROW_BOARDS = 2
+#: The stages whose standard errors are predicted here (the others: see the module).
+PREDICTED = ('intrinsics', 'laser_plane', 'laser_axis')
+
+
+@dataclass
+class Assessment:
+    """A stage's standard errors against its targets, and the advice for the next placement.
+
+    Attributes
+    ----------
+    stage : str
+    names, units : list of str
+        The parameters and their SI units.
+    sigma : ndarray, shape (n,)
+        Predicted standard errors (NaN: not estimable yet or not predicted).
+    target : ndarray, shape (n,)
+    best : int or None
+        Index, into the candidates given, of the placement that most lowers the worst
+        ``sigma / target`` (None: no candidate, or nothing predicted).
+    best_ratio : float
+        The worst ``sigma / target`` after that placement.
+    advice : str
+    """
+
+    stage: str
+    names: list
+    units: list
+    sigma: np.ndarray
+    target: np.ndarray
+    best: int | None = None
+    best_ratio: float = math.nan
+    advice: str = ''
+    reasons: list = field(default_factory=list)
+
+    @property
+    def targets_met(self) -> bool:
+        return bool(len(self.sigma)) and bool(np.all(np.isfinite(self.sigma))) and \
+            bool(np.all(self.sigma <= self.target))
+
+    @property
+    def worst(self) -> float:
+        """The largest ``sigma / target`` (inf when a sigma is not estimable)."""
+        r = self.sigma / self.target
+        return float(np.max(np.where(np.isfinite(r), r, np.inf))) if len(r) else math.inf
+
+    def table(self) -> str:
+        """The sigma-against-target table as text (the console operator prints it)."""
+        rows = [f'{n:>22s} {s:11.4g} {t:11.4g} {u:4s} {"ok" if s <= t else "--"}'
+                for n, u, s, t in zip(self.names, self.units, self.sigma, self.target,
+                                      strict=True)]
+        return '\n'.join([f'{"parameter":>22s} {"sigma":>11s} {"target":>11s}', *rows])
+
+
+def stage_max(stage: str, planned: int) -> int:
+    """The most placements ``stage`` asks for, given ``planned`` in its plan."""
+    return min(int(planned), MAX_PLACEMENTS.get(stage, int(planned)))
+
+
+def stage_min(stage: str, planned: int) -> int:
+    """Placements ``stage`` takes before it may stop on its targets."""
+    return min(int(planned), MIN_PLACEMENTS.get(stage, int(planned)))
+
+
+def _budget(targets) -> float:
+    return BUDGET_M * float(targets.depth) / BUDGET_DEPTH
+
+
+# ----------------------------------------------------------------------------- intrinsics
+#: The intrinsics the stage estimates (its default distortion model, k1 k2 p1 p2).
+INTRINSICS_NAMES = ('fx', 'fy', 'cx', 'cy', 'k1', 'k2', 'p1', 'p2')
+_INTRINSICS_UNITS = ('px', 'px', 'px', 'px', '1', '1', '1', '1')
+
+
+def _camera(model):
+    intr = model.intrinsics
+    K = np.array([[intr.fx, 0, intr.cx], [0, intr.fy, intr.cy], [0, 0, 1.0]])
+    d = np.zeros(5)
+    d[:min(5, len(intr.dist))] = np.asarray(intr.dist, np.float64)[:5]
+    return K, d
+
+
+def _v_T_target(model, T):
+    """The target's pose in the camera frame of the view G1 aims at its centre (None when
+    out of reach)."""
+    from calibration_tools.capture_plans import MAX_ABS_VOLTAGE
+    from reconstructor.model import v0_T_v
+    from reconstructor.planning import aim_g1
+
+    g1 = aim_g1(model, T[:3, 3], max_abs_u=MAX_ABS_VOLTAGE)
+    if not np.all(np.isfinite(g1)):
+        return None
+    return np.linalg.inv(np.asarray(v0_T_v(model, float(g1[0]), float(g1[1])))) @ T
+
+
+def _schur(info: np.ndarray, k: int) -> np.ndarray:
+    """Information on the first ``k`` parameters with the rest (a pose) taken out."""
+    A, B, C = info[:k, :k], info[:k, k:], info[k:, k:]
+    return A - B @ np.linalg.pinv(C) @ B.T
+
+
+def _intrinsics_info(model, board, T, noise_px=FEATURE_NOISE_PX) -> np.ndarray | None:
+    import cv2
+
+    from calibration_tools.intrinsics import INTRINSIC_PARAMS, projection_jacobian
+
+    V_T_B = _v_T_target(model, T)
+    if V_T_B is None:
+        return None
+    obj = board.object_points()
+    obj = obj - obj.mean(axis=0)
+    K, d = _camera(model)
+    rvec = cv2.Rodrigues(V_T_B[:3, :3])[0].ravel()
+    tvec = V_T_B[:3, 3]
+    proj, _ = cv2.projectPoints(obj, rvec, tvec, K, d)
+    proj = proj.reshape(-1, 2)
+    w, h = model.intrinsics.width, model.intrinsics.height
+    inside = (proj[:, 0] >= 0) & (proj[:, 0] < w) & (proj[:, 1] >= 0) & (proj[:, 1] < h)
+    if inside.sum() < 6:
+        return None
+    _, J = projection_jacobian([obj[inside]], [proj[inside]], K, d, [rvec], [tvec])
+    cols = [INTRINSIC_PARAMS.index(n) for n in INTRINSICS_NAMES] + list(range(9, 15))
+    J = J[:, cols] / noise_px
+    return _schur(J.T @ J, len(INTRINSICS_NAMES))
+
+
+def _intrinsics_prior() -> np.ndarray:
+    from calibration_tools.intrinsics import INTRINSIC_PARAMS, LensPrior
+
+    _, sigma = LensPrior().mean_sigma(2, 2)
+    s = np.array([sigma[INTRINSIC_PARAMS.index(n)] for n in INTRINSICS_NAMES])
+    return np.diag(np.where(np.isfinite(s), 1.0 / s ** 2, 0.0))
+
+
+def _intrinsics_targets(model, targets) -> np.ndarray:
+    """Budget [px at the working depth] over the RMS image displacement of each parameter
+    (over a 7 x 7 grid spanning the image)."""
+    import cv2
+
+    K, d = _camera(model)
+    w, h = model.intrinsics.width, model.intrinsics.height
+    uu, vv = np.meshgrid(np.linspace(0, w - 1, 7), np.linspace(0, h - 1, 7))
+    pix = np.column_stack([uu.ravel(), vv.ravel()]).reshape(-1, 1, 2)
+    xy = cv2.undistortPoints(pix, K, d).reshape(-1, 2)
+    pts = np.column_stack([xy, np.ones(len(xy))])
+    base = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+    budget_px = _budget(targets) * model.intrinsics.fx / float(targets.depth)
+    out = []
+    for j, name in enumerate(INTRINSICS_NAMES):
+        if name in ('cx', 'cy'):
+            out.append(PRINCIPAL_POINT_TARGET_PX)
+            continue
+        if name in ('fx', 'fy'):
+            out.append(FOCAL_TARGET_REL * float(K[j, j]))
+            continue
+        vec = np.array([K[0, 0], K[1, 1], K[0, 2], K[1, 2], *d[:4]])
+        step = 1e-6 * max(abs(vec[j]), 1.0)
+        vec[j] += step
+        K2 = np.array([[vec[0], 0, vec[2]], [0, vec[1], vec[3]], [0, 0, 1.0]])
+        d2 = np.concatenate([vec[4:8], d[4:]])
+        moved = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), K2, d2)[0].reshape(-1, 2)
+        s = math.sqrt(float(np.mean(np.sum((moved - base) ** 2, axis=1)))) / step
+        out.append(budget_px / max(s, 1e-300))
+    return np.array(out)
+
+
+# ----------------------------------------------------------------------------- laser
+def _board_depth_sigma(model, board, depth: float) -> float:
+    """Standard error [m] of a board's position along its normal from its pattern's corners
+    (one pixel is ``depth / fx``; the board's size gives the lever)."""
+    pts = board.object_points()
+    size = float(np.ptp(pts[:, 0]))
+    px = depth / model.intrinsics.fx
+    return px * FEATURE_NOISE_PX * depth / max(size, 1e-9) / math.sqrt(len(pts))
+
+
+def _stripe_points(model, board, T, u2: float) -> np.ndarray | None:
+    """Where the laser sheet of G2 voltage ``u2`` crosses the board at ``T`` (its pattern's
+    extent), one point a pixel apart, shape (n, 3) in V0."""
+    from reconstructor.model import laser_plane_v0
+
+    pi = np.asarray(laser_plane_v0(model, u2), dtype=np.float64)
+    n, e = pi[:3], pi[3]
+    R, c = T[:3, :3], T[:3, 3]
+    pts = board.object_points()
+    half = 0.5 * np.ptp(pts[:, :2], axis=0)
+    # board points c + R [x, y, 0]: n.(c + x a + y b) + e = 0
+    a, b = R[:, 0], R[:, 1]
+    na, nb, r0 = float(n @ a), float(n @ b), float(n @ c + e)
+    step = float(c[2]) / model.intrinsics.fx
+    if abs(nb) >= abs(na):
+        x = np.arange(-half[0], half[0] + step, step)
+        y = -(r0 + na * x) / nb
+        ok = np.abs(y) <= half[1]
+    else:
+        y = np.arange(-half[1], half[1] + step, step)
+        x = -(r0 + nb * y) / na
+        ok = np.abs(x) <= half[0]
+    if ok.sum() < 5:
+        return None
+    return c + np.outer(x[ok], a) + np.outer(y[ok], b)
+
+
+def _sheet_jacobian(model, params, points, u2):
+    """d(signed distance of ``points`` from the sheet of ``u2``) / d(params), shape (n, k);
+    ``params`` is a list of (name, perturb(model, h) -> model, step)."""
+    from reconstructor.model import laser_plane_v0
+
+    P = np.column_stack([points, np.ones(len(points))])
+    base = P @ np.asarray(laser_plane_v0(model, u2), dtype=np.float64)
+    cols = []
+    for _, perturb, h in params:
+        moved = P @ np.asarray(laser_plane_v0(perturb(model, h), u2), dtype=np.float64)
+        cols.append((moved - base) / h)
+    return np.column_stack(cols)
+
+
+def _perp(v) -> tuple[np.ndarray, np.ndarray]:
+    v = np.asarray(v, dtype=np.float64)
+    a = np.cross(v, [1.0, 0, 0] if abs(v[0]) < 0.9 else [0, 1.0, 0])
+    a /= np.linalg.norm(a)
+    return a, np.cross(v, a)
+
+
+def _sheet_params(stage: str, model, centre):
+    """The stage's sheet parameters: (name, unit, perturb, step)."""
+    import dataclasses
+
+    if stage == 'laser_plane':
+        pi = np.asarray(model.laser_plane_v0, dtype=np.float64)
+        t1, t2 = _perp(pi[:3])
+        c = np.asarray(centre, dtype=np.float64)
+
+        def turn(t):
+            def f(m, h):  # the sheet turned by h about an axis through the region's centre
+                n = pi[:3] + h * t
+                n = n / np.linalg.norm(n)
+                e = float(pi[:3] @ c + pi[3]) - float(n @ c)
+                return dataclasses.replace(m, laser_plane_v0=np.append(n, e))
+            return f
+
+        def shift(m, h):
+            return dataclasses.replace(m, laser_plane_v0=pi + np.array([0, 0, 0, h]))
+        return [('sheet_turn_a', 'rad', turn(t1), 1e-6), ('sheet_turn_b', 'rad', turn(t2), 1e-6),
+                ('sheet_offset', 'm', shift, 1e-7)]
+    n0 = np.asarray(model.laser_axis_dir, dtype=np.float64)
+    a1, a2 = _perp(n0)
+
+    def axis_turn(t):
+        return lambda m, h: dataclasses.replace(m, laser_axis_dir=(n0 + h * t)
+                                                / np.linalg.norm(n0 + h * t))
+
+    def axis_shift(t):
+        return lambda m, h: dataclasses.replace(
+            m, laser_axis_point=np.asarray(m.laser_axis_point) + h * t)
+
+    def gain(m, h):
+        return dataclasses.replace(m, g2_tilt=dataclasses.replace(m.g2_tilt,
+                                                                  k=m.g2_tilt.k + h))
+    return [('axis_dir_a', 'rad', axis_turn(a1), 1e-6), ('axis_dir_b', 'rad', axis_turn(a2), 1e-6),
+            ('axis_point_a', 'm', axis_shift(a1), 1e-7),
+            ('axis_point_b', 'm', axis_shift(a2), 1e-7),
+            ('g2_gain', 'rad/V', gain, 1e-8)]
+
+
+def _lit_voltage(p) -> float | None:
+    rows = [float(r[3]) for v, lit, _ in p.views if lit for r in v]
+    return float(np.median(rows)) if rows else None
+
+
+def _sheet_info(model, params, p, T, targets) -> np.ndarray | None:
+    u2 = _lit_voltage(p)
+    if u2 is None:
+        return None
+    pts = _stripe_points(model, p.target, T, u2)
+    if pts is None:
+        return None
+    J = _sheet_jacobian(model, params, pts, u2)
+    s2 = (STRIPE_NOISE_PX * float(T[2, 3]) / model.intrinsics.fx) ** 2
+    b2 = _board_depth_sigma(model, p.target, float(T[2, 3])) ** 2
+    m = len(pts)
+    # covariance s2 I + b2 1 1^T (one board's common error), inverted by Sherman-Morrison
+    ones = J.sum(axis=0)
+    return (J.T @ J - np.outer(ones, ones) * b2 / (s2 + m * b2)) / s2
+
+
+def _sheet_targets(model, params, regions, targets) -> np.ndarray:
+    """Budget over each parameter's RMS move of the sheet over ``regions`` ((points, u2)
+    of the stage's whole plan)."""
+    sq = np.zeros(len(params))
+    n = 0
+    for pts, u2 in regions:
+        J = _sheet_jacobian(model, params, pts, u2)
+        sq += np.sum(J ** 2, axis=0)
+        n += len(pts)
+    rms = np.sqrt(sq / max(n, 1))
+    return _budget(targets) / np.maximum(rms, 1e-300)
+
+
+# ----------------------------------------------------------------------------- assess
+def _describe(model, p) -> str:
+    c = p.centre * 1e3
+    return (f'placement {p.index + 1}: depth {c[2]:.0f} mm, x {c[0]:+.0f} mm, y {c[1]:+.0f} '
+            f'mm, tilted {math.degrees(p.tilt()):.0f} deg')
+
+
+def assess(stage: str, model, targets, kept, candidates, planned=(),
+           noise_px=None) -> Assessment:
+    """The stage's standard errors after the placements ``kept`` and its advice.
+
+    Parameters
+    ----------
+    stage : str
+    model : RigModel
+        The current model (aims, projection, the laser sheet).
+    targets : capture_plans.Targets
+    kept : sequence of (Placement, ndarray (4, 4))
+        Placements kept so far, each at the pose the scanner measured.
+    candidates : sequence of Placement
+        Placements still to be asked for (at the poses asked for).
+    planned : sequence of Placement
+        Every placement of the stage's plan (the region its targets are stated over; the
+        laser stages).
+    noise_px : float, optional
+        The features' noise the kept views show [px] (default :data:`FEATURE_NOISE_PX`).
+    """
+    noise = FEATURE_NOISE_PX if noise_px is None else float(noise_px)
+    if stage not in PREDICTED:
+        return Assessment(stage, [], [], np.zeros(0), np.zeros(0),
+                          best=0 if candidates else None,
+                          advice=(f'next: {_describe(model, candidates[0])} (this stage '
+                                  'takes every placement of its plan)') if candidates else '')
+    if stage == 'intrinsics':
+        names, units = list(INTRINSICS_NAMES), list(_INTRINSICS_UNITS)
+        target = _intrinsics_targets(model, targets)
+        prior = _intrinsics_prior()
+
+        def info(p, T):
+            return _intrinsics_info(model, p.target, T, noise)
+    else:
+        region = []
+        for p in planned or [*(q for q, _ in kept), *candidates]:
+            u2 = _lit_voltage(p)
+            pts = None if u2 is None else _stripe_points(model, p.target, p.V0_T_target, u2)
+            if pts is not None:
+                region.append((pts, u2))
+        centre = (np.vstack([r[0] for r in region]).mean(axis=0) if region
+                  else np.array([0.0, 0.0, targets.depth]))
+        params = _sheet_params(stage, model, centre)
+        names, units = [q[0] for q in params], [q[1] for q in params]
+        sp = [(q[0], q[2], q[3]) for q in params]
+        target = _sheet_targets(model, sp, region, targets)
+        prior = np.zeros((len(sp), len(sp)))
+
+        def info(p, T):
+            return _sheet_info(model, sp, p, T, targets)
+
+    rows = _rows(stage, planned or [*(q for q, _ in kept), *candidates])
+    short = {r for r in rows if sum(1 for q, _ in kept if _row(q) == r) < ROW_BOARDS}
+    total = prior.copy()
+    pending: dict = {}  # a row's boards count once it has enough for its plane
+    for p, T in kept:
+        got = info(p, np.asarray(T, dtype=np.float64))
+        if got is not None:
+            if _row(p) in short:
+                pending[_row(p)] = pending.get(_row(p), 0) + got
+            else:
+                total += got
+    sigma = _sigma(total) if not short else np.full(len(names), np.nan)
+    out = Assessment(stage, names, units, sigma, target)
+    best, best_ratio = None, math.inf
+    # the laser axis: rows short of boards first (each row is one plane of the solver)
+    pool = [k for k, p in enumerate(candidates) if _row(p) in short] or \
+        list(range(len(candidates)))
+    for k in pool:
+        p = candidates[k]
+        got = info(p, p.V0_T_target)
+        if got is None:
+            continue
+        extra = got + pending.get(_row(p), 0) if _row(p) in short else got
+        r = float(np.max(np.nan_to_num(_sigma(total + extra) / target, nan=1e9)))
+        if r < best_ratio - 1e-12:
+            best, best_ratio = k, r
+    out.best, out.best_ratio = best, best_ratio
+    worst = int(np.argmax(np.where(np.isfinite(sigma / target), sigma / target, np.inf)))
+    if out.targets_met:
+        out.advice = 'every standard error meets its target: press done, or add placements'
+    elif best is not None:
+        now = out.worst
+        out.advice = (f'next: {_describe(model, candidates[best])}: brings the worst '
+                      f'sigma/target ({names[worst]}) from '
+                      + ('not estimable' if not math.isfinite(now) else f'{now:.2f}')
+                      + f' to {best_ratio:.2f}')
+    elif candidates:
+        out.best = 0
+        out.advice = f'next: {_describe(model, candidates[0])}'
+    return out
+
+
+def _row(p):
+    """The G2 voltage a laser-axis board is lit at (its plane), rounded; None otherwise."""
+    if p.stage != 'laser_axis':
+        return None
+    u = _lit_voltage(p)
+    return None if u is None else round(u, 3)
+
+
+def _rows(stage: str, places) -> set:
+    """The laser axis's planes (G2 voltages) of its plan; empty for the other stages."""
+    return {_row(p) for p in places if _row(p) is not None} if stage == 'laser_axis' else set()
+
+
+def _sigma(info: np.ndarray) -> np.ndarray:
+    """Standard errors of an information matrix (NaN where it is not invertible)."""
+    k = len(info)
+    if k == 0:
+        return np.zeros(0)
+    w = np.linalg.eigvalsh(0.5 * (info + info.T))
+    if w.min() <= 1e-12 * max(w.max(), 1e-300):
+        return np.full(k, np.nan)
+    return np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0.0, None))
+
+
+# ----------------------------------------------------------------------------- coverage
+#: Cells of the image coverage grid (columns, rows) and of the voltage coverage grid.
+IMAGE_GRID = (8, 6)
+VOLTAGE_GRID = (10, 10)
+#: The laser stages' coverage spans G1 pan and G2 tilt (where along the sheet, which
+#: sheet); the others span G1's two axes.
+LASER_STAGES = ('laser_plane', 'laser_axis')
+
+
+class Progress:
+    """A capture's coverage: detected features per cell of a grid over the image, and views
+    per cell of a grid over the voltages (placements kept; an undone one is forgotten)."""
+
+    def __init__(self, stage: str, model, most: int):
+        from calibration_tools.capture_plans import MAX_ABS_VOLTAGE
+
+        self.stage, self.most = stage, int(most)
+        self.size = (int(model.intrinsics.width), int(model.intrinsics.height))
+        self.axes = 'u1x,u2' if stage in LASER_STAGES else 'u1x,u1y'
+        self.extent = (-MAX_ABS_VOLTAGE, MAX_ABS_VOLTAGE, -MAX_ABS_VOLTAGE, MAX_ABS_VOLTAGE)
+        self._points: dict = {}
+        self._volts: dict = {}
+        self._fits: dict = {}
+
+    def feature_noise_px(self) -> float | None:
+        """The detected features' noise [px] the kept views show: the median of their
+        reprojection RMS about their own pose (88 corners, 6 pose parameters: scaled by
+        sqrt(176 / 170)), floored at :data:`MIN_FEATURE_NOISE_PX`; None before any."""
+        fits = [r for rs in self._fits.values() for r in rs]
+        if not fits:
+            return None
+        return max(float(np.median(fits)) * math.sqrt(176.0 / 170.0),
+                   MIN_FEATURE_NOISE_PX)
+
+    def keep(self, index: int, points, voltages, fits=()) -> None:
+        """Placement ``index`` kept: its views' detected features (list of (n, 2) px), its
+        views' voltages (list of (m, 4) V) and its boards' reprojection RMS [px] (the
+        gates' own PnP fits)."""
+        self._fits[index] = [float(r) for r in fits]
+        self._points[index] = [np.asarray(p, np.float64).reshape(-1, 2) for p in points]
+        self._volts[index] = [np.asarray(v, np.float64).reshape(-1, 4) for v in voltages]
+
+    def forget(self, index: int) -> None:
+        self._fits.pop(index, None)
+        self._points.pop(index, None)
+        self._volts.pop(index, None)
+
+    def image_coverage(self) -> np.ndarray:
+        """Features per cell, shape (rows, cols)."""
+        cols, rows = IMAGE_GRID
+        pts = [p for ps in self._points.values() for p in ps]
+        if not pts:
+            return np.zeros((rows, cols), dtype=np.int64)
+        uv = np.vstack(pts)
+        h, _, _ = np.histogram2d(uv[:, 1], uv[:, 0], bins=(rows, cols),
+                                 range=((0, self.size[1]), (0, self.size[0])))
+        return h.astype(np.int64)
+
+    def voltage_coverage(self) -> np.ndarray:
+        """Views per cell, shape (rows, cols): first axis of :attr:`axes` across."""
+        cols, rows = VOLTAGE_GRID
+        vs = [v for vv in self._volts.values() for v in vv]
+        if not vs:
+            return np.zeros((rows, cols), dtype=np.int64)
+        V = np.vstack(vs)
+        a, b = (V[:, 0], V[:, 3]) if self.axes == 'u1x,u2' else (V[:, 0], V[:, 1])
+        e = self.extent
+        h, _, _ = np.histogram2d(b, a, bins=(rows, cols), range=((e[2], e[3]), (e[0], e[1])))
+        return h.astype(np.int64)
