@@ -39,7 +39,8 @@ $(STAMP_SRC): $(STAMP_MSGS) $(SRC_META)
 	tools/setup_venv.sh src
 	@touch $@
 
-$(STAMP_WEB): $(WEB)/package.json $(WEB)/package-lock.json tools/setup_venv.sh
+$(STAMP_WEB): $(WEB)/package.json $(WEB)/package-lock.json tools/foxglove_client/package.json \
+	      tools/foxglove_client/package-lock.json tools/setup_venv.sh
 	tools/setup_venv.sh web
 	@touch $@
 

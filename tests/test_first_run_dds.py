@@ -5,15 +5,20 @@ then the tour's ``galvoscan scan --pattern raster ...`` exactly as the README sh
 calibration that ``galvoscan calibrate`` wrote last is recorded in a private state directory
 (the simulator's true calibration stands in for the one ``make demo`` computes, which takes
 minutes). A listener of its own checks that the cloud on ``points/scan`` holds the points the
-scan client reports.
+scan client reports, and a Foxglove client (Foxglove's own WebSocket protocol and ROS 2 CDR
+libraries, ``tools/foxglove_client``) connected to ``galvoscan view`` draws that cloud.
 """
 
 from __future__ import annotations
 
+import json
 import re
+import shutil
+import socket
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import rclpy
@@ -28,6 +33,13 @@ pytestmark = pytest.mark.dds
 GALVOSCAN = [sys.executable, '-m', 'galvoscan.cli']
 TOUR_SCAN = ['scan', '--pattern', 'raster', '--g1-pan', '-1', '1', '--g1-tilt', '-0.3', '0.3',
              '--g2-tilt', '-0.2', '0.4', '--steps-pan', '3', '--steps-tilt', '12']
+FOXGLOVE_CLIENT = Path(__file__).resolve().parents[1] / 'tools' / 'foxglove_client'
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
 
 
 @pytest.fixture
@@ -49,6 +61,9 @@ def test_the_readme_tour_gives_a_cloud_on_points_scan(spawn, ros_env, tmp_path, 
 
     graph = spawn([*GALVOSCAN, 'run', '--log-dir', tmp_path / 'logs'], name='galvoscan_run',
                   env={'GALVOSCAN_STATE_DIR': str(state_dir)})
+    ws_port = _free_port()
+    view = spawn([*GALVOSCAN, 'view', '--ws-port', ws_port, '--no-browser-page'],
+                 name='galvoscan_view')
     env = {**ros_env, 'GALVOSCAN_STATE_DIR': str(state_dir)}
 
     ctx = rclpy.Context()
@@ -88,6 +103,23 @@ def test_the_readme_tour_gives_a_cloud_on_points_scan(spawn, ros_env, tmp_path, 
             ex.spin_once(timeout_sec=0.1)
         assert int(reported.group(1)) in clouds and int(reported.group(1)) > 0, clouds
         assert '36/36 frames' in scan.stdout
+
+        # a Foxglove client on galvoscan view draws the same cloud
+        assert shutil.which('node') and (FOXGLOVE_CLIENT / 'node_modules').is_dir(), \
+            'node and tools/foxglove_client/node_modules come with make setup'
+        assert view.poll() is None, view.log_path.read_text()
+        png = tmp_path / 'foxglove_cloud.png'
+        drawn = subprocess.run(
+            ['node', FOXGLOVE_CLIENT / 'draw_cloud.mjs', '--url', f'ws://127.0.0.1:{ws_port}',
+             '--topic', 'points/scan', '--png', png, '--timeout', '30',
+             '--min-points', reported.group(1)],
+            capture_output=True, text=True, timeout=60)
+        assert drawn.returncode == 0, drawn.stdout + drawn.stderr + view.log_path.read_text()
+        seen = json.loads(drawn.stdout.splitlines()[-1])
+        assert seen['points'] == int(reported.group(1)) == seen['finite'], seen
+        assert seen['frame_id'] == 'v0' and seen['schema'] == 'sensor_msgs/msg/PointCloud2'
+        assert seen['pixels_drawn'] > 1000, seen      # the stair's surfaces, not a few dots
+        assert png.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n'
     finally:
         ex.shutdown()
         node.destroy_node()

@@ -150,6 +150,10 @@ step_web() {
   if grep -q "from 'three'" "$vendor/OrbitControls.js"; then
     echo "[setup] OrbitControls.js still imports 'three' by name"; exit 1
   fi
+  # the Foxglove client that draws a cloud of galvoscan view (tools/foxglove_client)
+  echo "[setup] installing the Foxglove client (npm ci)"
+  (cd tools/foxglove_client && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error) \
+    || { echo "[setup] npm ci in tools/foxglove_client failed"; exit 1; }
 }
 
 for s in "$@"; do "step_$s"; done
