@@ -989,6 +989,9 @@ def build_parser():
     p.add_argument('--exact-operator', action='store_true',
                    help='the zero-error simulated operator: every target exactly where the '
                         'instruction asks (the reference for the operator\'s imprecision)')
+    p.add_argument('--materials', action='store_true',
+                   help='instead: accuracy per surface material with and without each '
+                        'countermeasure (galvoscan.materials_eval; materials.json, .md)')
     p.add_argument('--demo', action='store_true', help=argparse.SUPPRESS)
     return p
 
@@ -1054,6 +1057,9 @@ def _write_failure(out, exc):
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
+    if args.materials:
+        from galvoscan import materials_eval
+        return materials_eval.main(args)
     from galvoscan import report
     from galvoscan.simulated_rig import nominal_rig
 
