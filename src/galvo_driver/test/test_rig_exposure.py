@@ -145,11 +145,12 @@ def test_hdr_hands_out_each_row_long_then_short(rig):
     # the pairer locks on the two clocks in a first scan (laser off: no HDR), as after
     # any arming; the fake camera also sends few frames in its first 100 ms
     assert len(r.scan(30, 50.0, laser_on=False)) > 0
-    rows = 30
+    rows, base = 30, r.backend._seq_base
     frames = r.scan(rows, 50.0)
     assert r.backend.camera.get('ExposureTime') == pytest.approx(4000.0)
-    by_seq = {f.seq: f for f in frames}
+    by_seq = {f.seq - base: f for f in frames}
     assert all(0 <= s < 2 * rows for s in by_seq)
+    assert r.backend._seq_base == base + 2 * rows
     pairs = [(by_seq[s], by_seq[s + 1]) for s in by_seq if s % 2 == 0 and s + 1 in by_seq]
     assert pairs, f'no pair among {sorted(by_seq)}'
     assert r.backend.stats['hdr_pairs'] == len(pairs)

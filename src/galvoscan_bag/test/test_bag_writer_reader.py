@@ -51,7 +51,7 @@ def stripe_centers(i, n=37):
         width=rng.uniform(3, 6, n).astype(np.float32),
         strength=rng.uniform(10, 200, n).astype(np.float32), method='steger', sigma=2.0,
         min_strength=5.0, roi_half_height=12, orientation=StripeCenters.ORIENTATION_HORIZONTAL,
-        rejected_secondary=i % 3, saturated_fraction=0.01 * i, peak_level=180.0 + i,
+        rejected_secondary=i % 3, saturated_fraction=0.125 * (i % 4), peak_level=180.0 + i,
     )
 
 
