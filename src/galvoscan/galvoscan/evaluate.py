@@ -1059,7 +1059,7 @@ def main(argv=None):
     args = build_parser().parse_args(argv)
     if args.materials:
         from galvoscan import materials_eval
-        return materials_eval.main(args)
+        return materials_eval.main(args, Graph, _load, _write_failure)
     from galvoscan import report
     from galvoscan.simulated_rig import nominal_rig
 

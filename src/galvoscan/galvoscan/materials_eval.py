@@ -198,15 +198,16 @@ def write(out: Path, result: dict, args) -> None:
     (out / 'materials.md').write_text('\n'.join(text))
 
 
-def main(args) -> int:
-    """``galvoscan evaluate --materials`` (``args`` from ``evaluate.build_parser``)."""
-    from galvoscan.evaluate import Graph, _load, _write_failure
+def main(args, Graph, load, write_failure) -> int:
+    """``galvoscan evaluate --materials``: ``args`` from ``evaluate.build_parser``; the
+    evaluation's graph (``evaluate.Graph``), rig loader and failure writer, handed in by
+    ``evaluate`` (which imports this module)."""
     from galvoscan.progress import Progress
     from galvoscan_common.runtime import private_domain
 
     t0 = time.monotonic()
     try:
-        rig, _description, site, _wd, out = _load(args)
+        rig, _description, site, _wd, out = load(args)
     except (ValueError, OSError) as exc:
         print(f'galvoscan evaluate --materials: {exc}', file=sys.stderr)
         return 2
@@ -219,7 +220,7 @@ def main(args) -> int:
             result = run(args, rig, site, out, graph, progress)
     except (RuntimeError, ValueError) as exc:
         progress.log(f'materials evaluation failed: {exc}')
-        _write_failure(out, exc)
+        write_failure(out, exc)
         return 1
     result['runtime_s'] = time.monotonic() - t0
     write(out, result, args)
