@@ -51,16 +51,24 @@ import numpy as np  # noqa: E402
 
 from galvo_driver.sim_backend import pre_scan_exposure  # noqa: E402
 from galvoscan import eval_scenes, metrics  # noqa: E402
+from galvoscan.material_scores import (  # noqa: E402
+    aimed_sweep,
+    faces_v0,
+    flatness_mm,
+    materials,
+    outlier_fraction,
+    stair_error_mm,
+    stair_sweeps,
+)
 from galvoscan_sim import Simulator, load_rig, load_scene_text  # noqa: E402
-from galvoscan_sim.materials import MATERIAL_NAMES, material  # noqa: E402
+from galvoscan_sim.materials import material  # noqa: E402
 from reconstructor import calibration_file  # noqa: E402
 from reconstructor.model import triangulate, v0_T_v  # noqa: E402
-from reconstructor.planning import aim_camera, expected_rows, view_sweep  # noqa: E402
+from reconstructor.planning import expected_rows  # noqa: E402
 from stripe_extractor.extractor import ExtractorConfig, extract  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-MATERIALS = tuple(m for m in MATERIAL_NAMES if m != 'polished_aluminium')
-OUTLIER_M = 0.5e-3
+MATERIALS = materials()
 FRAME_RATE = 500.0
 OFF = ExtractorConfig()
 ON = ExtractorConfig(peak_mode='nearest', max_offset_px=1.5)
@@ -80,14 +88,6 @@ def _calibration(path):
                             'all', '--sim', '--calibration', str(path)],
                            check=True, stdout=subprocess.DEVNULL)
     return calibration_file.load(path), str(path)
-
-
-def _faces_v0(scene, V0_T_W):
-    """The scene's finite rectangular faces in V0: the part's nominal shape and pose."""
-    F = scene.faces
-    R, t = V0_T_W[:3, :3], V0_T_W[:3, 3]
-    return [(R @ F.center[k] + t, R @ F.e1[k], R @ F.e2[k], F.half[k])
-            for k in range(len(F.obj)) if np.all(np.isfinite(F.half[k]))]
 
 
 class Scan:
@@ -118,8 +118,7 @@ class Scan:
         return np.concatenate(self.off_m) if self.off_m else np.zeros(0)
 
     def outlier_fraction(self):
-        o = self.offsets
-        return float(np.mean(~(np.abs(o) <= OUTLIER_M))) if o.size else float('nan')
+        return outlier_fraction(self.offsets)
 
     def coverage(self):
         return len(self.offsets) / max(self.truth_cols, 1)
@@ -130,7 +129,7 @@ def scan_object(sim, model, text, sweeps, countermeasures, index0,
     """Render, extract, triangulate and score the sweeps (list of (n, 4) V) of a scene."""
     sim.set_scene(load_scene_text(text))
     V0_T_W = sim.V0_T_W
-    faces = _faces_v0(sim.scene, V0_T_W) if countermeasures else None
+    faces = faces_v0(sim.scene, V0_T_W) if countermeasures else None
     out = Scan()
     k = index0
     power = MAX_LASER_POWER if max_laser_power is None else max_laser_power
@@ -178,38 +177,6 @@ def _bias_m(scan):
     return float(np.mean(along[good])) if good.any() else float('nan')
 
 
-def stair_sweeps(model, V0_T_W, info, frames):
-    W_T_O, sz, step = info['W_T_O'], info['size'][2], info['step_height']
-    sweeps = []
-    for x, z in ((-0.03, -sz), (0.0, -sz - step / 2), (0.03, -sz - step)):
-        aim_V0 = (V0_T_W @ W_T_O @ np.array([x, 0.0, z, 1.0]))[:3]
-        u1 = aim_camera(model, aim_V0)
-        sweeps.append(view_sweep(model, *u1, distance=float(np.linalg.norm(aim_V0)),
-                                 frames=frames))
-    return sweeps
-
-
-def aimed_sweep(model, V0_T_W, aim_W, frames):
-    aim_V0 = (V0_T_W @ np.append(aim_W, 1.0))[:3]
-    u1 = aim_camera(model, aim_V0)
-    return [view_sweep(model, *u1, distance=float(np.linalg.norm(aim_V0)), frames=frames)]
-
-
-def stair_error_mm(sim, info, scan):
-    O_T_V0 = np.linalg.inv(info['W_T_O']) @ sim.W_T_V0
-    pts = metrics.to_frame(O_T_V0, scan.points)
-    keep = np.abs(scan.offsets) <= 5e-3  # stair_step takes points within 5 mm of a face
-    return metrics.stair_step(pts[keep], info['size'], info['step_height']).error * 1e3
-
-
-def flatness_mm(scan):
-    p = scan.points
-    if len(p) < 100:
-        return float('nan')
-    plane, inl = metrics.ransac_plane(p, threshold=2e-3, iterations=500, seed=0)
-    return float(np.sqrt(np.mean((p[inl] @ plane[:3] + plane[3]) ** 2))) * 1e3
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--calibration', help='calibration YAML (default: see the docstring)')
@@ -250,7 +217,8 @@ def main(argv=None):
                     scan.compensate(own)
                 stair_scans.append(scan)
                 try:
-                    stair_errs.append(stair_error_mm(sim, info, scan))
+                    stair_errs.append(stair_error_mm(sim.W_T_V0, info, scan.points,
+                                                     scan.offsets))
                 except ValueError:
                     stair_errs.append(float('nan'))
             outl = np.concatenate([s.offsets for s in stair_scans])
@@ -259,9 +227,8 @@ def main(argv=None):
             ok = np.abs(outl) <= 2e-3
             r = {'stair_error_mm': [float(e) for e in stair_errs],
                  'stair_rmse_mm': metrics.rmse([e for e in stair_errs if np.isfinite(e)]),
-                 'plate_flatness_mm': flatness_mm(plate),
-                 'outlier_fraction': float(np.mean(~(np.abs(outl) <= OUTLIER_M)))
-                 if outl.size else float('nan'),
+                 'plate_flatness_mm': flatness_mm(plate.points),
+                 'outlier_fraction': outlier_fraction(outl),
                  'coverage': len(outl) / max(truth_cols, 1),
                  'plate_bias_m': bias,
                  'plate_bias_mm': bias * 1e3,

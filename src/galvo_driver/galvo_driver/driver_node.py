@@ -121,7 +121,10 @@ def make_backend(name: str, params: dict):
                           camera_user_id=params.get('camera_user_id'), features=features,
                           trigger_source=params.get('trigger_source', 'Line0'),
                           camera_clock=params.get('camera_clock', 'camera'),
-                          frame_timeout=params.get('frame_timeout', 0.3))
+                          frame_timeout=params.get('frame_timeout', 0.3),
+                          auto_exposure=params.get('auto_exposure', False),
+                          auto_exposure_frames=params.get('auto_exposure_frames', 5),
+                          hdr_ratio=params.get('hdr_ratio', 1.0))
     raise ValueError(f"backend: unknown '{name}'; known: {', '.join(BACKENDS)}")
 
 
@@ -144,16 +147,17 @@ class GalvoDriverNode(LifecycleNode):
         d('exposure', 0.0, "sim: laser-frame exposure [s] (0: the rig's)", floats=(0.0, 1.0))
         d('laser_power', 1.0, "sim: laser power relative to the rig's [1]",
           floats=(0.0, 100.0))
-        d('auto_exposure', False, 'sim: set each laser scan\'s exposure from a short '
+        d('auto_exposure', False, 'sim, rig: set each laser scan\'s exposure from a short '
           'pre-scan (stripe peak at 0.7 of full scale, within the camera\'s limits and the '
-          'frame period)')
-        d('auto_exposure_frames', 5, 'sim: pre-scan frames of auto_exposure [1]',
+          'frame period; rig: ExposureTime within its own bounds and increment)')
+        d('auto_exposure_frames', 5, 'sim, rig: pre-scan frames of auto_exposure [1]',
           ints=(1, 100))
         d('max_laser_power', 1.0, 'sim: auto_exposure may raise the laser power up to this '
           "(relative to the rig's) where the longest exposure within the frame period is "
           'too short [1]', floats=(0.0, 100.0))
-        d('hdr_ratio', 1.0, 'sim: HDR, every laser-scan position taken twice, at the exposure '
-          'and at the exposure over this (1: off; the extractor\'s hdr_pairs merges them) [1]',
+        d('hdr_ratio', 1.0, 'sim, rig: HDR, every laser-scan position taken twice, at the '
+          'exposure and at the exposure over this (1: off; the extractor\'s hdr_pairs merges '
+          'them; rig: a long pass then a short one, frames handed out in pairs) [1]',
           floats=(1.0, 1000.0))
         d('serial_port', '', 'serial, rig: pyserial port or URL of the DAC board')
         d('camera_serial', '', 'rig: DeviceSerialNumber of the camera (arv-tool-0.8 lists it)')
@@ -403,6 +407,12 @@ class GalvoDriverNode(LifecycleNode):
                'scan': {k: self._scan[k] for k in ('state', 'done', 'total', 'dropped')}}
         if getattr(self.backend, 'name', '') == 'rig':
             out['rig'] = self.backend.stats  # pairing/<drop kind>, drift_ppm, camera, board
+            if self.backend.scan_exposure:
+                levels = self.backend.pre_scan_levels
+                out['rig'].update(
+                    scan_exposure_s=self.backend.scan_exposure,
+                    pre_scan_saturated_fraction=max((s for s, _ in levels), default=0.0),
+                    pre_scan_peak_level=max((p for _, p in levels), default=0.0))
         elif getattr(self.backend, 'name', '') == 'serial':
             out['serial'] = self.backend.stats  # lost_events, ..., clock_drift_ppm
         elif getattr(self.backend, 'name', '') == 'sim' and self.backend.scan_exposure:

@@ -441,6 +441,22 @@ class GenICamCamera:
             return tuple(self._device_call(f"read {name} range", cam.get_integer_bounds, name))
         raise CameraError(f"{self._label}: feature {name!r} ({kind}) has no range")
 
+    def feature_increment(self, name: str) -> float:
+        """The step between the values numeric feature `name` accepts, in the camera's units;
+        0 when the camera states none (a float feature without an increment)."""
+        cam = self._require_open()
+        kind = self._kind(name)
+        if kind == "int":
+            return float(self._device_call(f"read {name} increment",
+                                           cam.get_integer_increment, name))
+        if kind != "float":
+            raise CameraError(f"{self._label}: feature {name!r} ({kind}) has no increment")
+        try:
+            inc = float(cam.get_float_increment(name))
+        except Exception:  # noqa: BLE001 - a float without an <Inc> node: no grid
+            return 0.0
+        return inc if math.isfinite(inc) and inc > 1e-9 else 0.0
+
     def set(self, name: str, value) -> None:
         """Write GenICam feature `name`, after checking `value` against the camera's own limits.
 

@@ -34,6 +34,27 @@ off and the camera stopped; :attr:`RigBackend.fault` says why until :meth:`RigBa
 Lost events, lost frames, duplicated events, clock drift and clock steps are recovered by
 the pairer within the scan (the frames concerned are dropped and counted).
 
+Exposure (laser scans only; the pure logic is :mod:`stripe_extractor.exposure`, shared with
+the simulator's backend):
+
+* ``auto_exposure``: before the scan, a pre-scan of ``auto_exposure_frames`` triggers spread
+  over the scan's rows, laser on, is run through the board and the camera (its frames are
+  not handed out; the sequence numbers continue as if it had not run). Their saturated
+  fraction and peak level set ``ExposureTime`` so that the median column's peak sits at
+  0.7 of the white level (:func:`~stripe_extractor.exposure.auto_exposure`); a clipped
+  pre-scan is repeated once at the exposure it suggests. The exposure stays within the
+  camera's own ``ExposureTime`` bounds, on its increment, and within 0.9 of the frame
+  period (and 50 us short of it). The board switches the laser only on and off, so the
+  exposure is the only handle.
+* ``hdr_ratio`` > 1: every row is exposed twice, at the scan's exposure and at that over
+  ``hdr_ratio``. A GenICam camera cannot change its exposure from one trigger to the next
+  without a vendor sequencer, so the board runs the rows twice, the long pass then the
+  short one (``ExposureTime`` written between them), and the backend hands each row's two
+  frames out together, long then short, with consecutive sequence numbers (the
+  extractor's ``hdr_pairs`` merges them). The long pass's frames are held until their
+  short ones come: at most :data:`HDR_MAX_HELD_BYTES` of images, so longer scans are
+  refused. A row whose partner is missing is handed out alone.
+
 Camera reconnection follows camera_ros' pattern: the camera's error flag, then, while no
 scan runs, :meth:`RigBackend.poll` tries every ``reconnect_period`` to reopen the same
 device (restoring its features); :meth:`RigBackend.arm` restarts the acquisition.
@@ -57,6 +78,13 @@ from galvo_driver.serial_link import protocol as p
 from galvo_driver.serial_link.backend import SerialBackend
 from galvo_driver.trigger_pairing import DROP_KINDS, PairedFrame, TriggerPairer
 from galvoscan_common.frame import STATUS_FAULT, Frame, check_voltages
+from stripe_extractor.exposure import (
+    CLIPPED_SHARE,
+    auto_exposure,
+    exposure_limits,
+    frame_levels,
+    on_increment,
+)
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +99,13 @@ TRIGGER_ACTIVATIONS = ('RisingEdge', 'FallingEdge')
 CAMERA_CLOCKS = ('camera', 'host')
 #: Kinds of drops on the trigger side (a trigger index without a frame).
 EVENT_SIDE = ('event_lost', 'event_without_frame')
+#: Time an exposure must leave free in the trigger period [us].
+EXPOSURE_MARGIN_US = 50.0
+#: Auto exposure: pre-scans run before giving up when one gives no frame (the first scan
+#: after arming may pair none: the pairer locks on the two clocks from its first frames).
+PRE_SCAN_TRIES = 3
+#: HDR: most image bytes the long pass may hold until its short pass comes [B].
+HDR_MAX_HELD_BYTES = 512 * 1024 * 1024
 
 
 class _ScanState:
@@ -131,6 +166,13 @@ class RigBackend(GalvoBackend):
         Time between two attempts to reopen a lost camera while idle [s].
     baudrate : int
         Serial baud rate [bit/s] (ignored by ptys and sockets).
+    auto_exposure : bool
+        Set ``ExposureTime`` before every laser scan from a pre-scan (module docstring).
+    auto_exposure_frames : int
+        Triggers of the pre-scan, >= 1.
+    hdr_ratio : float
+        1: off; > 1 (up to 1000): every row of a laser scan exposed twice, the second time
+        at the exposure over this (module docstring).
     """
 
     name = 'rig'
@@ -143,7 +185,9 @@ class RigBackend(GalvoBackend):
                  max_missing_frames: int = 50, camera_timeout: float = 1.0,
                  max_unpaired_frames: int = 100,
                  n_buffers: int = 64,
-                 reconnect_period: float = 1.0, baudrate: int = 921600):
+                 reconnect_period: float = 1.0, baudrate: int = 921600,
+                 auto_exposure: bool = False, auto_exposure_frames: int = 5,
+                 hdr_ratio: float = 1.0):
         features = dict(features or {})
         unknown = sorted(set(features) - set(CAMERA_FEATURES))
         if unknown:
@@ -163,6 +207,19 @@ class RigBackend(GalvoBackend):
             raise ValueError(f'max_missing_frames: must be >= 1, got {max_missing_frames}')
         if not (math.isfinite(trigger_delay_us) and trigger_delay_us >= 0):
             raise ValueError(f'trigger_delay_us: must be >= 0 us, got {trigger_delay_us}')
+        if isinstance(auto_exposure_frames, bool) or not 1 <= int(auto_exposure_frames) <= 100:
+            raise ValueError(f'auto_exposure_frames: expected 1..100, got {auto_exposure_frames}')
+        if not (math.isfinite(hdr_ratio) and 1.0 <= hdr_ratio <= 1000.0):
+            raise ValueError(f'hdr_ratio: expected 1 (off) .. 1000, got {hdr_ratio}')
+        self.auto_exposure = bool(auto_exposure)
+        self.auto_exposure_frames = int(auto_exposure_frames)
+        self.hdr_ratio = float(hdr_ratio)
+        #: The laser-frame exposure of the last scan [s] (None before the first laser scan)
+        #: and its pre-scan's (saturated fraction, peak level) per frame.
+        self.scan_exposure: float | None = None
+        self.pre_scan_levels: list[tuple[float, float]] = []
+        #: HDR scan in progress: the rows, rate, exposures, pass, held long frames
+        self._hdr: dict | None = None
         self.board = SerialBackend(port, baudrate=baudrate)
         self.camera = GenICamCamera(serial=camera_serial or None,
                                     user_id=camera_user_id or None)
@@ -196,14 +253,16 @@ class RigBackend(GalvoBackend):
         self._last_reconnect = 0.0
         self._reconnect_thread: threading.Thread | None = None
         self._counters = {'scans': 0, 'frames': 0, 'mismatched_codes': 0, 'camera_faults': 0,
-                          'reconnects': 0}
+                          'reconnects': 0, 'pre_scans': 0, 'pre_scan_frames': 0,
+                          'hdr_pairs': 0, 'hdr_unpaired': 0}
         self.board.add_listener(self._on_board_message)
 
     # ------------------------------------------------------------------ properties
     @property
     def running(self) -> bool:
-        """True from :meth:`start` until every frame of the scan is paired or dropped."""
-        return self._scan is not None
+        """True from :meth:`start` until every frame of the scan (of both HDR passes) is
+        paired or dropped."""
+        return self._scan is not None or self._hdr is not None
 
     @property
     def fault(self) -> str | None:
@@ -357,13 +416,18 @@ class RigBackend(GalvoBackend):
         int
             n, the number of triggers.
 
+        With ``auto_exposure`` a laser scan first runs its pre-scan (blocking, a few
+        frame periods plus ``frame_timeout``); with ``hdr_ratio`` > 1 it runs twice (long,
+        short) and n is twice the rows.
+
         Raises
         ------
         ValueError
-            Bad voltages or frame rate (nothing is sent).
+            Bad voltages or frame rate, an exposure that does not fit the frame period, an
+            HDR scan too long to hold (nothing is sent).
         BackendError
-            In FAULT, the camera not acquiring (not armed), a scan running, or the board
-            refused.
+            In FAULT, the camera not acquiring (not armed), a scan running, the board
+            refused, or the auto exposure's pre-scan gave no frame.
         """
         arr = check_voltages(voltages)
         rate = float(frame_rate)
@@ -376,10 +440,42 @@ class RigBackend(GalvoBackend):
             raise BackendError('a scan is already running; stop() it first')
         if not self.camera.acquiring or self.camera.error is not None or self.pairer is None:
             raise BackendError('the camera is not acquiring: arm() (activate the driver) first')
-        if self._exposure_s * 1e6 + 50.0 > period_us:
+        hdr = laser_on and self.hdr_ratio > 1.0
+        if hdr:
+            size = self.image_size or (0, 0)
+            held = arr.shape[0] * size[0] * size[1] * (2 if self._white_level() > 255 else 1)
+            if held > HDR_MAX_HELD_BYTES:
+                raise ValueError(f'HDR: {arr.shape[0]} rows would hold {held / 2**20:.0f} MiB '
+                                 f'of images between the passes (at most '
+                                 f'{HDR_MAX_HELD_BYTES / 2**20:.0f} MiB): split the scan')
+        if laser_on and self.auto_exposure:
+            try:
+                self._auto_expose(arr, rate)
+            except CameraError as err:
+                raise BackendError(f'auto exposure: camera: {err}') from err
+        elif self._exposure_s * 1e6 + EXPOSURE_MARGIN_US > period_us:
             raise ValueError(f'frame_rate: {rate:g} Hz leaves {period_us} us per frame, not '
-                             f'more than the exposure ({self._exposure_s * 1e6:.0f} us) + 50 us')
-        self._pump()  # frames and events of before this scan are outside it
+                             f'more than the exposure ({self._exposure_s * 1e6:.0f} us) + '
+                             f'{EXPOSURE_MARGIN_US:.0f} us')
+        if laser_on:
+            self.scan_exposure = self._exposure_s
+        if hdr:
+            lo = self._exposure_limits(rate)[0]
+            self._hdr = {'rows': arr, 'rate': rate, 'long': self._exposure_s,
+                         'short': max(self._exposure_s / self.hdr_ratio, lo), 'pass': 1,
+                         'held': {}, 'base': self._seq_base, 'n': arr.shape[0]}
+            try:
+                return 2 * self._begin(arr, rate, laser_on)
+            except BaseException:
+                self._hdr = None
+                raise
+        return self._begin(arr, rate, laser_on)
+
+    def _begin(self, arr: np.ndarray, rate: float, laser_on: bool, pump: bool = True) -> int:
+        """Start one board scan of ``arr`` and its pairing; the number of triggers."""
+        period_us = round(1e6 / rate)
+        if pump:
+            self._pump()  # frames and events of before this scan are outside it
         n = self.board.start(arr, rate, laser_on)
         self.pairer.exposure_ns = self._exposure_s * 1e9
         self._scan = _ScanState(n, p.volts_to_codes(arr), self._seq_base)
@@ -559,6 +655,130 @@ class RigBackend(GalvoBackend):
         level = logging.INFO if why in ('complete', 'stopped') else logging.ERROR
         log.log(level, 'scan %d %s: %d of %d triggers paired with a frame; drops so far: %s',
                 self.board.scan_id or 0, why, scan.paired, scan.n, dropped or 'none')
+        if self._hdr is not None:
+            self._hdr_pass_done(why)
+
+    # ------------------------------------------------------------------ exposure
+    def _white_level(self) -> int:
+        """The camera's top code at its pixel format [DN]."""
+        return (1 << pixel_format_info(self.camera.get('PixelFormat'))[1]) - 1
+
+    def _exposure_limits(self, rate: float) -> tuple[float, float]:
+        """(shortest, longest) exposure [s]: the camera's ExposureTime bounds, within
+        the frame period at ``rate`` [Hz] (:func:`~stripe_extractor.exposure.exposure_limits`)
+        and :data:`EXPOSURE_MARGIN_US` short of it."""
+        lo_us, hi_us = self.camera.feature_range('ExposureTime')
+        free_us = 1e6 / rate - EXPOSURE_MARGIN_US
+        if free_us < lo_us:
+            raise ValueError(f'frame_rate: {rate:g} Hz leaves no room for the camera\'s '
+                             f'shortest exposure ({lo_us:g} us) + {EXPOSURE_MARGIN_US:.0f} us')
+        return exposure_limits(rate, lo_us * 1e-6, min(hi_us, free_us) * 1e-6)
+
+    def _write_exposure(self, seconds: float) -> float:
+        """Write ExposureTime [s], on the camera's increment; the exposure it reports [s]."""
+        lo_us = self.camera.feature_range('ExposureTime')[0]
+        inc_us = self.camera.feature_increment('ExposureTime')
+        us = on_increment(seconds * 1e6, lo_us, inc_us)
+        self.camera.set('ExposureTime', us)
+        self._exposure_s = float(self.camera.get('ExposureTime')) * 1e-6
+        return self._exposure_s
+
+    def _auto_expose(self, arr: np.ndarray, rate: float) -> None:
+        """Set ExposureTime from a pre-scan of rows spread over ``arr`` (module docstring)."""
+        lo, hi = self._exposure_limits(rate)
+        white = self._white_level()
+        idx = np.unique(np.linspace(0, arr.shape[0] - 1, self.auto_exposure_frames)
+                        .round().astype(int))
+        t = self._exposure_s
+        if not lo <= t <= hi:
+            t = self._write_exposure(min(max(t, lo), hi))
+        levels: list = []
+        for _attempt in range(2):
+            images = []
+            for _ in range(PRE_SCAN_TRIES):
+                images = self._capture(arr[idx], rate)
+                if images:
+                    break
+            if not images:
+                raise BackendError(f'auto exposure: {PRE_SCAN_TRIES} pre-scans of {len(idx)} '
+                                   'triggers gave no frame (is the trigger wired? see the '
+                                   'pairing counts)')
+            levels = [frame_levels(im, white) for im in images]
+            measured_at = t
+            t = self._write_exposure(auto_exposure(images, t, (lo, hi), white=white))
+            if max(s for s, _ in levels) <= CLIPPED_SHARE:
+                break
+        self.pre_scan_levels = levels
+        log.info('auto exposure: %d pre-scan frames at %.0f us, peak level %.3f, saturated '
+                 '%.3f: ExposureTime %.0f us (limits %.0f..%.0f us at %g Hz)', len(levels),
+                 measured_at * 1e6, max(p for _, p in levels), max(s for s, _ in levels),
+                 t * 1e6, lo * 1e6, hi * 1e6, rate)
+
+    def _capture(self, rows: np.ndarray, rate: float) -> list:
+        """Run ``rows`` with the laser on and return the images of the frames (not handed
+        out; the sequence numbers of the next scan continue as if this had not run)."""
+        base = self._seq_base
+        self._counters['pre_scans'] += 1
+        self._begin(rows, rate, True)
+        frames: list[Frame] = []
+        deadline = time.monotonic() + rows.shape[0] / rate + self.frame_timeout + 2.0
+        try:
+            while self._scan is not None and time.monotonic() < deadline:
+                frames += self.poll(0.02)
+            if self._scan is not None:
+                self.stop()
+            frames += self.poll(0.0)
+        finally:
+            self._seq_base = base
+        if self.fault is not None:
+            raise BackendError(f'auto exposure: the pre-scan failed: {self.fault}')
+        self._counters['pre_scan_frames'] += len(frames)
+        return [f.image for f in frames if f.laser_on and f.image is not None]
+
+    def _deliver(self, frame: Frame, index: int) -> None:
+        """Hand a paired frame out; in an HDR scan, hold the long pass's frames and hand
+        each out with its short one (sequence numbers base + 2 index, + 1 for the short)."""
+        h = self._hdr
+        if h is None:
+            self._out.append(frame)
+            return
+        frame.seq = h['base'] + 2 * index + (h['pass'] - 1)
+        if h['pass'] == 1:
+            h['held'][index] = frame
+            return
+        for i in sorted(i for i in h['held'] if i < index):
+            self._out.append(h['held'].pop(i))
+            self._counters['hdr_unpaired'] += 1
+        long = h['held'].pop(index, None)
+        if long is not None:
+            self._out.append(long)
+            self._counters['hdr_pairs'] += 1
+        else:
+            self._counters['hdr_unpaired'] += 1
+        self._out.append(frame)
+
+    def _hdr_pass_done(self, why: str) -> None:
+        """After the long pass: the short one; after it (or a failure): the held frames
+        out, the long exposure back."""
+        h = self._hdr
+        if h['pass'] == 1 and why == 'complete' and self.fault is None:
+            try:
+                self._write_exposure(h['short'])
+                h['pass'] = 2
+                self._begin(h['rows'], h['rate'], True, pump=False)
+                return
+            except (CameraError, BackendError, ValueError) as err:
+                log.error('HDR: the short pass did not start (%s); the long frames go out '
+                          'alone', err)
+        self._hdr = None
+        for i in sorted(h['held']):
+            self._out.append(h['held'][i])
+            self._counters['hdr_unpaired'] += 1
+        self._seq_base = h['base'] + 2 * h['n']
+        try:
+            self._write_exposure(h['long'])
+        except (CameraError, ValueError) as err:
+            log.error('HDR: the long exposure could not be restored: %s', err)
 
     def _take(self, results) -> None:
         scan = self._scan
@@ -568,7 +788,7 @@ class RigBackend(GalvoBackend):
                     scan.decided.add(r.index)
                     scan.paired += 1
                     scan.frames_since_pair = 0
-                self._out.append(self._frame(r, scan))
+                self._deliver(self._frame(r, scan), r.event.index)
             elif scan is not None and r.kind in EVENT_SIDE and r.index is not None:
                 scan.decided.add(r.index)
                 log.debug('trigger %s without a frame: %s', r.index, r.detail)

@@ -36,14 +36,13 @@ from galvoscan_common.frame import STATUS_SETTLED, Frame, check_voltages
 #: Shortest exposure of the simulated camera [s] (assumed for a global-shutter industrial
 #: camera of the rig's class, whose GenICam ExposureTime minimum is a few tens of us).
 MIN_EXPOSURE = 20e-6
-#: Share of the frame period an exposure may take (the rest: the sensor's transfer and
-#: the trigger's jitter).
-MAX_EXPOSURE_SHARE = 0.9
 
 
 def exposure_limits(frame_rate: float) -> tuple[float, float]:
     """(shortest, longest) exposure [s] at ``frame_rate`` [Hz]."""
-    return MIN_EXPOSURE, max(MIN_EXPOSURE, MAX_EXPOSURE_SHARE / float(frame_rate))
+    from stripe_extractor.exposure import exposure_limits as limits
+
+    return limits(float(frame_rate), MIN_EXPOSURE)
 
 
 def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
@@ -64,14 +63,15 @@ def pre_scan_exposure(sim, voltages, frame_rate: float, frames: int = 5,
     idx = np.unique(np.linspace(0, len(v) - 1, max(int(frames), 1)).round().astype(int))
     t = sim.rig.image.exposure if exposure is None else float(exposure)
     limits = exposure_limits(frame_rate)
-    bg = sim.rig.image.black_level / float((1 << sim.rig.image.bit_depth) - 1)
+    white = sim.rig.image.white_level
+    bg = sim.rig.image.black_level / float(white)
     levels = []
     for attempt in range(2):
         imgs = [sim.render(v[i], exposure=t, laser_power=laser_power,
                            frame_index=index0 + 100 * attempt + k).image
                 for k, i in enumerate(idx)]
-        levels = [frame_levels(im) for im in imgs]
-        new = auto_exposure(imgs, t, limits, background=bg)
+        levels = [frame_levels(im, white) for im in imgs]
+        new = auto_exposure(imgs, t, limits, background=bg, white=white)
         clipped = max(s for s, _ in levels) > CLIPPED_SHARE
         measured_at, t = t, new
         if not clipped:

@@ -767,7 +767,7 @@ class TriggerPairer:
                                  'triggers may hide')
                 return _DONE
             result = self._accept(frame, i, force)
-            if result is _DONE and self._last_pair[0] is frame:
+            if result is _DONE and self._last_pair is not None and self._last_pair[0] is frame:
                 self._suspect = False
             return result
         return self._on_mismatch(frame, i, force)

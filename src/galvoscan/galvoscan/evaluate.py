@@ -1195,6 +1195,9 @@ def build_parser():
                         "simulated operator and every scene, without the paper's-method "
                         'recalibration and the re-set distances (each calibrates the chain '
                         'again; the full evaluation runs them)')
+    p.add_argument('--materials', action='store_true',
+                   help='instead: accuracy per surface material with and without each '
+                        'countermeasure (galvoscan.materials_eval; materials.json, .md)')
     return p
 
 
@@ -1263,6 +1266,9 @@ def main(argv=None):
         return _twin_evaluate(args)
     if args.demo:  # the main job only; the paper's method and the re-set distances each
         args.paper_method, args.distances = False, ()  # calibrate the chain again
+    if args.materials:
+        from galvoscan import materials_eval
+        return materials_eval.main(args, Graph, _load, _write_failure)
     from galvoscan import report
     from galvoscan.simulated_rig import nominal_rig
 

@@ -106,7 +106,7 @@ def stripe_centers(i):
         header=Header(stamp=Time(sec=10, nanosec=i), frame_id='cam'), galvo=galvo_state(i),
         image_width=64, image_height=48, u=u, v=u * 0.5 + i, width=u * 0 + 4, strength=u + 9,
         method='steger', sigma=2.0, min_strength=5.0, roi_half_height=8, orientation=0,
-        rejected_secondary=0,
+        rejected_secondary=0, saturated_fraction=0.0, peak_level=28.0,
     )
 
 

@@ -61,6 +61,7 @@ def ros_stripe_centers(i):
     msg.roi_half_height = 10
     msg.orientation = StripeCenters.ORIENTATION_VERTICAL
     msg.rejected_secondary = 2
+    msg.saturated_fraction, msg.peak_level = 0.25, 255.0
     return msg
 
 

@@ -51,7 +51,7 @@ def stripe_centers(i, n=37):
         width=rng.uniform(3, 6, n).astype(np.float32),
         strength=rng.uniform(10, 200, n).astype(np.float32), method='steger', sigma=2.0,
         min_strength=5.0, roi_half_height=12, orientation=StripeCenters.ORIENTATION_HORIZONTAL,
-        rejected_secondary=i % 3,
+        rejected_secondary=i % 3, saturated_fraction=0.125 * (i % 4), peak_level=180.0 + i,
     )
 
 
@@ -147,6 +147,7 @@ def test_mcap_library_reads_it_with_definitions(sample_bag):
         text = centers.data.decode()
         # The definition embeds its dependencies, ours included, as ros2 bag does.
         assert 'uint32 rejected_secondary' in text
+        assert 'float32 peak_level' in text
         assert 'MSG: galvoscan_msgs/GalvoState' in text
         assert 'float64 g2_tilt_voltage' in text
         assert 'MSG: std_msgs/Header' in text

@@ -235,6 +235,8 @@ class StripeCenters:
     roi_half_height: int
     orientation: int
     rejected_secondary: int
+    saturated_fraction: float = 0.0
+    peak_level: float = 0.0
 
 
 def parse_stripe_centers(data) -> StripeCenters:
@@ -250,8 +252,9 @@ def parse_stripe_centers(data) -> StripeCenters:
               r.f32_array('strength'))
     method = r.string('method')
     params = r.unpack('ffIB', 4, 'sigma, min_strength, roi_half_height and orientation')
-    out = StripeCenters(header, galvo, *size, *arrays, method, *params,
-                        r.u32('rejected_secondary'))
+    rejected = r.u32('rejected_secondary')
+    levels = r.unpack('ff', 4, 'saturated_fraction and peak_level')
+    out = StripeCenters(header, galvo, *size, *arrays, method, *params, rejected, *levels)
     r.done('StripeCenters')
     return out
 
@@ -265,7 +268,7 @@ def serialize_stripe_centers(m: StripeCenters) -> bytes:
         w.f32_array(a)
     w.string(m.method)
     w.pack('ffIB', 4, m.sigma, m.min_strength, m.roi_half_height, m.orientation)
-    w.pack('I', 4, m.rejected_secondary)
+    w.pack('Iff', 4, m.rejected_secondary, m.saturated_fraction, m.peak_level)
     return w.bytes()
 
 

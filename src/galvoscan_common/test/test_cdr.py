@@ -38,7 +38,8 @@ def stripe_centers(draw):
         draw(galvo_states()), draw(st.integers(0, 2**32 - 1)), draw(st.integers(0, 2**32 - 1)),
         *arrays, draw(TEXT), float(np.float32(draw(F64.filter(lambda x: abs(x) < 1e30)))),
         float(np.float32(draw(st.floats(0, 1e6)))), draw(st.integers(0, 2**32 - 1)),
-        draw(st.integers(0, 1)), draw(st.integers(0, 2**32 - 1)))
+        draw(st.integers(0, 1)), draw(st.integers(0, 2**32 - 1)),
+        float(np.float32(draw(st.floats(0, 1)))), float(np.float32(draw(st.floats(0, 65535)))))
 
 
 def _assert_state_equal(ours: cdr.GalvoState, ros: GalvoState):
@@ -58,9 +59,11 @@ def _assert_centers_equal(ours: cdr.StripeCenters, ros: StripeCenters):
         np.testing.assert_array_equal(getattr(ours, name),
                                       np.asarray(getattr(ros, name), np.float32))
     assert (ours.image_width, ours.image_height, ours.method, ours.sigma, ours.min_strength,
-            ours.roi_half_height, ours.orientation, ours.rejected_secondary) == (
+            ours.roi_half_height, ours.orientation, ours.rejected_secondary,
+            ours.saturated_fraction, ours.peak_level) == (
         ros.image_width, ros.image_height, ros.method, ros.sigma, ros.min_strength,
-        ros.roi_half_height, ros.orientation, ros.rejected_secondary)
+        ros.roi_half_height, ros.orientation, ros.rejected_secondary, ros.saturated_fraction,
+        ros.peak_level)
 
 
 @settings(max_examples=60, deadline=None)

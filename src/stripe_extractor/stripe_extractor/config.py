@@ -8,6 +8,9 @@ first two derivatives at the scale ``config.sigma`` that both extractors
 - ``line_width_px`` is the expected stripe FWHM [px]; it sets the Gaussian derivative scale
   ``sigma = max(line_width_px / 2.3548, 1.0)`` (the matched filter for a Gaussian profile,
   floored at 1 px so that the sampled derivative kernels stay accurate).
+- ``min_strength`` is stated in 8-bit DN (full scale 255) and scaled by the image's white
+  level (:func:`white_level`): the same share of full scale at every bit depth, so a
+  threshold chosen on an 8-bit camera keeps its meaning on a 10, 12 or 16-bit one.
 """
 
 from __future__ import annotations
@@ -33,7 +36,12 @@ SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 #: Ranges accepted by :class:`ExtractorConfig` (the node's parameter descriptors reuse them).
 LINE_WIDTH_RANGE_PX = (0.5, 30.0)
-MIN_STRENGTH_RANGE_DN = (0.0, 65535.0)
+#: ``min_strength`` [DN at 8 bits: a share of full scale times 255].
+MIN_STRENGTH_RANGE_DN = (0.0, 255.0)
+#: Bit depths an image's codes may have (``bit_depth``; 0: read from the image).
+BIT_DEPTHS = (0, 8, 10, 12, 14, 16)
+#: The white level ``min_strength`` is stated against [DN].
+WHITE_LEVEL_8BIT = 255
 ROI_HALF_HEIGHT_RANGE_PX = (3, 200)
 
 
@@ -48,7 +56,9 @@ class ExtractorConfig:
     line_width_px : float
         Expected stripe FWHM [px], 0.5..30; sets :attr:`sigma`.
     min_strength : float
-        Weakest accepted peak of the smoothed profile above background [DN].
+        Weakest accepted peak of the smoothed profile above background [DN at 8 bits],
+        0..255: scaled by the image's white level over 255 (:func:`white_level`), so 20
+        means 20 DN on a Mono8 image and 321 DN on a Mono12 one.
     roi_half_height : int
         Half height of the window searched around each column's candidate peak [px]; also the
         half size of the zone around the chosen peak in which no secondary peak is counted.
@@ -64,6 +74,9 @@ class ExtractorConfig:
     max_offset_px : float
         ``'nearest'``: a centre farther than this from its column's expected row is dropped
         [px] (a reflection merged into the stripe); 0: no limit.
+    bit_depth : int
+        Bit depth of the image's codes [bit] (:data:`BIT_DEPTHS`), which sets its white
+        level ``2**bit_depth - 1``; 0: read from the image (:func:`white_level`).
     """
 
     method: str = 'steger'
@@ -74,8 +87,12 @@ class ExtractorConfig:
     peak_mode: str = 'strongest'
     ambiguity_ratio: float = 0.3
     max_offset_px: float = 0.0
+    bit_depth: int = 0
 
     def __post_init__(self):
+        if isinstance(self.bit_depth, bool) or self.bit_depth not in BIT_DEPTHS:
+            raise ValueError(f'bit_depth must be one of {BIT_DEPTHS} bit, got {self.bit_depth!r}')
+        object.__setattr__(self, 'bit_depth', int(self.bit_depth))
         if self.method not in METHODS:
             raise ValueError(f'method must be one of {METHODS}, got {self.method!r}')
         if self.peak_mode not in PEAK_MODES:
@@ -99,8 +116,8 @@ class ExtractorConfig:
                 f'line_width_px must be in {LINE_WIDTH_RANGE_PX} px, got {self.line_width_px}')
         ms = float(self.min_strength)
         if not (MIN_STRENGTH_RANGE_DN[0] <= ms <= MIN_STRENGTH_RANGE_DN[1]):
-            raise ValueError(
-                f'min_strength must be in {MIN_STRENGTH_RANGE_DN} DN, got {self.min_strength}')
+            raise ValueError(f'min_strength must be in {MIN_STRENGTH_RANGE_DN} DN at 8 bits, '
+                             f'got {self.min_strength}')
         if isinstance(self.roi_half_height, bool) or int(self.roi_half_height) != \
                 self.roi_half_height:
             raise ValueError(f'roi_half_height must be an integer, got {self.roi_half_height!r}')
@@ -124,6 +141,31 @@ class ExtractorConfig:
     def kernel_radius(self) -> int:
         """Half length of the sampled Gaussian kernels [px]: ceil(3 sigma)."""
         return int(math.ceil(3.0 * self.sigma))
+
+    def threshold_dn(self, white: int) -> float:
+        """``min_strength`` in the DN of an image whose white level is ``white`` [DN]."""
+        return self.min_strength * float(white) / WHITE_LEVEL_8BIT
+
+
+def white_level(image: np.ndarray, bit_depth: int = 0) -> int:
+    """The top code of ``image`` [DN]: ``2**bit_depth - 1``.
+
+    With ``bit_depth`` 0 it is read from the image: 255 for uint8; for uint16 (the mono16
+    of a Mono10, Mono12 or Mono16 camera, which sensor_msgs/Image does not tell apart) the
+    top code of the shallowest of 10, 12 and 16 bits that holds the image's brightest
+    pixel. A camera's exposed frame reaches beyond a quarter of its full scale, so this is
+    its depth; a frame darker than that is read as a shallower camera's (a laxer
+    threshold, never a stricter one). State the depth (``bit_depth``) to take the guess out.
+    """
+    if bit_depth:
+        return (1 << int(bit_depth)) - 1
+    if image.dtype.itemsize == 1:
+        return 255
+    top = int(image.max()) if image.size else 0
+    for depth in (10, 12):
+        if top < (1 << depth):
+            return (1 << depth) - 1
+    return 65535
 
 
 def gaussian_kernels(sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .config import white_level
 from .extractor import StripeResult
 
 #: The stripe peak that auto exposure aims at, as a share of full scale: headroom for
@@ -25,35 +26,65 @@ PEAK_PERCENTILE = 50.0
 #: glint (the specular corner of a shiny part) may clip a few columns and still leave the
 #: rest of the stripe well exposed.
 CLIPPED_SHARE = 0.1
+#: Share of the frame period an exposure may take (the rest: the sensor's transfer and
+#: the trigger's jitter).
+MAX_EXPOSURE_SHARE = 0.9
 
 
-def _full_scale(img: np.ndarray) -> int:
-    return 255 if img.dtype == np.uint8 else 65535
+def exposure_limits(frame_rate: float, shortest: float,
+                    longest: float = float('inf')) -> tuple[float, float]:
+    """(shortest, longest) exposure [s] a camera allows at ``frame_rate`` [Hz].
+
+    ``shortest`` and ``longest`` are the camera's own bounds [s] (its GenICam ExposureTime
+    minimum and maximum); the longest is further held to :data:`MAX_EXPOSURE_SHARE` of the
+    frame period, and never below the shortest.
+    """
+    if not (frame_rate > 0 and 0 < shortest <= longest):
+        raise ValueError(f'exposure_limits: frame rate {frame_rate} Hz, bounds '
+                         f'[{shortest}, {longest}] s')
+    return float(shortest), float(max(shortest, min(longest, MAX_EXPOSURE_SHARE / frame_rate)))
 
 
-def frame_levels(image: np.ndarray) -> tuple[float, float]:
+def on_increment(exposure: float, shortest: float, increment: float) -> float:
+    """``exposure`` [s] moved down onto the camera's grid ``shortest + k * increment``
+    (``increment`` 0: no grid), never below ``shortest``."""
+    if increment <= 0 or exposure <= shortest:
+        return float(max(exposure, shortest))
+    k = np.floor((exposure - shortest) / increment + 1e-9)
+    return float(shortest + k * increment)
+
+
+def frame_levels(image: np.ndarray, white: int | None = None,
+                 vertical: bool = False) -> tuple[float, float]:
     """(saturated fraction, peak level) of one frame.
 
-    The saturated fraction is the share of columns whose brightest pixel is at full scale;
-    the peak level the :data:`PEAK_PERCENTILE` percentile of the columns' brightest pixels
-    over full scale [1] (a horizontal stripe: one peak per column; a stripe across the
-    whole image).
+    The saturated fraction is the share of columns whose brightest pixel is at the white
+    level; the peak level the :data:`PEAK_PERCENTILE` percentile of the columns' brightest
+    pixels over the white level [1] (a horizontal stripe: one peak per column; a stripe
+    across the whole image). Rows instead of columns if ``vertical``.
 
     Parameters
     ----------
     image : ndarray, shape (H, W), uint8 or uint16
+    white : int, optional
+        The image's top code [DN]; default :func:`.config.white_level` of the image (state
+        it when the camera's bit depth is known: a 12-bit frame in uint16 then clips at 4095).
+    vertical : bool
     """
     img = np.asarray(image)
     if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16) or img.size == 0:
         raise ValueError('image: expected a non-empty 2-D uint8 or uint16 array')
-    top = _full_scale(img)
-    peaks = img.max(axis=0)
+    top = white_level(img) if white is None else int(white)
+    if top < 1:
+        raise ValueError(f'white: expected a top code >= 1 DN, got {white}')
+    peaks = img.max(axis=1 if vertical else 0)
     return (float(np.mean(peaks >= top)),
             float(np.percentile(peaks, PEAK_PERCENTILE)) / top)
 
 
 def auto_exposure(images, exposure: float, limits: tuple[float, float],
-                  target: float = TARGET_PEAK, background: float = 0.0) -> float:
+                  target: float = TARGET_PEAK, background: float = 0.0,
+                  white: int | None = None) -> float:
     """The exposure [s] that puts the pre-scan frames' stripe peak at ``target``.
 
     The signal is proportional to the exposure (the sensor is linear below full well);
@@ -73,6 +104,8 @@ def auto_exposure(images, exposure: float, limits: tuple[float, float],
         Peak level aimed at, share of full scale, in (0, 1).
     background : float
         Dark level (black level plus room light) as a share of full scale, subtracted.
+    white : int, optional
+        The frames' top code [DN] (:func:`frame_levels`).
 
     Returns
     -------
@@ -83,7 +116,7 @@ def auto_exposure(images, exposure: float, limits: tuple[float, float],
     if not (exposure > 0 and 0 < lo <= hi and 0 < target < 1 and 0 <= background < target):
         raise ValueError(f'auto_exposure: exposure {exposure}, limits {limits}, target '
                          f'{target}, background {background}')
-    levels = [frame_levels(im) for im in images]
+    levels = [frame_levels(im, white) for im in images]
     if not levels:
         raise ValueError('auto_exposure: no pre-scan frames')
     sat = max(s for s, _ in levels)
@@ -114,7 +147,7 @@ def merge_hdr(long: StripeResult, short: StripeResult, long_image: np.ndarray) -
     vertical = long.config.orientation == 'vertical'
     if vertical:
         img = img.T
-    top = _full_scale(img)
+    top = long.white_level
     along_l, across_l = (long.v, long.u) if vertical else (long.u, long.v)
     along_s = short.v if vertical else short.u
     keys_l = np.rint(along_l).astype(np.int64)

@@ -37,6 +37,7 @@ from .config import (
     ExtractorConfig,
     gaussian_kernels,
     stacked_kernels,
+    white_level,
 )
 from .selection import COUNT_NAMES, MODE_CODES, no_expectation
 from .steger import steger_columns
@@ -70,6 +71,9 @@ class StripeResult:
         Parameters used; ``config.sigma`` is the derivative scale used [px].
     image_shape : tuple of int
         (height, width) of the source image [px].
+    white_level : int
+        The image's top code the threshold was scaled by [DN] (:func:`.config.white_level`);
+        the threshold applied is ``config.threshold_dn(white_level)``.
     """
 
     u: np.ndarray
@@ -80,6 +84,7 @@ class StripeResult:
     config: ExtractorConfig
     image_shape: tuple = field(default=(0, 0))
     selection: dict = field(default_factory=dict)
+    white_level: int = 255
 
     def __len__(self) -> int:
         return int(self.u.shape[0])
@@ -117,21 +122,22 @@ def _expected_rows(expected, n: int) -> np.ndarray:
     return np.ascontiguousarray(e)
 
 
-def _prior_offset(img, config, columns, method_arg, rows) -> np.float32:
+def _prior_offset(img, config, columns, method_arg, rows, threshold) -> np.float32:
     """The prior's own error (calibration, the part's placement): the median offset from the
     expected rows of the peaks nearest them, over the columns that have both (0 if none).
     The prior need only be nearer the stripe than the reflections are."""
     out = np.empty((4, img.shape[1]), np.float32)
     counts = np.zeros(len(COUNT_NAMES), np.int64)
     n, _ = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
-                   config.min_strength, out, MODE_CODES['nearest'], rows,
+                   threshold, out, MODE_CODES['nearest'], rows,
                    config.ambiguity_ratio, counts)
     d = out[1, :n] - rows[np.clip(np.rint(out[0, :n]).astype(np.int64), 0, len(rows) - 1)]
     d = d[np.isfinite(d)]
     return np.float32(np.median(d)) if d.size else np.float32(0.0)
 
 
-def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
+def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None,
+                    white: int | None = None):
     """Centres of a checked image, one per column at most, by the method of ``config``.
 
     Parameters
@@ -144,6 +150,8 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
         Expected row of the stripe per column (``peak_mode='nearest'``; NaN: none). It is
         first moved by the median offset of the peaks nearest it (the prior's own error,
         e.g. of the calibration or the part's placement).
+    white : int, optional
+        The image's white level [DN]; default :func:`.config.white_level` of ``img``.
 
     Returns
     -------
@@ -157,13 +165,15 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None):
         columns, method_arg = steger_columns, config.sigma
     else:
         columns, method_arg = cog_columns, cog_half_window(config.line_width_px)
+    threshold = config.threshold_dn(white_level(img, config.bit_depth) if white is None
+                                    else white)
     rows = _expected_rows(expected, img.shape[1])
     if config.peak_mode == 'nearest' and np.any(np.isfinite(rows)):
-        rows = rows + _prior_offset(img, config, columns, method_arg, rows)
+        rows = rows + _prior_offset(img, config, columns, method_arg, rows, threshold)
     out = np.empty((4, img.shape[1]), np.float32)
     counts = np.zeros(len(COUNT_NAMES), np.int64)
     n, nsec = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
-                      config.min_strength, out, MODE_CODES[config.peak_mode], rows,
+                      threshold, out, MODE_CODES[config.peak_mode], rows,
                       config.ambiguity_ratio, counts)
     u, v, w, s = out[0, :n], out[1, :n], out[2, :n], out[3, :n]
     if config.peak_mode == 'nearest' and config.max_offset_px > 0 and n:
@@ -201,10 +211,11 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None,
     vertical = config.orientation == 'vertical'
     if vertical:
         img = np.ascontiguousarray(img.T)
-    a, b, w, s, nsec, counts = extract_columns(img, config, expected_v)
+    white = white_level(img, config.bit_depth)
+    a, b, w, s, nsec, counts = extract_columns(img, config, expected_v, white)
     u, v = (b, a) if vertical else (a, b)
     return StripeResult(u=u, v=v, width=w, strength=s, rejected_secondary=int(nsec),
-                        config=config, image_shape=shape,
+                        config=config, image_shape=shape, white_level=white,
                         selection=dict(zip(COUNT_NAMES, (int(x) for x in counts),
                                            strict=True)))
 
@@ -220,4 +231,4 @@ def warm_up() -> None:
     for dtype, scale in ((np.uint8, 1), (np.uint16, 200)):
         frame = np.clip(img * scale, 0, np.iinfo(dtype).max).astype(dtype)
         for method in METHODS:
-            extract(frame, ExtractorConfig(method=method, min_strength=5.0 * scale))
+            extract(frame, ExtractorConfig(method=method, min_strength=5.0))

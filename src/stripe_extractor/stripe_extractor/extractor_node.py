@@ -7,7 +7,10 @@ Topics
 - subscribes ``galvo/state`` (galvoscan_msgs/GalvoState, best effort, depth 50: compatible
   with reliable and best-effort publishers);
 - publishes ``stripe/centers`` (galvoscan_msgs/StripeCenters, reliable, depth 50): the
-  image's header, the frame's GalvoState, the centres and the parameters used;
+  image's header, the frame's GalvoState, the centres, the parameters used (``min_strength``
+  as the threshold applied, in the image's DN) and the frame's saturated fraction and peak
+  level (:func:`~stripe_extractor.exposure.frame_levels`; of the long exposure for an HDR
+  pair);
 - publishes ``diagnostics`` (diagnostic_msgs/DiagnosticArray) every ``diagnostics_period``
   seconds with the node's counters.
 
@@ -79,6 +82,7 @@ from galvoscan_common.executor import run_node
 
 from .config import (
     AMBIGUITY_RATIO_RANGE,
+    BIT_DEPTHS,
     LINE_WIDTH_RANGE_PX,
     MAX_OFFSET_RANGE_PX,
     METHODS,
@@ -87,6 +91,7 @@ from .config import (
     PEAK_MODES,
     ROI_HALF_HEIGHT_RANGE_PX,
     ExtractorConfig,
+    white_level,
 )
 from .exposure import frame_levels, merge_hdr
 from .extractor import extract, warm_up
@@ -106,15 +111,19 @@ def _same_position(first: cdr.GalvoState, second: cdr.GalvoState) -> bool:
                                            second.g2_pan_voltage, second.g2_tilt_voltage))
 
 
-def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result) -> bytes:
-    """The serialised StripeCenters of one extraction result (image header, its state)."""
+def centers_cdr(header: cdr.Header, state: cdr.GalvoState, result,
+                levels: tuple[float, float] = (0.0, 0.0)) -> bytes:
+    """The serialised StripeCenters of one extraction result (image header, its state) and
+    its frame's (saturated fraction [1], peak level [share of the white level])."""
     cfg = result.config
     h, w = result.image_shape
     return cdr.serialize_stripe_centers(cdr.StripeCenters(
         header, state, w, h, result.u, result.v, result.width, result.strength, cfg.method,
-        float(cfg.sigma), float(cfg.min_strength), int(cfg.roi_half_height),
+        float(cfg.sigma), float(cfg.threshold_dn(result.white_level)),
+        int(cfg.roi_half_height),
         StripeCenters.ORIENTATION_VERTICAL if cfg.orientation == 'vertical'
-        else StripeCenters.ORIENTATION_HORIZONTAL, int(result.rejected_secondary)))
+        else StripeCenters.ORIENTATION_HORIZONTAL, int(result.rejected_secondary),
+        float(levels[0]), float(levels[1]) * result.white_level))
 
 
 #: frames the image subscription, and the extraction queue, hold while the extractor is busy
@@ -153,6 +162,8 @@ class StripeExtractorNode(Node):
         # frame's saturated fraction and peak level
         self._previous_rows = None
         self._levels = (0.0, 0.0)
+        #: bit_depth 0: the highest white level the frames have shown, by pixel size [DN]
+        self._white_seen: dict[int, int] = {}
         self._extract_counts.update(hdr_merged=0, hdr_unpaired=0, hdr_from_short=0)
         #: hdr_pairs: the long exposure waiting for its short one (raw, image, state, result)
         self._hdr_held = None
@@ -191,9 +202,21 @@ class StripeExtractorNode(Node):
                 from_value=LINE_WIDTH_RANGE_PX[0], to_value=LINE_WIDTH_RANGE_PX[1])]))
         self.declare_parameter('min_strength', defaults.min_strength, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
-            description='Weakest accepted smoothed peak above background [DN]',
+            description='Weakest accepted smoothed peak above background [DN at 8 bits]: '
+                        'stated for an 8-bit image (white level 255) and scaled by the '
+                        "image's white level (bit_depth), so the same share of full scale "
+                        'at every bit depth (20 = 20 DN in Mono8, 321 DN in Mono12)',
             floating_point_range=[FloatingPointRange(
                 from_value=MIN_STRENGTH_RANGE_DN[0], to_value=MIN_STRENGTH_RANGE_DN[1])]))
+        self.declare_parameter('bit_depth', defaults.bit_depth, ParameterDescriptor(
+            type=ParameterType.PARAMETER_INTEGER,
+            description="Bit depth of the camera's codes [bit], which sets the white level "
+                        '2**bit_depth - 1 that min_strength and the saturated fraction '
+                        'refer to; 0: mono8 is 8, mono16 the shallowest of 10, 12, 16 that '
+                        "holds the brightest pixel of the frames so far (set it: the first "
+                        "frames of a dim scene are otherwise held to a shallower camera's "
+                        'threshold)',
+            additional_constraints=f'one of: {", ".join(map(str, BIT_DEPTHS))}'))
         self.declare_parameter('roi_half_height', defaults.roi_half_height,
                                ParameterDescriptor(
                                    type=ParameterType.PARAMETER_INTEGER,
@@ -315,7 +338,7 @@ class StripeExtractorNode(Node):
     # ---- parameters -------------------------------------------------------------------
     def _config_from(self, changes: dict) -> ExtractorConfig:
         names = ('method', 'line_width_px', 'min_strength', 'roi_half_height', 'orientation',
-                 'peak_mode', 'ambiguity_ratio', 'max_offset_px')
+                 'peak_mode', 'ambiguity_ratio', 'max_offset_px', 'bit_depth')
         values = {n: changes.get(n, self.get_parameter(n).value) for n in names}
         return ExtractorConfig(**values)
 
@@ -335,6 +358,7 @@ class StripeExtractorNode(Node):
 
     def _apply_parameters(self, params) -> None:
         self._config = self._config_from({})
+        self._white_seen = {}
         for p in params:
             if p.name == 'pairing_buffer_size':
                 self._pairer.capacity = p.value
@@ -412,8 +436,16 @@ class StripeExtractorNode(Node):
                 n_cols = img.shape[1 if config.orientation == 'horizontal' else 0]
                 if expected is not None and np.ndim(expected) and len(expected) != n_cols:
                     expected = None
+            if config.bit_depth == 0:
+                # the stream's white level: the deepest any of its frames has shown, so a
+                # dim frame of a 12-bit camera keeps the 12-bit threshold
+                key = img.dtype.itemsize
+                white = max(self._white_seen.get(key, 0), white_level(img))
+                self._white_seen = {key: white}
+                config = dataclasses.replace(config, bit_depth=white.bit_length())
             result = extract(img, config, expected)
-            self._levels = frame_levels(img)
+            levels = frame_levels(img, result.white_level, config.orientation == 'vertical')
+            self._levels = levels
         except Exception as exc:  # noqa: BLE001 - the node must survive any input
             counts['extraction_errors'] += 1
             self._skip_log_error(exc)
@@ -440,20 +472,20 @@ class StripeExtractorNode(Node):
                 counts['hdr_merged'] += 1
                 counts['hdr_from_short'] += n_short
                 result = dataclasses.replace(held[3], u=u, v=v, width=w, strength=s)
-                raw, state = held[0], held[2]
+                raw, state, levels = held[0], held[2], held[4]
             else:
-                self._hdr_held = (raw, img, state, result)
+                self._hdr_held = (raw, img, state, result, levels)
                 if held is None:
                     return
                 counts['hdr_unpaired'] += 1
-                raw, state, result = held[0], held[2], held[3]
-        self._publish_centers(raw, state, result)
+                raw, state, result, levels = held[0], held[2], held[3], held[4]
+        self._publish_centers(raw, state, result, levels)
 
-    def _publish_centers(self, raw, state, result) -> None:
+    def _publish_centers(self, raw, state, result, levels) -> None:
         counts = self._extract_counts
         header = cdr.Header(raw.stamp_sec, raw.stamp_nanosec, raw.frame_id)
         try:
-            self._pub.publish(centers_cdr(header, state, result))
+            self._pub.publish(centers_cdr(header, state, result, levels))
         except Exception as exc:  # noqa: BLE001 - e.g. the context shut down meanwhile
             counts['publish_errors'] += 1
             if 'publish_error' not in self._logged_causes:

@@ -167,7 +167,7 @@ def test_8_and_16_bit_images_agree(method):
     img8 = np.clip(np.rint(img + noise), 0, 255).astype(np.uint8)
     img16 = np.clip(np.rint((img + noise) * 256.0), 0, 65535).astype(np.uint16)
     r8 = extract(img8, ExtractorConfig(method=method, min_strength=20.0))
-    r16 = extract(img16, ExtractorConfig(method=method, min_strength=20.0 * 256))
+    r16 = extract(img16, ExtractorConfig(method=method, min_strength=20.0))
     assert len(r8) == len(r16) >= 0.995 * SHAPE[1]
     np.testing.assert_allclose(r16.v, r8.v, atol=0.03 if method == 'steger' else 0.1)
     np.testing.assert_allclose(r16.strength, 256.0 * r8.strength, rtol=0.02)
