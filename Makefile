@@ -72,7 +72,8 @@ explore: setup
 demo: setup
 	$(VENV)/bin/galvoscan demo --out $(DEMO_OUT)
 
-# Measure and rewrite docs/results/: the demo and the benchmarks of a minute or less, each
+# Measure and rewrite docs/results/: the reference rig evaluated (the demo's job and the paper's
+# method on the same rig) and the benchmarks of a minute or less, each
 # recorded with its command, date, commit and machine (minutes; not part of `make test`).
 # `$(PY) tools/gen_results.py --long` adds the long benchmarks (an hour or more).
 results: setup
