@@ -435,7 +435,10 @@ class CalibrationNode(Node):
 
         model = cp.current_model(self.calibration)
         targets = getattr(steps, 'targets', None) or cp.choose_targets(model)
-        places = operator_flow.placements(stage, steps, by_robot)
+        from reconstructor.planning import stripe_layout
+
+        places = operator_flow.placements(stage, steps, by_robot,
+                                          across=stripe_layout(model).across)
         stats = operator_flow.new_stats(len(places))
         self.operator_stats[stage] = stats
         max_moves = int(self.get_parameter('max_moves').value)
