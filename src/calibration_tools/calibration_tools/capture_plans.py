@@ -278,13 +278,17 @@ def choose_targets(model) -> Targets:
     -------
     Targets
     """
+    from reconstructor.planning import stripe_layout
+
     z = laser_crossing_depth(model)
     intr = model.intrinsics
     w, h = intr.width / intr.fx * z, intr.height / intr.fy * z
     sq = _largest(CHECKERBOARD_SQUARES, lambda s: 12 * s <= CHECKERBOARD_FILL * w
                   and 9 * s <= CHECKERBOARD_FILL * h)
+    # a laser grid's columns run along the stripe (:func:`laser_row_steps`)
+    wa, ha = (w, h) if stripe_layout(model).along == 0 else (h, w)
     grids = [(_largest(CIRCLE_GRID_PITCHES, lambda p, c=c, r=r: (c + 1) * p <= LASER_BOARD_FILL
-                       * w and (r + 1) * p <= LASER_BOARD_FILL * h), c, r)
+                       * wa and (r + 1) * p <= LASER_BOARD_FILL * ha), c, r)
              for c, r in CIRCLE_GRID_LAYOUTS]
     margin = LASER_EDGE_MARGIN * z / WORKING_DISTANCE
     pg, gc, gr = next((g for g in grids if g[0] >= MIN_LASER_PITCH_MARGINS * margin - 1e-12),
@@ -674,8 +678,9 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
     offsets : sequence of float, volts
         The laser-on frames of a board are at its row's voltage plus each offset.
     boards : sequence of (float, int)
-        (x [views wide at the working depth], near 0 / far 1) of a row's boards
-        (:data:`LASER_ROW`).
+        (position along the stripe [views at the working depth], near 0 / far 1) of a
+        row's boards (:data:`LASER_ROW`); along V0's x for a laser below or above the
+        camera, y beside it (``reconstructor.planning.stripe_layout``).
     depth_shift : float
         Added to both relative board depths [1, of the working depth].
     mirror_x : bool
@@ -707,7 +712,7 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
                 report.append(f'{label}: board {k} at U2 = {u:g} V dropped: the laser plane '
                               'is too steep to place boards on')
                 continue
-            x = (-x if mirror_x else x) * t.view[0]
+            x = (-x if mirror_x else x) * t.view[layout.along]    # views along the stripe
             got, why = _place_laser_board(model, t, pi, x, LASER_DEPTHS[far] + depth_shift,
                                           tilt_y, roll, rects, layout)
             if got is None:

@@ -118,12 +118,14 @@ def _plane(z_W, albedo=0.5):
 
 
 def _stripe_row(rig, z_W, seed=3):
-    """Median brightest row of the 61 central columns, the peak over the background (in
-    8-bit DN) and the frame's true laser plane in W, on a grey plane at W z = z_W, all
-    voltages 0."""
+    """Median brightest row of the 61 central columns (column of the 61 central rows for a
+    stripe along the columns), the peak over the background (in 8-bit DN) and the frame's
+    true laser plane in W, on a grey plane at W z = z_W, all voltages 0."""
     frame = Simulator(rig, _plane(z_W), seed=seed).render(np.zeros(4), frame_index=0)
-    c = int(round(rig.camera.cx))
-    block = frame.image[:, c - 30:c + 31].astype(float)
+    vertical = rig.stripe_layout().orientation == 'vertical'
+    image = frame.image.T if vertical else frame.image
+    c = int(round(rig.camera.cy if vertical else rig.camera.cx))
+    block = image[:, c - 30:c + 31].astype(float)
     return (float(np.median(np.argmax(block, axis=0))),
             float(np.median(block.max(axis=0)) - np.median(block)) * 255.0
             / rig.image.white_level, frame.truth.laser_plane_W)
@@ -142,12 +144,14 @@ def test_stripe_crosses_the_image_centre_at_the_working_distance(seed, distance)
     assert abs(t - distance) < 1e-3, (t, distance)
     z_W = float((o_W + t * d_W)[2])
     row, peak, _ = _stripe_row(rig, z_W)
-    assert abs(row - rig.camera.cy) <= 3.0, (row, rig.camera.cy)
+    # across the stripe: the rows for a laser below or above, the columns beside
+    centre = rig.camera.cx if rig.stripe_layout().orientation == 'vertical' else rig.camera.cy
+    assert abs(row - centre) <= 3.0, (row, centre)
     assert 40.0 <= peak < 250.0
     # nearer and farther planes put the stripe on either side of the centre
     near, _, _ = _stripe_row(rig, z_W - 0.05 * distance)
     far, _, _ = _stripe_row(rig, z_W + 0.05 * distance)
-    assert (near - rig.camera.cy) * (far - rig.camera.cy) < 0
+    assert (near - centre) * (far - centre) < 0
     assert min(abs(near - rig.camera.cy), abs(far - rig.camera.cy)) > 5.0
 
 
