@@ -295,7 +295,8 @@ def choose_targets(model) -> Targets:
                       max(grids))
     pb = _largest(CIRCLE_BOARD_PITCHES,
                   lambda p: min(w, h) / p >= CIRCLE_BOARD_PITCHES_PER_VIEW)
-    r = _largest(SPHERE_RADII, lambda r: 2 * r <= SPHERE_FILL * w)
+    # the sphere's G1 grid is widest along the stripe: its arc must stay in view there
+    r = _largest(SPHERE_RADII, lambda r: 2 * r <= SPHERE_FILL * wa)
     return Targets(
         depth=z, view=(float(w), float(h)),
         checkerboard=Checkerboard(11, 8, sq),

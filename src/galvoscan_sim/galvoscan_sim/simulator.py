@@ -278,7 +278,9 @@ class Simulator:
         return np.random.default_rng([self.seed, int(index)])
 
     def geometry(self, angles, laser_on: bool = True) -> _Geometry:
-        """Camera and laser geometry for true mirror angles (4,) [rad]."""
+        """Camera and laser geometry for true mirror angles (4,) [rad] (with
+        :attr:`transposed`, the virtual camera's x and y axes are exchanged in ``W_T_V``
+        and ``V_T_W``: the frame the rendering works in)."""
         rig = self._r
         th = np.asarray(angles, dtype=np.float64)
         if th.shape != (4,):
