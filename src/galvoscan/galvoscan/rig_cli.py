@@ -114,7 +114,8 @@ def _random(args) -> int:
         'SI units everywhere: m, rad, V, s; signals in electrons (e-).',
     ], data)
     print(f'{out}: rig {data["name"]}, working distance {z * 1e3:.1f} mm, '
-          f"{kind['sensor']} {kind['bit_depth']} bit, {kind['head']} head")
+          f"{kind['sensor']} {kind['bit_depth']} bit, {kind['head']} head, laser "
+          f"{rig_family.side_words(kind['laser'])}")
     return 0
 
 
