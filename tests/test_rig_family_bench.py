@@ -30,12 +30,12 @@ def test_build_counts_count_drawn_completed_and_passed_per_kind():
     rows = [
         {'seed': 0, 'completed': True, 'stair_rmse_mm': 0.02, 'plate_rmse_mm': 0.07,
          'by_distance_mm': full, 'build': {'bit_depth': 12, 'sensor': 'IMX273',
-                                           'head': 'WIDE25'}},
+                                           'head': 'WIDE25', 'laser': 'left'}},
         {'seed': 1, 'completed': True, 'stair_rmse_mm': 0.5, 'plate_rmse_mm': 0.07,
          'by_distance_mm': full, 'build': {'bit_depth': 8, 'sensor': 'IMX273',
-                                           'head': 'TSH8310'}},
+                                           'head': 'TSH8310', 'laser': 'below'}},
         {'seed': 2, 'completed': False, 'failures': [],
-         'build': {'bit_depth': 12, 'sensor': 'PYTHON300', 'head': 'WIDE25'}},
+         'build': {'bit_depth': 12, 'sensor': 'PYTHON300', 'head': 'WIDE25', 'laser': 'left'}},
         {'seed': 3, 'completed': False, 'failures': []},          # failed at the draw
     ]
     counts = bench.build_counts(rows)
@@ -43,6 +43,8 @@ def test_build_counts_count_drawn_completed_and_passed_per_kind():
                                    '8': {'drawn': 1, 'completed': 1, 'passed': 0}}
     assert counts['sensor']['IMX273'] == {'drawn': 2, 'completed': 2, 'passed': 1}
     assert counts['head']['WIDE25'] == {'drawn': 2, 'completed': 1, 'passed': 1}
+    assert counts['laser'] == {'below': {'drawn': 1, 'completed': 1, 'passed': 0},
+                               'left': {'drawn': 2, 'completed': 1, 'passed': 1}}
 
 
 def test_operator_row_compares_the_operator_with_the_zero_error_one():

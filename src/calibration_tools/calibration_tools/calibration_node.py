@@ -494,7 +494,10 @@ class CalibrationNode(Node):
 
         model = cp.current_model(self.calibration)
         targets = getattr(steps, 'targets', None) or cp.choose_targets(model)
-        places = operator_flow.placements(stage, steps, by_robot)
+        from reconstructor.planning import stripe_layout
+
+        places = operator_flow.placements(stage, steps, by_robot,
+                                          across=stripe_layout(model).across)
         stats = operator_flow.new_stats(len(places))
         most = stopping.stage_max(stage, len(places))
         least = stopping.stage_min(stage, len(places))

@@ -278,20 +278,25 @@ def choose_targets(model) -> Targets:
     -------
     Targets
     """
+    from reconstructor.planning import stripe_layout
+
     z = laser_crossing_depth(model)
     intr = model.intrinsics
     w, h = intr.width / intr.fx * z, intr.height / intr.fy * z
     sq = _largest(CHECKERBOARD_SQUARES, lambda s: 12 * s <= CHECKERBOARD_FILL * w
                   and 9 * s <= CHECKERBOARD_FILL * h)
+    # a laser grid's columns run along the stripe (:func:`laser_row_steps`)
+    wa, ha = (w, h) if stripe_layout(model).along == 0 else (h, w)
     grids = [(_largest(CIRCLE_GRID_PITCHES, lambda p, c=c, r=r: (c + 1) * p <= LASER_BOARD_FILL
-                       * w and (r + 1) * p <= LASER_BOARD_FILL * h), c, r)
+                       * wa and (r + 1) * p <= LASER_BOARD_FILL * ha), c, r)
              for c, r in CIRCLE_GRID_LAYOUTS]
     margin = LASER_EDGE_MARGIN * z / WORKING_DISTANCE
     pg, gc, gr = next((g for g in grids if g[0] >= MIN_LASER_PITCH_MARGINS * margin - 1e-12),
                       max(grids))
     pb = _largest(CIRCLE_BOARD_PITCHES,
                   lambda p: min(w, h) / p >= CIRCLE_BOARD_PITCHES_PER_VIEW)
-    r = _largest(SPHERE_RADII, lambda r: 2 * r <= SPHERE_FILL * w)
+    # the sphere's G1 grid is widest along the stripe: its arc must stay in view there
+    r = _largest(SPHERE_RADII, lambda r: 2 * r <= SPHERE_FILL * wa)
     return Targets(
         depth=z, view=(float(w), float(h)),
         checkerboard=Checkerboard(11, 8, sq),
@@ -623,7 +628,7 @@ def _laser_candidates(tilt_y: float, depth: float, x: float):
             (tilt_y, depth / 2, x), (-tilt_y, depth / 2, x), (0.0, 0.0, x * 0.8))
 
 
-def _place_laser_board(model, t: Targets, pi, x, depth, tilt_y, roll, others):
+def _place_laser_board(model, t: Targets, pi, x, depth, tilt_y, roll, others, layout):
     """First candidate placement of a board on laser plane ``pi`` that passes the checks.
 
     The plane crosses the board between its two middle rows of circles: a board with an odd
@@ -641,8 +646,8 @@ def _place_laser_board(model, t: Targets, pi, x, depth, tilt_y, roll, others):
     first = None
     for ty, dz, xx in _laser_candidates(tilt_y, depth, x):
         z = t.depth * (1.0 + dz)
-        p = np.array([xx, -(pi[0] * xx + pi[2] * z + pi[3]) / pi[1], z])
-        R = board_rotation_on_laser(model, p, ty, roll)
+        p = layout.point_on_plane(pi, xx, z)          # xx along the stripe
+        R = board_rotation_on_laser(model, p, ty, roll, along=layout.along)
         p = p - shift * R[:, 1]
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, p
@@ -674,8 +679,9 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
     offsets : sequence of float, volts
         The laser-on frames of a board are at its row's voltage plus each offset.
     boards : sequence of (float, int)
-        (x [views wide at the working depth], near 0 / far 1) of a row's boards
-        (:data:`LASER_ROW`).
+        (position along the stripe [views at the working depth], near 0 / far 1) of a
+        row's boards (:data:`LASER_ROW`); along V0's x for a laser below or above the
+        camera, y beside it (``reconstructor.planning.stripe_layout``).
     depth_shift : float
         Added to both relative board depths [1, of the working depth].
     mirror_x : bool
@@ -692,22 +698,24 @@ def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shif
     """
     from calibration_tools.placement import boards_scene_yaml
     from reconstructor.model import laser_plane_v0
+    from reconstructor.planning import stripe_layout
 
     t = choose_targets(model) if targets is None else targets
     report = [] if report is None else report
     rng = np.random.default_rng(seed)
+    layout = stripe_layout(model)
     placements, rects, off_volts, on_volts = [], [], [], []
     for u in rows:
         pi = laser_plane_v0(model, float(u))
         for k, (x, far) in enumerate(boards):
             tilt_y, roll = rng.choice([-1.0, 1.0]) * 0.4, rng.uniform(-0.1, 0.1)
-            if abs(pi[1]) < 0.2:
+            if abs(pi[layout.across]) < 0.2:
                 report.append(f'{label}: board {k} at U2 = {u:g} V dropped: the laser plane '
                               'is too steep to place boards on')
                 continue
-            x = (-x if mirror_x else x) * t.view[0]
+            x = (-x if mirror_x else x) * t.view[layout.along]    # views along the stripe
             got, why = _place_laser_board(model, t, pi, x, LASER_DEPTHS[far] + depth_shift,
-                                          tilt_y, roll, rects)
+                                          tilt_y, roll, rects, layout)
             if got is None:
                 report.append(f'{label}: board {k} at U2 = {u:g} V dropped: {why}')
                 continue
@@ -771,12 +779,13 @@ def _axis_reach(model, t: Targets, u: float) -> bool:
     """Whether the laser plane of G2 voltage ``u`` can take boards: it meets the view axis
     at the working depth within :data:`LASER_AXIS_REACH` of G1's range, and is not too steep."""
     from reconstructor.model import laser_plane_v0
-    from reconstructor.planning import aim_g1
+    from reconstructor.planning import aim_g1, stripe_layout
 
     pi = laser_plane_v0(model, u)
-    if abs(pi[1]) < 0.2:
+    layout = stripe_layout(model)
+    if abs(pi[layout.across]) < 0.2:
         return False
-    p = np.array([0.0, -(pi[2] * t.depth + pi[3]) / pi[1], t.depth])
+    p = layout.point_on_plane(pi, 0.0, t.depth)
     g1 = aim_g1(model, p, max_abs_u=MAX_ABS_VOLTAGE)
     return bool(np.all(np.abs(g1) <= LASER_AXIS_REACH * MAX_ABS_VOLTAGE))
 
@@ -806,17 +815,18 @@ def _axis_span(model, t: Targets, rows) -> float:
     depth is within 85 % of G1's range and the plane is not too steep to place boards on.
     """
     from reconstructor.model import laser_plane_v0
-    from reconstructor.planning import aim_g1
+    from reconstructor.planning import aim_g1, stripe_layout
 
     u_max = max(abs(u) for r in rows for u in r)
+    layout = stripe_layout(model)
     for f in LASER_AXIS_SPAN:
         ok = True
         for u in (-u_max * f, u_max * f):
             pi = laser_plane_v0(model, u)
-            if abs(pi[1]) < 0.2:
+            if abs(pi[layout.across]) < 0.2:
                 ok = False
                 break
-            p = np.array([0.0, -(pi[2] * t.depth + pi[3]) / pi[1], t.depth])
+            p = layout.point_on_plane(pi, 0.0, t.depth)
             g1 = aim_g1(model, p, max_abs_u=MAX_ABS_VOLTAGE)
             ok = ok and bool(np.all(np.abs(g1) <= 0.85 * MAX_ABS_VOLTAGE))
         if ok:
@@ -899,7 +909,8 @@ def _sphere_position(model, t: Targets, lateral, step, reach, u2_tilt, pose, see
 
 def joint_correction_steps(model, laterals, *, reach=(0.3, 0.1), step: float = 0.1,
                            u2_tilt: float = 0.0, targets: Targets | None = None) -> Plan:
-    """The sphere at positions along V0's x, G1 stepped over a global ``step`` V grid.
+    """The sphere at positions along the stripe (V0's x for a laser below or above the
+    camera, y beside it), G1 stepped over a global ``step`` V grid.
 
     Each position is one scene: the sphere's front on the model's laser plane at
     ``u2_tilt`` at the working depth, a wall right behind it, and the G1 grid nodes
@@ -912,9 +923,16 @@ def joint_correction_steps(model, laterals, *, reach=(0.3, 0.1), step: float = 0
     Parameters
     ----------
     laterals : sequence of float, metres
-        Sphere positions along x at the design working distance (scaled with the depth).
+        Sphere positions along the stripe at the design working distance (scaled with the
+        depth).
+    reach : (float, float), volts
+        Half widths of each position's G1 grid along the stripe and across it.
     """
+    from reconstructor.planning import stripe_layout
+
     t = choose_targets(model) if targets is None else targets
+    # (along, across) to G1 (pan, tilt): G1's axis index is the V0 axis it moves the view on
+    reach = tuple(reach) if stripe_layout(model).along == 0 else tuple(reach)[::-1]
     scale = t.depth / WORKING_DISTANCE
     steps, report, seen = [], [], set()
     for pose, x in enumerate(laterals):

@@ -43,7 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calibration_tools.laser_plane import view_voltages
+from calibration_tools.laser_plane import stripe_extractor_config, view_voltages
 from calibration_tools.registration import (
     RegistrationErrors,
     apply_transform,
@@ -204,6 +204,7 @@ def reconstruct_nodes(views, model, *, extractor_config=None, min_points: int = 
     if not isinstance(views, (list, tuple)):
         raise ValueError(f'views must be a list of CaptureView, got {type(views).__name__}')
     plain = model if use_correction else dataclasses.replace(model, correction=None)
+    extractor_config = stripe_extractor_config(model, extractor_config)
     groups: dict[tuple, NodeCloud] = {}
     for i, view in enumerate(views):
         volts = view_voltages(i, view)

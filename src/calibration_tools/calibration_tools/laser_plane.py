@@ -443,6 +443,7 @@ def board_stripe_points(views, model, board, *, extractor_config=None,
     """
     _check_views(views)
     check_small_board(board)
+    extractor_config = stripe_extractor_config(model, extractor_config)
     out = StripeCollection()
     poses = BoardPoses(views, board, model, max_pnp_rms_px)
     for i, view in enumerate(views):
@@ -515,6 +516,22 @@ class BoardPoses:
             pose, corners, why2 = self(i)
             why = f'{why}; in the laser-on image: {why2}' if pose is None else ''
         return pose, corners, why
+
+
+def stripe_extractor_config(model, config=None):
+    """The stripe extractor's settings for a calibration's laser views: ``config`` (default
+    settings when None) oriented the way the model's stripe runs
+    (``reconstructor.planning.stripe_layout``: along the rows for a laser below or above
+    the camera, along the columns beside it)."""
+    import dataclasses as _dc
+
+    from reconstructor.planning import stripe_layout
+    from stripe_extractor.extractor import ExtractorConfig
+
+    orientation = stripe_layout(model).orientation
+    config = ExtractorConfig() if config is None else config
+    return config if config.orientation == orientation else _dc.replace(
+        config, orientation=orientation)
 
 
 def _stripe_on_board(view, pose, corners, board, model, extractor_config,

@@ -102,6 +102,10 @@ class Placement:
         grid must hold U1 = 0 and share nodes with the positions before it).
     plan_steps : list of CaptureStep
         The plan's steps of it (scene text dropped), taken as they are for ``by_robot``.
+    across : int
+        The V0 axis across the laser line (1: y, the laser below or above the camera; 0: x,
+        beside it; ``reconstructor.planning.stripe_layout``): an ``on_laser_line`` target's
+        tight tolerance.
     """
 
     stage: str
@@ -117,6 +121,7 @@ class Placement:
     plan_steps: list = field(default_factory=list)
     #: depths [m] the target is in focus between (None: not limited)
     focus: tuple | None = None
+    across: int = 1
 
     @property
     def centre(self) -> np.ndarray:
@@ -166,7 +171,7 @@ class Placement:
         """Half extents of the region along V0 x, y, z [m]."""
         e = np.full(3, REGION_HALF_EXTENT)
         if self.on_laser_line:
-            e[1] = LASER_LINE_HALF_EXTENT
+            e[self.across] = LASER_LINE_HALF_EXTENT
         if self.focus is not None:  # in depth no farther than the focus range allows
             z = float(self.centre[2])
             room = min(z - self.focus[0], self.focus[1] - z) - FOCUS_MARGIN
@@ -241,13 +246,14 @@ def _target_of(obj):
     return None
 
 
-def placements(stage: str, steps, by_robot: bool = False) -> list[Placement]:
+def placements(stage: str, steps, by_robot: bool = False, across: int = 1) -> list[Placement]:
     """The plan's steps as one placement per target (a scene of several boards becomes one
     placement per board, each with its own rows of the scene's scans).
 
     With ``by_robot`` (the cell and hand-eye stages) every scene is one placement of kind
     ``spheres``: the spheres' centres in the robot's frame, placed by the robot and taken
-    with the plan's views.
+    with the plan's views. ``across``: the V0 axis across the laser line
+    (:attr:`Placement.across`).
 
     Raises
     ------
@@ -301,7 +307,7 @@ def placements(stage: str, steps, by_robot: bool = False) -> list[Placement]:
             lit = any(v[1] for v in views)
             out.append(Placement(stage, len(out), kind, target, T, views, lit, gap,
                                  max_offset=SPHERE_MAX_OFFSET if kind == 'sphere'
-                                 else math.inf, focus=focus))
+                                 else math.inf, focus=focus, across=across))
     return out
 
 
@@ -674,8 +680,9 @@ def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=N
 def stripe_on_sphere(model, p: Placement, T, off_image, lit_image) -> Move | None:
     """None when the laser line crosses the sphere's middle in a lit frame (its stripe
     pixels reach within half a radius of the outline's centre), else the move onto the line:
-    along V0 y by where the stripe runs on the backdrop beside it (the sphere's own outline
-    and the stripe, nothing of the model's laser plane)."""
+    across the stripe (V0 y for a laser below or above the camera, x beside it) by where the
+    stripe runs on the backdrop beside it (the sphere's own outline and the stripe; the
+    model's laser plane gives only the stripe's direction and the sheet's slope)."""
     blob = _bright_blob(off_image, min_area=50)
     if blob is None:
         return not_found(p)
@@ -690,14 +697,23 @@ def stripe_on_sphere(model, p: Placement, T, off_image, lit_image) -> Move | Non
     if np.count_nonzero(d < 0.5 * r) >= 5:
         return None
     from reconstructor.model import laser_plane_v0
+    from reconstructor.planning import stripe_layout
 
-    # the line runs dy [m] below the sphere's centre; it must cross the sphere where it was
-    # asked for (x, y), so the sphere goes nearer or farther along the sheet's slope
-    dy = (float(np.median(vs)) - cv) * float(T[2, 3]) / model.intrinsics.fy
+    # the line runs dy [m] across the stripe from the sphere's centre (below it for a stripe
+    # along the rows); it must cross the sphere where it was asked for, so the sphere goes
+    # nearer or farther along the sheet's slope
+    k = stripe_layout(model).across
+    f = model.intrinsics.fy if k == 1 else model.intrinsics.fx
+    dy = (float(np.median(vs if k == 1 else us)) - (cv if k == 1 else cu)) * float(T[2, 3]) / f
     u2 = float(np.median([r[3] for v, lit, _ in p.views if lit for r in v]))
-    a, b, c, _ = np.asarray(laser_plane_v0(model, u2), dtype=np.float64)
-    slope = -c / b if abs(b) > 1e-9 else 0.0  # dy/dz of the sheet at fixed x
-    move = np.array([0.0, 0.0, -dy / slope]) if abs(slope) > 0.2 else np.array([0, dy, 0.0])
+    plane = np.asarray(laser_plane_v0(model, u2), dtype=np.float64)
+    b, c = plane[k], plane[2]
+    slope = -c / b if abs(b) > 1e-9 else 0.0  # d(across)/dz of the sheet along the stripe
+    move = np.zeros(3)
+    if abs(slope) > 0.2:
+        move[2] = -dy / slope
+    else:
+        move[k] = dy
     return Move('off_laser_line', move, 'the laser line misses the sphere\'s middle: '
                 + _direction_words(move))
 
@@ -784,9 +800,12 @@ def _laser_miss(model, p: Placement, T) -> np.ndarray | None:
     dist = float(pi[:3] @ c + pi[3]) / float(np.linalg.norm(pi[:3]))
     if abs(dist) <= tol:
         return None
-    # move along V0 y (in the board's plane) onto the sheet
-    ny = pi[1] / np.linalg.norm(pi[:3])
-    return np.array([0.0, -dist / ny if abs(ny) > 0.2 else 0.0, 0.0])
+    # move across the laser line (V0 y, or x for a laser beside the camera) onto the sheet
+    k = p.across
+    ny = pi[k] / np.linalg.norm(pi[:3])
+    move = np.zeros(3)
+    move[k] = -dist / ny if abs(ny) > 0.2 else 0.0
+    return move
 
 
 # ----------------------------------------------------------------------------- views

@@ -114,10 +114,12 @@ def _rotvec(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
-def board_rotation_on_laser(model, p_v0, tilt_y: float, roll: float) -> np.ndarray:
+def board_rotation_on_laser(model, p_v0, tilt_y: float, roll: float,
+                            along: int = 0) -> np.ndarray:
     """Orientation (3 x 3) of a board at ``p_v0`` facing the bisector of the directions to
-    the camera and to the model's laser axis, turned by ``tilt_y`` about its own y and
-    ``roll`` about its normal (radians)."""
+    the camera and to the model's laser axis, its x along V0's axis ``along`` (the stripe's
+    direction, ``reconstructor.planning.stripe_layout``), turned by ``tilt_y`` about its own
+    y and ``roll`` about its normal (radians)."""
     from scipy.spatial.transform import Rotation
 
     p_v0 = np.asarray(p_v0, dtype=np.float64)
@@ -129,7 +131,7 @@ def board_rotation_on_laser(model, p_v0, tilt_y: float, roll: float) -> np.ndarr
     facing /= np.linalg.norm(facing)
     # Board z axis points into the board (away from the viewer): -facing.
     z = -facing
-    x = np.array([1.0, 0.0, 0.0]) - z[0] * z
+    x = np.eye(3)[along] - z[along] * z
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     R = np.column_stack([x, y, z])
@@ -233,7 +235,7 @@ def sphere_grid_steps(model, u2_tilt: float, radius: float, pans, tilts, *,
     """Steps of laser-on frames of a sphere with G2 fixed and G1 stepped over a grid.
 
     The sphere is placed with its front on ``model``'s laser plane at ``u2_tilt``, at depth
-    ``depth`` and ``lateral`` along V0's x; G1 is aimed at its centre, then offset by every
+    ``depth`` and ``lateral`` along the stripe; G1 is aimed at its centre, then offset by every
     (pan, tilt) of the grid (or set to them, with ``absolute``). With ``grid_step`` the grid
     is instead every multiple of ``grid_step`` volts within ``reach`` of the aimed voltages
     (one global grid for all positions, so that positions share nodes).
@@ -249,6 +251,8 @@ def sphere_grid_steps(model, u2_tilt: float, radius: float, pans, tilts, *,
         with ``absolute``.
     depth : float, metres
     lateral : float, metres
+        Along the stripe's own V0 axis (x for a laser below or above the camera, y beside
+        it: ``reconstructor.planning.stripe_layout``).
     absolute : bool
     grid_step : float, volts, optional
     reach : (float, float), volts
@@ -273,10 +277,11 @@ def sphere_grid_steps(model, u2_tilt: float, radius: float, pans, tilts, *,
         The G1 voltages aimed at the sphere (grid origin).
     """
     from reconstructor.model import laser_plane_v0
+    from reconstructor.planning import stripe_layout
 
     u2 = float(u2_tilt)
     pi = laser_plane_v0(model, u2)
-    front = np.array([lateral, -(pi[0] * lateral + pi[2] * depth + pi[3]) / pi[1], depth])
+    front = stripe_layout(model).point_on_plane(pi, lateral, depth)
     centre = front + np.array([0.0, 0.0, radius])
     wall = None if wall_gap is None else centre[2] + radius + wall_gap
     plain = sphere_scene_yaml(centre, radius, wall)

@@ -196,3 +196,27 @@ def test_sphere_the_laser_line_misses_is_told_to_move_along_the_sheet(bench):
     loc, move = of.search(model, p, targets, _looker(sim), None, look_lit)
     assert move is not None and move.reason == 'off_laser_line', move
     assert move.move[2] > 0.004 and 'away (+z)' in move.words
+
+
+def test_beside_the_camera_the_laser_line_is_crossed_along_x():
+    """A rig with the laser beside the camera (the stripe along the image columns): the
+    instructions' tight tolerance is across the line, along V0's x, and a laser board
+    found 15 mm to the right of the line is told to move left (-x)."""
+    from galvoscan_sim.rig import rig_from_dict
+    from galvoscan_sim.rig_family import draw_rig
+    from reconstructor.planning import stripe_layout
+
+    data = draw_rig(3, 0.45, build={'sensor': 'IMX287', 'bit_depth': 8, 'laser': 'left'})
+    cal = nominal_calibration(data)
+    model = cp.current_model(cal)
+    assert stripe_layout(model).across == 0
+    sim = Simulator(rig_from_dict(data, 'beside'), load_scene_text(
+        scene_text('sphere', {'radius': 0.01}, np.eye(4)), 'start'), seed=5)
+    places = of.placements('laser_plane', plan('laser_plane', cal, quick=True), across=0)
+    assert all(p.extents()[0] < p.extents()[1] for p in places)
+    p = places[1]
+    T = _off(p, [0.015, 0.005, 0.0], 0.0)
+    _place(sim, p, T)
+    loc, move = of.search(model, p, cp.choose_targets(model), _looker(sim))
+    assert loc is not None and move is not None and move.reason == 'off_laser_line'
+    assert move.move[0] < -0.01 and move.move[1] == 0.0 and 'left (-x)' in move.words

@@ -184,6 +184,9 @@ class GalvoDriverNode(LifecycleNode):
           ints=(1, 100_000_000))
         d('max_scan_duration', patterns.MAX_SCAN_DURATION,
           'longest scan accepted at its frame rate [s]', floats=(1.0, 7 * 86400.0))
+        d('raster_g1_axis', 'tilt', "the G1 axis a raster scan steps with G2 tilt, the one "
+          "that moves the view across the stripe: 'tilt' (laser below or above the camera) "
+          "or 'pan' (laser beside it); galvoscan's bring-up sets it from the calibration")
         self.add_on_set_parameters_callback(self._on_set_parameters)
 
         self.backend = None
@@ -536,7 +539,11 @@ class GalvoDriverNode(LifecycleNode):
             # sized before anything is allocated
             patterns.check_scan_size(req, rate, self.get_parameter('max_scan_frames').value,
                                      self.get_parameter('max_scan_duration').value)
-            voltages = patterns.from_request(req)
+            axis = self.get_parameter('raster_g1_axis').value
+            if axis not in patterns.RASTER_G1_AXES:
+                raise ValueError(f'raster_g1_axis: {axis!r} is not one of '
+                                 f'{patterns.RASTER_G1_AXES}')
+            voltages = patterns.from_request(req, axis)
             total = self.backend.start(voltages, rate, bool(req.laser_on))
         except (ValueError, BackendError) as exc:
             resp.success, resp.message = False, f'scan refused: {exc}'

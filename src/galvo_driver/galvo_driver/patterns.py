@@ -11,6 +11,10 @@ import numpy as np
 from galvoscan_common.frame import check_voltages
 
 PATTERNS = ('raster', 'g1_grid', 'g2_sweep', 'custom')
+#: The G1 axis a raster steps with G2 tilt: the one that moves the view across the stripe
+#: (``reconstructor.planning.stripe_layout``): tilt for a laser below or above the camera,
+#: pan for a laser beside it.
+RASTER_G1_AXES = ('tilt', 'pan')
 
 
 def _steps(name, n):
@@ -24,34 +28,50 @@ def _line(lo, hi, n):
     return np.array([0.5 * (lo + hi)]) if n == 1 else np.linspace(lo, hi, n)
 
 
-def raster(g1_pan, g1_tilt, g2_tilt, steps_pan, steps_tilt, g2_pan=0.0):
+def raster(g1_pan, g1_tilt, g2_tilt, steps_pan, steps_tilt, g2_pan=0.0, g1_axis='tilt'):
     """The paper's synchronised raster over a region.
 
-    For each of ``steps_pan`` G1 pan columns, G1 tilt and G2 tilt are stepped together
+    With ``g1_axis`` 'tilt' (a laser below or above the camera: the stripe along the image
+    rows), for each of ``steps_pan`` G1 pan columns, G1 tilt and G2 tilt are stepped together
     (linearly coupled) across their ranges, so that the stripe stays in the camera's view
-    while both sweep. Columns alternate direction (serpentine) to avoid large jumps.
+    while both sweep. With 'pan' (a laser beside the camera: the stripe along the columns,
+    moved sideways by G2) the roles of the G1 axes are exchanged: for each of ``steps_tilt``
+    G1 tilt rows, G1 pan and G2 tilt are stepped together over ``steps_pan`` steps. Lines
+    alternate direction (serpentine) to avoid large jumps.
 
     Parameters
     ----------
     g1_pan, g1_tilt, g2_tilt : (float, float), volts
-        (start, end) of each range; the G2 tilt range is traversed in step with G1 tilt.
+        (start, end) of each range; the G2 tilt range is traversed in step with the G1 axis
+        ``g1_axis``.
     steps_pan, steps_tilt : int
     g2_pan : float, volts
         Fixed G2 pan voltage.
+    g1_axis : {'tilt', 'pan'}
+        The G1 axis stepped with G2 (:data:`RASTER_G1_AXES`).
 
     Returns
     -------
     ndarray, shape (steps_pan * steps_tilt, 4), volts
     """
+    if g1_axis not in RASTER_G1_AXES:
+        raise ValueError(f"g1_axis: expected one of {RASTER_G1_AXES}, got {g1_axis!r}")
     n_pan, n_tilt = _steps('steps_pan', steps_pan), _steps('steps_tilt', steps_tilt)
-    pans = _line(*g1_pan, n_pan)
-    frac = np.linspace(0.0, 1.0, n_tilt) if n_tilt > 1 else np.array([0.5])
+    # outer: the G1 axis along the stripe; inner: the one across it, coupled with G2
+    cross = 1 if g1_axis == 'tilt' else 0
+    outer_range, inner_range = (g1_pan, g1_tilt) if cross == 1 else (g1_tilt, g1_pan)
+    n_outer, n_inner = (n_pan, n_tilt) if cross == 1 else (n_tilt, n_pan)
+    outer = _line(*outer_range, n_outer)
+    frac = np.linspace(0.0, 1.0, n_inner) if n_inner > 1 else np.array([0.5])
     rows = []
-    for i, pan in enumerate(pans):
+    for i, o in enumerate(outer):
         f = frac if i % 2 == 0 else frac[::-1]
-        t1 = g1_tilt[0] + f * (g1_tilt[1] - g1_tilt[0])
-        t2 = g2_tilt[0] + f * (g2_tilt[1] - g2_tilt[0])
-        rows.append(np.column_stack([np.full(n_tilt, pan), t1, np.full(n_tilt, g2_pan), t2]))
+        block = np.empty((n_inner, 4))
+        block[:, 1 - cross] = o
+        block[:, cross] = inner_range[0] + f * (inner_range[1] - inner_range[0])
+        block[:, 2] = g2_pan
+        block[:, 3] = g2_tilt[0] + f * (g2_tilt[1] - g2_tilt[0])
+        rows.append(block)
     return check_voltages(np.vstack(rows))
 
 
@@ -144,15 +164,17 @@ def check_scan_size(req, frame_rate: float, max_frames: int = MAX_SCAN_FRAMES,
     return n
 
 
-def from_request(req):
+def from_request(req, raster_g1_axis: str = 'tilt'):
     """Build the voltage list of a ``galvoscan_msgs/StartScan`` request (duck-typed).
 
     Size the request with :func:`check_scan_size` first: this allocates the whole table.
+    ``raster_g1_axis``: the G1 axis a raster steps with G2 (:func:`raster`).
     """
     pattern = req.pattern
     if pattern == 'raster':
         return raster((req.g1_pan_min, req.g1_pan_max), (req.g1_tilt_min, req.g1_tilt_max),
-                      (req.g2_tilt_min, req.g2_tilt_max), req.steps_pan, req.steps_tilt)
+                      (req.g2_tilt_min, req.g2_tilt_max), req.steps_pan, req.steps_tilt,
+                      g1_axis=raster_g1_axis)
     if pattern == 'g1_grid':
         return g1_grid((req.g1_pan_min, req.g1_pan_max), (req.g1_tilt_min, req.g1_tilt_max),
                        req.steps_pan, req.steps_tilt, g2_tilt=req.g2_tilt_min)

@@ -173,6 +173,69 @@ def with_reconstructor_calibration(params_file, nodes, workdir) -> str | None:
     return str(out)
 
 
+def with_stripe_orientation(params_file, nodes, workdir) -> str | None:
+    """The parameters file to start ``nodes`` with, the stripe extractor oriented the way
+    the rig's stripe runs and the driver's raster stepping the G1 axis across it.
+
+    When the stripe extractor is among ``nodes`` and its ``orientation`` is not given (or
+    the driver and its ``raster_g1_axis``), it is taken from the rig's calibration
+    (``reconstructor.planning.stripe_layout``: along the rows for a laser below or above
+    the camera, along the columns beside it): the reconstructor's ``calibration_file``,
+    else the calibration node's ``initial_calibration``, else (backend ``sim``) the
+    simulated rig's design values.
+    A copy of the parameters with it is written to ``workdir`` and returned; otherwise
+    ``params_file`` is returned unchanged.
+
+    Raises
+    ------
+    ValueError
+        An unreadable parameters or calibration file, or an unknown rig.
+    """
+    params = load_params(params_file)
+    ext = dict(params.get('stripe_extractor', {}).get('ros__parameters', {}))
+    drv = dict(params.get('galvo_driver', {}).get('ros__parameters', {}))
+    wants_ext = 'stripe_extractor' in nodes and not ext.get('orientation')
+    wants_drv = 'galvo_driver' in nodes and not drv.get('raster_g1_axis')
+    if not (wants_ext or wants_drv):
+        return params_file
+    from reconstructor import calibration_file
+    from reconstructor.planning import stripe_layout
+
+    source = None
+    for node, key in (('reconstructor', 'calibration_file'),
+                      ('calibration', 'initial_calibration')):
+        path = params.get(node, {}).get('ros__parameters', {}).get(key)
+        if path and Path(path).is_file():
+            source = Path(path)
+            break
+    driver = params.get('galvo_driver', {}).get('ros__parameters', {})
+    if source is None and driver.get('backend', 'sim') == 'sim':
+        source = _write_design_values(driver.get('rig', 'reference'),
+                                      Path(workdir) / 'design_values_extractor.yaml')
+    if source is None:
+        log.warning('stripe_extractor: no calibration to take the stripe direction from; '
+                    'it extracts a stripe along the rows (set stripe_extractor: orientation '
+                    'for a laser beside the camera)')
+        return params_file
+    try:
+        model = calibration_file.load(source).model
+    except (OSError, ValueError) as exc:
+        raise ValueError(f'{source}: {exc}') from exc
+    layout = stripe_layout(model)
+    log.info('the stripe runs along the image %s (%s)',
+             'rows' if layout.orientation == 'horizontal' else 'columns', source)
+    if wants_ext:
+        ext['orientation'] = layout.orientation
+        params['stripe_extractor'] = {'ros__parameters': ext}
+    if wants_drv:
+        drv['raster_g1_axis'] = 'tilt' if layout.across == 1 else 'pan'
+        params['galvo_driver'] = {'ros__parameters': drv}
+    out = Path(workdir) / 'params_extractor.yaml'
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(yaml.safe_dump(params, sort_keys=False))
+    return str(out)
+
+
 def _bin(script: str) -> str:
     """The console script installed beside this interpreter (the venv's bin/)."""
     candidate = Path(sys.executable).with_name(script)

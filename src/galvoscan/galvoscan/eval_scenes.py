@@ -246,7 +246,7 @@ objects:
 
 
 def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
-                 skip: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
+                 skip: int = 1, across: int = 1) -> tuple[np.ndarray, np.ndarray, float]:
     """G1 views and stripe lines that scan a square plate edge to edge, row by row.
 
     The stripe lines (one frame each) are evenly spaced over the plate, at most
@@ -272,13 +272,17 @@ def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
     skip : int
         Keep every ``skip``-th row and column (centred): a decimated raster that no longer
         covers the whole plate (``--quick``).
+    across : int
+        The plate axis the stripe lines are spaced along: 1 (y: the lines run along x, a
+        stripe along the image rows) or 0 (x: a stripe along the columns, the raster
+        transposed; ``reconstructor.planning.stripe_layout``).
 
     Returns
     -------
     centres : ndarray, shape (n, 2)
         View centres (x, y) [m] in the plate's frame, in scan order.
     lines : ndarray, shape (n, frames)
-        The plate y [m] of each view's stripe lines.
+        The plate y (x with ``across`` 0) [m] of each view's stripe lines.
     spacing : float
         Line spacing [m].
 
@@ -288,9 +292,12 @@ def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
         Bad arguments.
     """
     w, h = (float(v) for v in view)
-    if frames < 1 or skip < 1 or not (w > 0 and h > 0 and size > 0 and max_spacing > 0):
+    if frames < 1 or skip < 1 or not (w > 0 and h > 0 and size > 0 and max_spacing > 0) \
+            or across not in (0, 1):
         raise ValueError(f'plate_raster: frames {frames}, skip {skip}, view {view}, '
-                         f'size {size}, max_spacing {max_spacing}')
+                         f'size {size}, max_spacing {max_spacing}, across {across}')
+    if across == 0:
+        w, h = h, w
     while True:  # fewer lines a view where a short-range view cannot hold them all
         n_rows = max(1, math.ceil(size / (frames * max_spacing) - 1e-9))
         spacing = size / (n_rows * frames)
@@ -312,8 +319,10 @@ def plate_raster(size: float, view, frames: int, max_spacing: float = 0.018,
         for x in xs if j % 2 == 0 else xs[::-1]:
             centres.append((x, float(ys.mean())))
             lines.append(ys)
-    return np.array(centres, dtype=np.float64), np.array(lines, dtype=np.float64), \
-        float(spacing)
+    centres = np.array(centres, dtype=np.float64).reshape(-1, 2)
+    if across == 0:
+        centres = centres[:, ::-1].copy()
+    return centres, np.array(lines, dtype=np.float64), float(spacing)
 
 
 def plate_coverage(points_O, size: float, cells: int = PLATE_CELLS) -> float:

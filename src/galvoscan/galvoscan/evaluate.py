@@ -48,7 +48,7 @@ from galvoscan_common.frame import VOLTAGE_LIMIT
 from galvoscan_common.runtime import private_domain
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
 from reconstructor.model import laser_plane_v0, v0_T_v
-from reconstructor.planning import aim_camera, view_sweep
+from reconstructor.planning import aim_camera, stripe_layout, view_edge_rays, view_sweep
 
 #: The paper's working distances (Fig. 13): stand-off from the G1 exit mirror [mm].
 DISTANCES_MM = (100, 200, 350, 400, 650, 1000)
@@ -215,9 +215,10 @@ class Evaluation:
                           frames=frames, fraction=fraction)
 
     def _plane_sweep(self, u1, plane_V0, frames, fraction):
-        """Voltages (frames, 4) sweeping the stripe over the central ``fraction`` of the
-        height of G1 view ``u1`` on a surface in the plane ``plane_V0`` (4,) (where the
-        experimenter put it), with the calibrated model.
+        """Voltages (frames, 4) sweeping the stripe over the central ``fraction`` of G1 view
+        ``u1`` across the stripe (its height for a stripe along the rows) on a surface in
+        the plane ``plane_V0`` (4,) (where the experimenter put it), with the calibrated
+        model.
 
         Unlike :func:`reconstructor.planning.view_sweep`, which assumes a surface facing
         the view at one distance, the rays through the top and bottom of the swept part of
@@ -230,12 +231,11 @@ class Evaluation:
             The plane is behind or edge-on to the view, or the laser cannot reach an end
             within the G2 range.
         """
-        intr = self.model.intrinsics
         T = v0_T_v(self.model, *u1)
         pi = np.asarray(plane_V0, dtype=np.float64)
         ends = []
-        for v in (intr.cy - fraction * intr.height / 2, intr.cy + fraction * intr.height / 2):
-            ray = T[:3, :3] @ np.array([0.0, (v - intr.cy) / intr.fy, 1.0])
+        for ray_v in view_edge_rays(self.model, fraction):   # across the stripe
+            ray = T[:3, :3] @ ray_v
             denom = float(pi[:3] @ ray)
             s = -float(pi[:3] @ T[:3, 3] + pi[3]) / denom if abs(denom) > 1e-9 else -1.0
             if s <= 0:
@@ -362,15 +362,22 @@ class Evaluation:
             view = (intr.width / intr.fx * depth, intr.height / intr.fy * depth)
             # lines at most 18 mm apart, and closer on a smaller plate (short range) so that
             # every one of its cells is still crossed
+            layout = stripe_layout(self.model)
             centres, lines, spacing = eval_scenes.plate_raster(
                 size, view, frames,
-                min(PLATE_LINE_SPACING, 0.9 * size / eval_scenes.PLATE_CELLS), skip)
+                min(PLATE_LINE_SPACING, 0.9 * size / eval_scenes.PLATE_CELLS), skip,
+                across=layout.across)
             V0_T_O = self.V0_T_W @ W_T_O
             O_T_V0 = np.linalg.inv(V0_T_O)
             sweeps = []
             for (gx, gy), ys in zip(centres, lines, strict=True):
-                on_plate = np.column_stack([np.full_like(ys, gx), ys, np.zeros_like(ys),
-                                            np.ones_like(ys)]) @ V0_T_O.T
+                # the lines run along the stripe, spaced across it (plate y for a stripe
+                # along the image rows, x along the columns)
+                on_plate = np.zeros((len(ys), 4))
+                on_plate[:, layout.along] = (gx, gy)[layout.along]
+                on_plate[:, layout.across] = ys
+                on_plate[:, 3] = 1.0
+                on_plate = on_plate @ V0_T_O.T
                 try:
                     u1 = aim_camera(self.model, (V0_T_O @ np.array([gx, gy, 0.0, 1.0]))[:3])
                     sweeps.append(self._sweep_through(u1, on_plate[:, :3]))
@@ -555,6 +562,7 @@ class Graph:
         self.nodes = list(bringup.DEFAULT_NODES) + (
             [] if args.truth_calibration else ['calibration'])
         params = bringup.with_sim_starting_calibration(params, self.nodes, self.out / 'start')
+        params = bringup.with_stripe_orientation(params, self.nodes, self.out / 'start')
         self.sup = bringup.Supervisor(self.nodes, params, env=env, log_dir=self.out / 'logs')
         self.client = None
         self.operator = None

@@ -123,8 +123,11 @@ def draw_placement(instr: dict, rng: np.random.Generator, person: Person = PERSO
     c = np.asarray(instr['centre'], dtype=np.float64)
     R = _quat_matrix(instr['orientation'])
     err = rng.uniform(-1.0, 1.0, 3) * person.position_m
-    if instr['on_laser_line']:  # aimed at the visible line: precise across it (V0 y)
-        err[1] = rng.uniform(-1.0, 1.0) * person.laser_line_m
+    if instr['on_laser_line']:
+        # aimed at the visible line: precise across it (the instruction's tight extent: V0 y
+        # for a line along the image rows, x for one along the columns) and in depth
+        across = int(np.argmin(np.asarray(instr['extents'], dtype=np.float64)[:2]))
+        err[across] = rng.uniform(-1.0, 1.0) * person.laser_line_m
         err[2] = rng.uniform(-1.0, 1.0) * person.laser_line_m
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)

@@ -1,7 +1,7 @@
 """``galvoscan rig``: draw a plausible rig of the family, re-set one for a distance, check one.
 
     galvoscan rig random --seed N [--distance Z] [--sensor S] [--bit-depth B] [--head H]
-        --out FILE
+        [--laser below|above|left|right] --out FILE
     galvoscan rig reset --rig FILE --distance Z --out FILE
     galvoscan rig check FILE [--distance Z]
 
@@ -35,6 +35,10 @@ def _parser() -> argparse.ArgumentParser:
                    '(8, 10, 12 or 16; default: drawn)')
     r.add_argument('--head', choices=sorted(rig_family.HEADS),
                    help='galvo head class of both heads (default: drawn)')
+    r.add_argument('--laser', choices=list(rig_family.LASER_SIDES),
+                   help='where the laser head sits, seen from the camera: below or above '
+                        '(stripe along the image rows), left or right (beside it: stripe '
+                        'along the columns) (default: drawn)')
     r.add_argument('--out', required=True, help='rig YAML file to write')
     s = sub.add_parser('reset', help='re-set a rig for another working distance')
     s.add_argument('--rig', required=True, help='rig YAML file (or a shipped name)')
@@ -88,7 +92,8 @@ def _random(args) -> int:
         raise ValueError(f'--seed: expected a non-negative integer, got {args.seed}')
     distance = None if args.distance is None else rig_family.check_distance(args.distance)
     out = _out_path(args.out)
-    build = {'sensor': args.sensor, 'bit_depth': args.bit_depth, 'head': args.head}
+    build = {'sensor': args.sensor, 'bit_depth': args.bit_depth, 'head': args.head,
+             'laser': args.laser}
     data = rig_family.draw_rig(args.seed, distance, build)
     kind = rig_family.build_of(data)
     z = rig_family.working_distance(data)
@@ -101,14 +106,16 @@ def _random(args) -> int:
         'galvoscan_sim.rig_family.RANGES, then set up for the working distance and checked',
         'with the simulator (galvoscan_sim.rig_family.check_rig).',
         f"Build: {kind['sensor']} sensor at {kind['bit_depth']} bits, {kind['head']}-class "
-        'galvo heads (galvoscan_sim.rig_family.SENSORS, HEADS).',
+        f"galvo heads, the laser {rig_family.side_words(kind['laser'])}",
+        '(galvoscan_sim.rig_family.SENSORS, HEADS, LASER_SIDES).',
         f'Working distance {z:.4f} m (stand-off from the G1 exit mirror); the sheet at',
         'U2 = 0 crosses the optical axis at U1 = 0 at W = '
         + ', '.join(f'{v:.4f}' for v in rig_family.working_point(data)) + ' m.',
         'SI units everywhere: m, rad, V, s; signals in electrons (e-).',
     ], data)
     print(f'{out}: rig {data["name"]}, working distance {z * 1e3:.1f} mm, '
-          f"{kind['sensor']} {kind['bit_depth']} bit, {kind['head']} head")
+          f"{kind['sensor']} {kind['bit_depth']} bit, {kind['head']} head, laser "
+          f"{rig_family.side_words(kind['laser'])}")
     return 0
 
 

@@ -134,3 +134,16 @@ def test_the_plate_raster_scans_the_plate_edge_to_edge():
     assert np.ptp(short_lines, axis=1).max() <= 0.9 * 0.02
     with pytest.raises(ValueError, match='plate_raster'):
         eval_scenes.plate_raster(0.74, (0.06, 0.0), 3, 0.018)
+
+
+def test_a_stripe_along_the_columns_rasters_the_plate_transposed():
+    """Laser beside the camera: lines along the plate's y, spaced along x, in views of the
+    same width and height (the raster of the laser below with x and y exchanged)."""
+    view = (0.060, 0.045)
+    rows = eval_scenes.plate_raster(0.74, view[::-1], 3, 0.018)
+    cols = eval_scenes.plate_raster(0.74, view, 3, 0.018, across=0)
+    assert np.allclose(cols[0], rows[0][:, ::-1]) and np.allclose(cols[1], rows[1])
+    assert np.allclose(cols[0][:, 0], cols[1].mean(axis=1))     # centred on its x lines
+    assert np.ptp(cols[1], axis=1).max() <= 0.9 * view[0]
+    with pytest.raises(ValueError, match='across'):
+        eval_scenes.plate_raster(0.74, view, 3, 0.018, across=2)

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from galvoscan_common.stripe_layout import StripeLayout, stripe_layout
+
 from .camera import CameraModel
 from .config import ConfigError, Section
 from .galvo import Dac, GalvoHead, MirrorDrive
@@ -31,6 +33,7 @@ from .spatial import (
     rotation_about,
     rotation_from_vector,
     rotation_vector,
+    transform_plane,
     unit,
 )
 
@@ -466,6 +469,16 @@ class Rig:
         return sheet.transformed(self.G_T_G2)
 
     # ----------------------------------------------------------- reporting
+    def stripe_layout(self) -> StripeLayout:
+        """The stripe's layout at the working point (``galvoscan_common.stripe_layout``),
+        from the actual sheet at U2 = 0 (and 0.1 V for its sense) in the actual V0."""
+        to_v0 = invert_transform(self.G_T_V0)
+        planes = []
+        for u in (0.0, 0.1):
+            th = self.mirror_angles(self.applied_voltages(np.array([0.0, 0.0, 0.0, u])))
+            planes.append(transform_plane(to_v0, self.laser_sheet_G(th[2], th[3]).plane))
+        return stripe_layout(planes[0], self.camera.fx, self.camera.fy, plane_moved=planes[1])
+
     def true_model_parameters(self, u2_pan: float = 0.0) -> ModelParameters:
         """The model parameters this physical rig corresponds to (see ModelParameters).
 

@@ -58,6 +58,9 @@ from functools import lru_cache
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from galvoscan_common.stripe_layout import MAX_STRIPE_TILT as _STRIPE_MAX_TILT
+from galvoscan_common.stripe_layout import StripeLayout
+
 from .config import ConfigError, read_yaml_file
 from .rig import RIG_DIR, Rig, rig_from_dict
 from .scene import load_scene_text
@@ -270,8 +273,18 @@ HEADS: dict[str, HeadClass] = {
     'WIDE25': _head(25.0, 0.999, 8e-6, 5e-3, 'wide-angle head class specifications '
                     '(e.g. ScannerMAX Saturn series)'),
 }
+#: Where the laser (the G2 head) sits, seen from the camera, as the turn of the whole G2
+#: placement about the optical axis [rad] from the paper's layout (below). Light-section
+#: heads are built all four ways: below (the paper's), above (a head hung from a gantry, the
+#: same triangulation mirrored: the stripe still along the rows, moving the other way) and
+#: beside, left or right (a layout common in line-scan and robot-mounted sensors: the sheet
+#: vertical, the stripe along the image columns, G2 sweeping it sideways and G1's pan
+#: moving the view across it). The triangulation angle, baseline and bracket offsets of
+#: :data:`RANGES` are drawn the same way for every side, in the turned frame.
+LASER_SIDES: dict[str, float] = {'below': 0.0, 'left': math.pi / 2, 'above': math.pi,
+                                 'right': -math.pi / 2}
 #: The reference rig's build: what :func:`build_of` calls it.
-REFERENCE_BUILD = {'sensor': 'IMX287', 'bit_depth': 8, 'head': 'TSH8310'}
+REFERENCE_BUILD = {'sensor': 'IMX287', 'bit_depth': 8, 'head': 'TSH8310', 'laser': 'below'}
 
 #: Close-focus limit of a lens on its own helicoid (1:4): what a build may choose.
 MAX_MAGNIFICATION_HELICOID = 0.25
@@ -290,14 +303,10 @@ _REF = {'peak_rate': 4.84e7, 'reference_distance': 0.65, 'line_width': 6e-4,
 #: Usable stripe widths (Gaussian sigma in the image) [px]: at least the PSF's order; at
 #: most 10 px, a FWHM of 23.5 px inside the stripe extractor's 30 px limit.
 STRIPE_SIGMA_PX = (0.5, 10.0)
-#: Largest angle of the stripe to the image rows at the working point [rad]. The chain
-#: (capture plans and targets, column-wise stripe extraction, laser stages, joint
-#: correction, scan patterns) takes the stripe along the rows, crossing each column once,
-#: and the laser below or above the camera; the family's head roll and fan roll keep it
-#: within ~1.4 deg. 10 deg leaves room for hand-built rigs (a stripe 10 deg off the rows
-#: is 1.5 % wider along a column); a laser beside the camera (stripe along the columns)
-#: or a sheet turned further is refused with that reason.
-MAX_STRIPE_TILT = math.radians(10.0)
+#: Largest angle of the stripe to the nearer of the image rows and columns at the working
+#: point [rad]: the chain's (``galvoscan_common.stripe_layout``, where the reason is
+#: written). The family's head roll and fan roll keep its stripes within ~1.4 deg.
+MAX_STRIPE_TILT = _STRIPE_MAX_TILT
 #: Tolerance of the sheet/axis crossing against the asked distance [m].
 CROSSING_TOLERANCE = 1e-3
 _MAX_ATTEMPTS = 25
@@ -321,6 +330,9 @@ class Setup:
         Laser line thickness per metre of throw [1].
     peak_fraction : float
         Stripe peak on a white target at the working distance over full well [1].
+    laser_side : float
+        Turn of the G2 placement about the optical axis (:data:`LASER_SIDES`) [rad];
+        ``triangulation_angle``, ``g2_lateral`` and ``g2_roll`` are taken in the turned frame.
     """
 
     focal_length: float
@@ -331,6 +343,7 @@ class Setup:
     focus_blur: float
     line_divergence: float
     peak_fraction: float
+    laser_side: float = 0.0
 
 
 @lru_cache(maxsize=1)
@@ -399,8 +412,9 @@ def _place_g2(data: dict, setup: Setup, z_cross: float, aim: float) -> None:
     """Write the G2 pose: tilt mirror point on its rail, head turned by ``aim`` about x."""
     d2 = data['g2']['d']
     y_b = (z_cross - setup.g2_depth) * math.tan(setup.triangulation_angle)
-    p_W = np.array([setup.g2_lateral, y_b, setup.g2_depth])
-    R = (Rotation.from_rotvec([0.0, 0.0, setup.g2_roll])
+    side = Rotation.from_rotvec([0.0, 0.0, setup.laser_side])
+    p_W = side.apply([setup.g2_lateral, y_b, setup.g2_depth])
+    R = (side * Rotation.from_rotvec([0.0, 0.0, setup.g2_roll])
          * Rotation.from_rotvec([aim, 0.0, 0.0]))
     t = p_W + _g1_offset(data) - R.apply([0.0, d2, 0.0])
     data['g2']['pose_in_g1'] = {'translation': [float(v) for v in t],
@@ -425,7 +439,7 @@ def _aim_sheet(data: dict, setup: Setup, z_cross: float) -> None:
     pivot = base.G_T_G2 @ np.array([0.0, data['g2']['d'], 0.0, 1.0])
 
     def miss(aim):
-        R = (Rotation.from_rotvec([0.0, 0.0, setup.g2_roll])
+        R = (Rotation.from_rotvec([0.0, 0.0, setup.laser_side + setup.g2_roll])
              * Rotation.from_rotvec([aim, 0.0, 0.0])).as_matrix()
         T = np.eye(4)
         T[:3, :3] = R
@@ -547,13 +561,28 @@ def _draw_imperfections(rng: np.random.Generator, imp: dict, sensor: SensorClass
 
 
 def _draw_build(rng: np.random.Generator, build: dict) -> dict:
-    """The build's kind: sensor class, bit depth, head class; ``build``'s given ones kept."""
+    """The build's kind: sensor class, bit depth, head class, laser side; ``build``'s given
+    ones kept."""
     depth = build.get('bit_depth')
     sensor = build.get('sensor') or str(rng.choice(
         [n for n in sorted(SENSORS) if depth is None or depth in SENSORS[n].bit_depths]))
     depth = build.get('bit_depth') or int(rng.choice(SENSORS[sensor].bit_depths))
     head = build.get('head') or str(rng.choice(sorted(HEADS)))
-    return {'sensor': sensor, 'bit_depth': int(depth), 'head': head}
+    laser = build.get('laser') or str(rng.choice(list(LASER_SIDES)))
+    return {'sensor': sensor, 'bit_depth': int(depth), 'head': head, 'laser': laser}
+
+
+def side_words(side: str) -> str:
+    """Where a :data:`LASER_SIDES` side puts the laser, in words."""
+    return {'below': 'below the camera', 'above': 'above the camera',
+            'left': 'left of the camera (beside it)',
+            'right': 'right of the camera (beside it)'}[side]
+
+
+def _nearest_side(turn: float) -> str:
+    """The :data:`LASER_SIDES` name nearest to a G2 placement's turn about the optical axis."""
+    return min(LASER_SIDES, key=lambda k: abs(math.remainder(turn - LASER_SIDES[k],
+                                                             2.0 * math.pi)))
 
 
 def _apply_build(data: dict, kind: dict) -> None:
@@ -570,7 +599,7 @@ def _apply_build(data: dict, kind: dict) -> None:
 
 
 def check_build(build) -> dict:
-    """A build request (``sensor``, ``bit_depth``, ``head``, each optional) checked.
+    """A build request (``sensor``, ``bit_depth``, ``head``, ``laser``, each optional) checked.
 
     Raises
     ------
@@ -580,11 +609,15 @@ def check_build(build) -> dict:
     if build is None:
         return {}
     if not isinstance(build, dict):
-        raise ValueError(f'build: expected a dict of sensor, bit_depth, head, got {build!r}')
-    unknown = set(build) - {'sensor', 'bit_depth', 'head'}
+        raise ValueError(f'build: expected a dict of sensor, bit_depth, head, laser, got '
+                         f'{build!r}')
+    unknown = set(build) - {'sensor', 'bit_depth', 'head', 'laser'}
     if unknown:
         raise ValueError(f'build: unknown key(s) {sorted(unknown)}; known: sensor, '
-                         'bit_depth, head')
+                         'bit_depth, head, laser')
+    if build.get('laser') is not None and build['laser'] not in LASER_SIDES:
+        raise ValueError(f"build: laser {build['laser']!r} is not one of "
+                         f"{', '.join(LASER_SIDES)}")
     if build.get('sensor') is not None and build['sensor'] not in SENSORS:
         raise ValueError(f"build: sensor {build['sensor']!r} is not one of "
                          f"{', '.join(sorted(SENSORS))}")
@@ -603,7 +636,8 @@ def check_build(build) -> dict:
 
 def build_of(rig: dict) -> dict:
     """The kind of a rig description's build: ``sensor`` and ``head`` class names (or
-    ``'other'`` for a camera or head outside the classes), ``bit_depth``."""
+    ``'other'`` for a camera or head outside the classes), ``bit_depth``, ``laser`` (the
+    :data:`LASER_SIDES` name nearest to the G2 placement's turn about the optical axis)."""
     cam = rig['camera']
     sensor = next((name for name, c in SENSORS.items()
                    if (c.width, c.height) == (cam['width'], cam['height'])
@@ -612,7 +646,10 @@ def build_of(rig: dict) -> dict:
     gain = float(rig['g1']['pan']['gain']) * float(rig['dac']['full_scale'])
     head = next((name for name, h in HEADS.items()
                  if math.isclose(h.max_angle, gain, rel_tol=1e-6)), 'other')
-    return {'sensor': sensor, 'bit_depth': int(cam['bit_depth']), 'head': head}
+    r = rig_from_dict(copy.deepcopy(rig), '<rig>')
+    laser = _nearest_side(math.atan2(r.G_T_G2[1, 0], r.G_T_G2[0, 0]))
+    return {'sensor': sensor, 'bit_depth': int(cam['bit_depth']), 'head': head,
+            'laser': laser}
 
 
 def _draw_once(rng: np.random.Generator, distance: float | None,
@@ -638,7 +675,8 @@ def _draw_once(rng: np.random.Generator, distance: float | None,
     cam['fy'] = float(rng.uniform(RANGES['fy_over_fx'].lo, RANGES['fy_over_fx'].hi))
     for key in ('peak_rate', 'reference_distance', 'line_width'):   # YAML 1.1 '4.84e7'
         data['laser'][key] = float(data['laser'][key])
-    setup = _draw_setup(rng, g1['l'] + g1['d'] + z)
+    setup = replace(_draw_setup(rng, g1['l'] + g1['d'] + z),
+                    laser_side=LASER_SIDES[kind['laser']])
     room = float(rng.uniform(RANGES['room_light'].lo, RANGES['room_light'].hi))
     return _apply_setup(data, z, setup, MAX_MAGNIFICATION_HELICOID, room), z
 
@@ -688,8 +726,8 @@ def draw_rig(seed: int, distance: float | None = None, build: dict | None = None
             + (f', build={build!r}' if build else '')
             + f') (attempt {attempt}): working distance {z:.4f} m from the G1 exit mirror; '
             f"{kind['sensor']} sensor at {kind['bit_depth']} bits, {kind['head']}-class galvo "
-            'heads; every imperfection inside galvoscan_sim.rig_family.RANGES and the '
-            'classes\' ranges.')
+            f"heads, the laser {side_words(kind['laser'])}; every imperfection inside "
+            'galvoscan_sim.rig_family.RANGES and the classes\' ranges.')
         problems = check_rig(data, z)
         if not problems:
             return data
@@ -713,8 +751,11 @@ def _infer_setup(data: dict) -> tuple[Setup, float]:
     blur = math.sqrt(max(psf * psf - diff * diff, 0.0))
     G_T_G2 = rig.G_T_G2
     p_W = (G_T_G2 @ np.array([0.0, float(data['g2']['d']), 0.0, 1.0]))[:3] - _g1_offset(data)
+    turn = math.atan2(G_T_G2[1, 0], G_T_G2[0, 0])
+    side = LASER_SIDES[_nearest_side(turn)]
+    roll = math.remainder(turn - side, 2.0 * math.pi)
+    p_W = Rotation.from_rotvec([0.0, 0.0, -side]).apply(p_W)
     angle = math.atan2(p_W[1], s - p_W[2])
-    roll = math.atan2(G_T_G2[1, 0], G_T_G2[0, 0])
     th = rig.mirror_angles(rig.applied_voltages(np.zeros(4)))
     src = rig.laser_sheet_G(th[2], th[3]).source
     throw = float(np.linalg.norm((rig.G_T_V0 @ np.array([0.0, 0.0, s, 1.0]))[:3] - src))
@@ -724,7 +765,7 @@ def _infer_setup(data: dict) -> tuple[Setup, float]:
     room = float(data['illumination']['ambient_rate']) / (
         _REF['ambient_rate'] * _aperture_gain(m) * _pixel_gain(float(cam['pixel_size'])))
     setup = Setup(f, angle, float(p_W[0]), float(p_W[2]), roll, blur,
-                  float(las['line_width']) / throw, peak)
+                  float(las['line_width']) / throw, peak, side)
     return setup, room
 
 
@@ -923,30 +964,22 @@ def stripe_profile(image: np.ndarray, column: int, half_columns: int = 60,
             'saturated': float(np.mean(peaks >= white_level))}
 
 
-def stripe_tilt(rig: Rig) -> float:
-    """Angle of the stripe to the image rows at the working point, in [0, pi/2] [rad].
+def stripe_layout(rig: Rig) -> StripeLayout:
+    """The stripe's layout at the working point (:meth:`Rig.stripe_layout`)."""
+    return rig.stripe_layout()
 
-    The actual sheet at U2 = 0 in the actual V0 (the view at U1 = 0), ``n . X = -c``:
-    on a surface facing the camera it is the image line ``n_x x + n_y y = const`` in
-    normalised coordinates, whose normal in pixels is ``(n_x / fx, n_y / fy)``.
-    """
-    th = rig.mirror_angles(rig.applied_voltages(np.zeros(4)))
-    pi = transform_plane(invert_transform(rig.G_T_V0), rig.laser_sheet_G(th[2], th[3]).plane)
-    cam = rig.camera
-    return math.atan2(abs(pi[0]) / cam.fx, abs(pi[1]) / cam.fy)
+
+def stripe_tilt(rig: Rig) -> float:
+    """Angle of the stripe to the nearer of the image rows and columns at the working point,
+    in [0, pi/4] [rad]."""
+    return stripe_layout(rig).tilt
 
 
 def _check_stripe_direction(rig: Rig) -> list[str]:
-    """The stripe runs along the image rows, as the chain takes it (:data:`MAX_STRIPE_TILT`)."""
-    tilt = stripe_tilt(rig)
-    if tilt <= MAX_STRIPE_TILT:
-        return []
-    layout = ('the laser sits beside the camera' if tilt > math.radians(60.0)
-              else 'the laser sheet is turned about the optical axis')
-    return [f'the stripe runs {math.degrees(tilt):.1f} deg off the image rows ({layout}); '
-            f'the chain takes the stripe along the rows, within '
-            f'{math.degrees(MAX_STRIPE_TILT):.0f} deg (laser below or above the camera): '
-            'a laser-beside or oblique layout is not supported']
+    """The stripe runs along the image rows or columns, as the chain takes it
+    (:data:`MAX_STRIPE_TILT`)."""
+    why = stripe_layout(rig).refusal()
+    return [why] if why else []
 
 
 def _check_stripe(rig: Rig) -> list[str]:
@@ -958,13 +991,21 @@ def _check_stripe(rig: Rig) -> list[str]:
     cam = rig.camera
     truth = frame.truth.stripe
     out = []
-    if len(np.unique(truth.column)) < 0.9 * cam.width:
-        return [f'the stripe covers {len(np.unique(truth.column))} of {cam.width} columns']
-    near = np.abs(truth.column - cam.cx) <= 1.0
-    if not np.any(near) or np.min(np.abs(truth.v[near] - cam.cy)) > 3.0:
+    vertical = stripe_layout(rig).orientation == 'vertical'
+    # along the stripe: columns (u) for a stripe along the rows, rows (v) along the columns
+    along, across = (truth.v, truth.u) if vertical else (truth.u, truth.v)
+    n_along, c_along, c_across = ((cam.height, cam.cy, cam.cx) if vertical
+                                  else (cam.width, cam.cx, cam.cy))
+    lines = 'rows' if vertical else 'columns'
+    covered = len(np.unique(np.round(along)))
+    if covered < 0.9 * n_along:
+        return [f'the stripe covers {covered} of {n_along} {lines}']
+    near = np.abs(along - c_along) <= 1.0
+    if not np.any(near) or np.min(np.abs(across[near] - c_across)) > 3.0:
         out.append('the stripe does not cross the image centre')
     white = rig.image.white_level
-    prof = stripe_profile(frame.image, int(round(cam.cx)), white_level=white)
+    image = frame.image.T if vertical else frame.image
+    prof = stripe_profile(image, int(round(c_along)), white_level=white)
     signal = prof['peak_dn'] - prof['background_dn']
     if signal < max(10.0 * prof['noise_dn'], 20.0 * white / 255.0):   # 20 DN at 8 bits
         out.append(f'stripe peak {signal:.0f} DN over background is not well above the '

@@ -21,6 +21,13 @@ One frame, for voltages (U1_pan, U1_tilt, U2_pan, U2_tilt):
    grid of traced pixels, bilinearly upsampled (the background is dim and smooth there).
 6. Optical blur, full-well clipping, shot and read noise, 8-bit quantisation.
 
+Steps 3 and 4 work column by column (a window of rows around each column's stripe point).
+A stripe along the image columns (a laser beside the camera, ``Rig.stripe_layout``) is
+rendered with the camera described transposed: the same camera with its u and v (x and
+y; fx and fy, cx and cy, width and height, p1 and p2) exchanged, which sees exactly the same
+light; its image and its stripe truth are transposed back, so that every output is the
+camera's own.
+
 Noise uses a pool of standard normal draws made once per simulator from its seed; each
 frame reads it at a random offset (independent within a frame; two frames may share
 raster-shifted noise values). ``exact_noise=True`` draws fresh values every frame.
@@ -42,6 +49,20 @@ from .scene import Hits, Scene
 from .spatial import invert_transform, normalize_plane, transform_plane
 
 _NEAR = 0.01  # [m] nearest depth considered in front of the virtual camera
+#: Exchanges a camera's x and y axes (C' to C): the transposed camera's frame.
+_SWAP_XY = np.array([[0.0, 1.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def _transposed(rig: Rig) -> Rig:
+    """The rig with its camera described transposed (u and v exchanged): the same camera."""
+    from dataclasses import replace
+
+    cam = rig.camera
+    k1, k2, p1, p2, k3 = (float(v) for v in cam.distortion)
+    cam_t = replace(cam, width=cam.height, height=cam.width, fx=cam.fy, fy=cam.fx, cx=cam.cy,
+                    cy=cam.cx, distortion=np.array([k1, k2, p2, p1, k3]))
+    return replace(rig, camera=cam_t, G_T_C=rig.G_T_C @ _SWAP_XY)
 
 
 @lru_cache(maxsize=4)
@@ -214,6 +235,11 @@ class Simulator:
         self.scene = scene
         self.seed = int(seed)
         self.exact_noise = exact_noise
+        #: Whether the camera is worked with transposed (a stripe along the columns).
+        self.transposed = rig.stripe_layout().orientation == 'vertical'
+        self._outer = rig
+        rig = _transposed(rig) if self.transposed else rig
+        self._r = rig
         cam = rig.camera
         self.coarse_step = int(coarse_step)
         self._grid = _pixel_grid(cam, 1)
@@ -239,8 +265,8 @@ class Simulator:
         self._cam_const = np.concatenate((rig.G_T_C[:3, :3].ravel(), rig.G_T_C[:3, 3],
                                           rig.W_T_G[:3, :3].ravel(), rig.W_T_G[:3, 3]))
         #: The rig's true model-equivalent parameters (see Rig.true_model_parameters).
-        self.model_parameters = rig.true_model_parameters()
-        self.W_T_V0 = rig.W_T_V0
+        self.model_parameters = self._outer.true_model_parameters()
+        self.W_T_V0 = self._outer.W_T_V0
         self.V0_T_W = invert_transform(self.W_T_V0)
 
     # ------------------------------------------------------------- helpers
@@ -252,8 +278,10 @@ class Simulator:
         return np.random.default_rng([self.seed, int(index)])
 
     def geometry(self, angles, laser_on: bool = True) -> _Geometry:
-        """Camera and laser geometry for true mirror angles (4,) [rad]."""
-        rig = self.rig
+        """Camera and laser geometry for true mirror angles (4,) [rad] (with
+        :attr:`transposed`, the virtual camera's x and y axes are exchanged in ``W_T_V``
+        and ``V_T_W``: the frame the rendering works in)."""
+        rig = self._r
         th = np.asarray(angles, dtype=np.float64)
         if th.shape != (4,):
             raise ValueError(f'angles: expected shape (4,), got {th.shape}')
@@ -300,7 +328,8 @@ class Simulator:
         if P.ndim != 2 or P.shape[1] != 3:
             raise ValueError(f'points_W: expected shape (n, 3), got {P.shape}')
         geo = self.geometry(angles, laser_on=False)
-        return self.rig.camera.project(P @ geo.V_T_W[:3, :3].T + geo.V_T_W[:3, 3])
+        uv = self._r.camera.project(P @ geo.V_T_W[:3, :3].T + geo.V_T_W[:3, 3])
+        return uv[:, ::-1].copy() if self.transposed else uv
 
     def trace_pixels(self, uv, angles) -> Hits:
         """Trace pixel rays off the G1 mirrors into the scene.
@@ -321,11 +350,13 @@ class Simulator:
         th = np.asarray(angles, dtype=np.float64)
         if th.shape != (4,):
             raise ValueError(f'angles: expected shape (4,), got {th.shape}')
-        xy = self.rig.camera.pixel_to_normalized(uv)
+        if self.transposed:
+            uv = uv[:, ::-1]
+        xy = self._r.camera.pixel_to_normalized(uv)
         return self._trace_xy(xy, th)
 
     def _trace_xy(self, xy, th) -> Hits:
-        rig = self.rig
+        rig = self._r
         o, d = rig.trace_camera_rays(xy, th[0], th[1])
         R, t = rig.W_T_G[:3, :3], rig.W_T_G[:3, 3]
         return self.scene.intersect(o @ R.T + t, d @ R.T)
@@ -343,14 +374,14 @@ class Simulator:
         return np.array([np.array(h) for h in hs])
 
     def _intrinsics(self) -> np.ndarray:
-        cam = self.rig.camera
+        cam = self._r.camera
         return np.concatenate([[cam.fx, cam.fy, cam.cx, cam.cy], cam.distortion,
                                [cam.width, cam.height]]).astype(np.float64)
 
     def _stripe_crossings(self, geo: _Geometry):
         """True stripe points (see StripeTruth), sorted by column then v, or None."""
         sheet = geo.sheet
-        cam = self.rig.camera
+        cam = self._r.camera
         hs = self._half_spaces(geo)
         A, B, nrm, obj, two = self.scene.sheet_segments(sheet.plane, hs, geo.center,
                                                         sheet.source)
@@ -396,14 +427,21 @@ class Simulator:
         res = self._stripe_crossings(geo)
         if res is None:
             return StripeTruth.empty()
+        return self._stripe_truth(res)
+
+    def _stripe_truth(self, res) -> StripeTruth:
+        """Stripe truth from crossings, in the camera's own pixels (transposed back: one
+        entry per row, ``column`` then holding the row)."""
         X, N, ob, cl, u, v = res
         R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
+        if self.transposed:
+            u, v = v, u
         return StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
 
     # ------------------------------------------------------------ images
     def _background(self, geo, exposure, full: bool) -> np.ndarray:
         """Room-light signal [e-]: every pixel (full) or the coarse grid, float32."""
-        rig, cam = self.rig, self.rig.camera
+        rig, cam = self._r, self._r.camera
         im = rig.image
         step = 1 if full else self.coarse_step
         xy = self._grid.reshape(-1, 2) if full else self._coarse
@@ -419,7 +457,7 @@ class Simulator:
     def _window_sigma(self, obj) -> np.ndarray:
         """Stripe sigma [m] each direct window is sized for: the sheet's, widened on
         translucent objects by their subsurface spread and shift."""
-        sigma = self.rig.laser.sigma
+        sigma = self._r.laser.sigma
         mats = self.scene.material_table[obj]
         ell = np.where(mats[:, 5] > 0, mats[:, 4], 0.0)
         return np.where(ell > 0, np.sqrt(sigma * sigma + ell * ell) + ell, sigma)
@@ -433,7 +471,7 @@ class Simulator:
         tuple (ndarray shape (rows, width) float32, int)
             The band of image rows holding the stripe and its first row.
         """
-        rig, cam, sheet = self.rig, self.rig.camera, geo.sheet
+        rig, cam, sheet = self._r, self._r.camera, geo.sheet
         sigma = rig.laser.sigma
         starts, ends = [], []
         if crossings is not None:
@@ -514,7 +552,7 @@ class Simulator:
         points, the window specification and the packed mirrored sheet (list of dicts)."""
         F = self.scene.faces
         sheet = geo.sheet
-        cam = self.rig.camera
+        cam = self._r.camera
         out = []
         base_hs = self._half_spaces(geo)[:5]
         ptype, _, R, T, prm = self.scene.packed()
@@ -570,10 +608,10 @@ class Simulator:
             X, N, ob, cl, u, v, L = X[keep], N[keep], ob[keep], cl[keep], u[keep], v[keep], \
                 L[keep]
             fmat = self.scene.material_table[F.obj[f]]
-            sig_r = np.sqrt(self.rig.laser.sigma ** 2 + 2.0 * fmat[1] ** 2 * L ** 2)
+            sig_r = np.sqrt(self._r.laser.sigma ** 2 + 2.0 * fmat[1] ** 2 * L ** 2)
             half = np.empty(len(cl), np.int64)
             rk.window_halves(X, N, cl, v, np.ascontiguousarray(geo.W_T_V[:3, :3]),
-                             geo.center, vpack[:4], sig_r, self.rig.image.psf_sigma,
+                             geo.center, vpack[:4], sig_r, self._r.image.psf_sigma,
                              self._intr, half)
             face = np.concatenate((cA, F.e1[f], F.e2[f], F.half[f], nA))
             out.append({'X': X, 'N': N, 'obj': ob, 'col': cl, 'u': u, 'v': v,
@@ -589,7 +627,10 @@ class Simulator:
         order = np.lexsort((cat['v'], cat['col']))
         X = cat['X'][order]
         R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
-        return StripeTruth(cat['col'][order], cat['u'][order], cat['v'][order], X,
+        u, v = cat['u'][order], cat['v'][order]
+        if self.transposed:
+            u, v = v, u
+        return StripeTruth(cat['col'][order], u, v, X,
                            X @ R.T + t, cat['N'][order], cat['obj'][order])
 
     def reflection_truth(self, geo: _Geometry) -> StripeTruth:
@@ -609,7 +650,7 @@ class Simulator:
     def _sensor(self, bg, band, b0, rng) -> np.ndarray:
         """Background (None, coarse or full) + stripe band -> noisy image in the camera's
         output format (uint8 at 8 bits, uint16 above)."""
-        im, cam = self.rig.image, self.rig.camera
+        im, cam = self._r.image, self._r.camera
         n = cam.width * cam.height
         if im.noisy:
             if self._pool is not None:
@@ -657,7 +698,7 @@ class Simulator:
             raise ValueError(f"background: expected 'coarse' or 'full', got {background!r}")
         if not laser_power >= 0:
             raise ValueError(f'laser_power: expected >= 0, got {laser_power}')
-        rig = self.rig
+        rig = self._r
         U = np.asarray(voltages, dtype=np.float64)
         if U.shape != (4,):
             raise ValueError(f'voltages: expected shape (4,), got {U.shape}')
@@ -688,16 +729,18 @@ class Simulator:
                 energy = rig.laser.peak_rate * exposure * laser_power
                 band, b0 = self._laser_layer(geo, res, energy, rng, refl)
             if res is not None:
-                X, N, ob, cl, u, v = res
-                R, t = self.V0_T_W[:3, :3], self.V0_T_W[:3, 3]
-                stripe = StripeTruth(cl, u, v, X, X @ R.T + t, N, ob)
+                stripe = self._stripe_truth(res)
             reflection = self._reflection_truth(refl)
         image = self._sensor(bg, band, b0, rng)
+        W_T_V = geo.W_T_V
+        if self.transposed:
+            image = np.ascontiguousarray(image.T)
+            W_T_V = W_T_V @ _SWAP_XY
         nan4 = np.full(4, np.nan)
         plane_W = geo.sheet.plane if laser_on else nan4
         truth = FrameTruth(
-            int(frame_index), U.copy(), applied, angles, geo.W_T_V,
-            self.V0_T_W @ geo.W_T_V, self.W_T_V0.copy(), laser_on, plane_W,
+            int(frame_index), U.copy(), applied, angles, W_T_V,
+            self.V0_T_W @ W_T_V, self.W_T_V0.copy(), laser_on, plane_W,
             normalize_plane(transform_plane(self.V0_T_W, plane_W)) if laser_on else nan4,
             geo.sheet.source if laser_on else np.full(3, np.nan), exposure, stripe,
             rig.name, self.scene.name, self.model_parameters, reflection)
@@ -711,7 +754,7 @@ class Simulator:
         The exposure defaults to the rig's ``calibration_exposure``; the laser power
         defaults to the value that gives the stripe the same signal as in a laser frame.
         """
-        rig = self.rig
+        rig = self._r
         exposure = rig.image.calibration_exposure if exposure is None else exposure
         if laser_power is None:
             laser_power = rig.image.exposure / exposure

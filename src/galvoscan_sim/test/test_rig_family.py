@@ -38,12 +38,15 @@ def _focal_length(data, distance):
 
 
 def _triangulation_angle(data):
-    """Angle between the optical axis and the G2 tilt axis point to the crossing, in V0's
-    y-z plane, from the loaded rig."""
+    """Angle between the optical axis and the G2 tilt axis point to the crossing, in the
+    plane of V0's z and the laser's side (y below or above, x beside), from the loaded rig."""
     rig = load_rig_text(yaml.safe_dump(data))
     p_W = (rig.W_T_G @ rig.G_T_G2 @ np.array([0.0, data['g2']['d'], 0.0, 1.0]))[:3]
     cross = rf.working_point(rig)
-    return math.atan2(p_W[1] - cross[1], cross[2] - p_W[2])
+    side = rf.LASER_SIDES[rf.build_of(data)['laser']]
+    off = p_W[:2] - cross[:2]
+    across = math.sin(side) * -off[0] + math.cos(side) * off[1]   # towards the laser's side
+    return math.atan2(across, cross[2] - p_W[2])
 
 
 def test_draws_are_deterministic_per_seed(drawn):
@@ -115,12 +118,14 @@ def _plane(z_W, albedo=0.5):
 
 
 def _stripe_row(rig, z_W, seed=3):
-    """Median brightest row of the 61 central columns, the peak over the background (in
-    8-bit DN) and the frame's true laser plane in W, on a grey plane at W z = z_W, all
-    voltages 0."""
+    """Median brightest row of the 61 central columns (column of the 61 central rows for a
+    stripe along the columns), the peak over the background (in 8-bit DN) and the frame's
+    true laser plane in W, on a grey plane at W z = z_W, all voltages 0."""
     frame = Simulator(rig, _plane(z_W), seed=seed).render(np.zeros(4), frame_index=0)
-    c = int(round(rig.camera.cx))
-    block = frame.image[:, c - 30:c + 31].astype(float)
+    vertical = rig.stripe_layout().orientation == 'vertical'
+    image = frame.image.T if vertical else frame.image
+    c = int(round(rig.camera.cy if vertical else rig.camera.cx))
+    block = image[:, c - 30:c + 31].astype(float)
     return (float(np.median(np.argmax(block, axis=0))),
             float(np.median(block.max(axis=0)) - np.median(block)) * 255.0
             / rig.image.white_level, frame.truth.laser_plane_W)
@@ -139,12 +144,14 @@ def test_stripe_crosses_the_image_centre_at_the_working_distance(seed, distance)
     assert abs(t - distance) < 1e-3, (t, distance)
     z_W = float((o_W + t * d_W)[2])
     row, peak, _ = _stripe_row(rig, z_W)
-    assert abs(row - rig.camera.cy) <= 3.0, (row, rig.camera.cy)
+    # across the stripe: the rows for a laser below or above, the columns beside
+    centre = rig.camera.cx if rig.stripe_layout().orientation == 'vertical' else rig.camera.cy
+    assert abs(row - centre) <= 3.0, (row, centre)
     assert 40.0 <= peak < 250.0
     # nearer and farther planes put the stripe on either side of the centre
     near, _, _ = _stripe_row(rig, z_W - 0.05 * distance)
     far, _, _ = _stripe_row(rig, z_W + 0.05 * distance)
-    assert (near - rig.camera.cy) * (far - rig.camera.cy) < 0
+    assert (near - centre) * (far - centre) < 0
     assert min(abs(near - rig.camera.cy), abs(far - rig.camera.cy)) > 5.0
 
 
@@ -308,6 +315,7 @@ def test_the_family_spans_sensors_bit_depths_and_heads(drawn):
     assert {b['sensor'] for b in builds} == set(rf.SENSORS)
     assert {b['head'] for b in builds} == set(rf.HEADS)
     assert {b['bit_depth'] for b in builds} >= {8, 10, 12}
+    assert {b['laser'] for b in builds} == set(rf.LASER_SIDES)
     for seed, data in drawn.items():
         b = rf.build_of(data)
         sensor, head = rf.SENSORS[b['sensor']], rf.HEADS[b['head']]
@@ -320,12 +328,18 @@ def test_the_family_spans_sensors_bit_depths_and_heads(drawn):
                 assert math.isclose(data[sec][axis]['gain'] * data['dac']['full_scale'],
                                     head.max_angle), (seed, sec, axis)
         assert f"{b['sensor']} sensor at {b['bit_depth']} bits" in data['description']
+        # the laser's side is where the chain finds the stripe
+        layout = load_rig_text(yaml.safe_dump(data)).stripe_layout()
+        assert layout.orientation == ('horizontal' if b['laser'] in ('below', 'above')
+                                      else 'vertical'), (seed, b, layout)
     assert rf.build_of(read_yaml_file(RIG_DIR / 'reference.yaml')) == rf.REFERENCE_BUILD
 
 
 def test_a_build_can_be_asked_for_and_bad_builds_are_refused():
-    data = rf.draw_rig(5, 0.5, build={'sensor': 'IMX273', 'bit_depth': 12, 'head': 'GVS011'})
-    assert rf.build_of(data) == {'sensor': 'IMX273', 'bit_depth': 12, 'head': 'GVS011'}
+    data = rf.draw_rig(5, 0.5, build={'sensor': 'IMX273', 'bit_depth': 12, 'head': 'GVS011',
+                                      'laser': 'right'})
+    assert rf.build_of(data) == {'sensor': 'IMX273', 'bit_depth': 12, 'head': 'GVS011',
+                                 'laser': 'right'}
     assert rf.check_rig(data, 0.5) == []
     # the build does not change the seed's geometry or its mirrors' placement errors
     other = rf.draw_rig(5, 0.5, build={'sensor': 'IMX287', 'bit_depth': 8, 'head': 'TSH8310'})
@@ -335,6 +349,7 @@ def test_a_build_can_be_asked_for_and_bad_builds_are_refused():
     for bad, words in (({'sensor': 'IMX999'}, 'not one of'), ({'head': 'huge'}, 'not one of'),
                        ({'sensor': 'PYTHON300', 'bit_depth': 12}, 'bit_depth 12'),
                        ({'bit_depth': 9}, 'bit_depth 9'), ({'lens': 1}, 'unknown key'),
+                       ({'laser': 'behind'}, 'laser .behind. is not one of'),
                        ('IMX287', 'expected a dict')):
         with pytest.raises(ValueError, match=words):
             rf.draw_rig(5, 0.5, build=bad)
@@ -373,20 +388,29 @@ def _g2_turned(data, degrees):
     return out
 
 
-def test_a_laser_beside_the_camera_or_an_oblique_sheet_is_refused_up_front():
+def test_a_laser_beside_the_camera_is_taken_and_an_oblique_sheet_refused_up_front():
     ref = read_yaml_file(RIG_DIR / 'reference.yaml')
     z = rf.working_distance(ref)
     assert math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(ref)))) < 0.5
-    # a few degrees of roll: still a stripe along the rows
-    assert rf.check_rig(_g2_turned(ref, 3.0), z) == []
-    for degrees, words in ((90.0, 'the laser sits beside the camera'),
-                           (-90.0, 'the laser sits beside the camera'),
-                           (30.0, 'the laser sheet is turned about the optical axis')):
+    # the laser moved round the camera: along the rows (a few degrees of roll, above) or
+    # along the columns (beside it), each within MAX_STRIPE_TILT
+    for degrees, orientation in ((3.0, 'horizontal'), (180.0, 'horizontal'),
+                                 (90.0, 'vertical'), (-90.0, 'vertical'),
+                                 (75.0, 'vertical')):
+        turned = _g2_turned(ref, degrees)
+        rig = load_rig_text(yaml.safe_dump(turned))
+        assert rig.stripe_layout().orientation == orientation, degrees
+        assert rf.check_rig(turned, z) == [], degrees
+    limit = math.degrees(rf.MAX_STRIPE_TILT)
+    for degrees in (30.0, -45.0, 135.0):
         turned = _g2_turned(ref, degrees)
         tilt = math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(turned))))
-        assert abs(tilt - min(abs(degrees), 180 - abs(degrees))) < 1.0, (degrees, tilt)
+        off = abs(degrees) % 90.0
+        assert abs(tilt - min(off, 90.0 - off)) < 1.0, (degrees, tilt)
+        assert tilt > limit
         problems = rf.check_rig(turned, z)
-        assert problems[0].startswith(f'the stripe runs {tilt:.1f} deg off the image rows')
-        assert words in problems[0] and 'not supported' in problems[0]
+        assert problems[0].startswith(f'the stripe runs {tilt:.1f} deg off the nearest of '
+                                      'the image rows and columns')
+        assert f'within {limit:.0f} deg' in problems[0]
         # refused before the simulator renders a stripe (not "covers 0 of 720 columns")
-        assert not any('columns' in p for p in problems), problems
+        assert not any('covers' in p for p in problems), problems

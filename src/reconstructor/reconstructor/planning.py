@@ -9,7 +9,10 @@ from the rig's hidden truth:
   at a given distance;
 - :func:`view_sweep`: a G2 sweep that moves the stripe across one G1 view;
 - :func:`expected_rows`: where a part of known nominal shape and pose puts the stripe in a
-  frame's image (the extractor's prior for picking the stripe among reflections).
+  frame's image (the extractor's prior for picking the stripe among reflections);
+- :func:`stripe_layout`: which way the stripe runs in the image and which G1 axis moves
+  the view across it, from the model's laser plane
+  (:func:`galvoscan_common.stripe_layout.stripe_layout`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ import numpy as np
 from scipy.optimize import brentq, least_squares
 
 from galvoscan_common.frame import VOLTAGE_LIMIT
+from galvoscan_common.stripe_layout import StripeLayout
+from galvoscan_common.stripe_layout import stripe_layout as _layout
 from reconstructor.model import (
     RigModel,
     laser_plane_v0,
@@ -29,6 +34,15 @@ from reconstructor.model import (
 #: An aim is reached when the target is this close to the optical axis (tangent of the angle:
 #: about 0.01 px at the telephoto focal length).
 AIM_TOLERANCE = 1e-6
+
+
+def stripe_layout(model: RigModel) -> StripeLayout:
+    """The stripe's direction in the image, the V0 axis it moves along with U2 and the G1
+    axis that moves the view across it, from the model's laser plane at U2 = 0 seen at
+    U1 = 0 (design values or a calibration: where the laser sits is read from them)."""
+    intr = model.intrinsics
+    return _layout(laser_plane_v0(model, 0.0), intr.fx, intr.fy,
+                   plane_moved=laser_plane_v0(model, 0.1))
 
 
 def _off_axis(model: RigModel, u, point) -> np.ndarray:
@@ -168,19 +182,18 @@ def aim_laser(model: RigModel, u1_pan: float, u1_tilt: float, distance: float = 
 
 def view_sweep(model: RigModel, u1_pan: float, u1_tilt: float, distance: float,
                frames: int, fraction: float = 0.8) -> np.ndarray:
-    """Voltages (frames, 4) sweeping the stripe over ``fraction`` of one view's height.
+    """Voltages (frames, 4) sweeping the stripe over ``fraction`` of one view across it.
 
     G1 is held at (u1_pan, u1_tilt); G2 tilt runs between the voltages that put the laser
-    on the rays through the top and bottom of the central ``fraction`` of the image at
-    ``distance`` [m].
+    on the rays through the two ends of the central ``fraction`` of the image across the
+    stripe (its top and bottom for a stripe along the rows, left and right along the
+    columns: :func:`stripe_layout`) at ``distance`` [m].
     """
     if frames < 1:
         raise ValueError(f'frames: expected >= 1, got {frames}')
-    intr = model.intrinsics
     T = v0_T_v(model, u1_pan, u1_tilt)
     ends = []
-    for v in (intr.cy - fraction * intr.height / 2, intr.cy + fraction * intr.height / 2):
-        ray = np.array([0.0, (v - intr.cy) / intr.fy, 1.0])
+    for ray in view_edge_rays(model, fraction):
         point = T[:3, 3] + T[:3, :3] @ (ray * distance)
 
         def f(u, point=point):
@@ -196,6 +209,22 @@ def view_sweep(model: RigModel, u1_pan: float, u1_tilt: float, distance: float,
     out = np.zeros((frames, 4))
     out[:, 0], out[:, 1], out[:, 3] = u1_pan, u1_tilt, u2
     return out
+
+
+def view_edge_rays(model: RigModel, fraction: float) -> list[np.ndarray]:
+    """The two rays (in the view's frame, z = 1) through the ends of the central
+    ``fraction`` of the image across the stripe, through the principal point along it
+    (:func:`stripe_layout`: the top and bottom rows for a stripe along the rows, the left
+    and right columns for one along the columns)."""
+    intr = model.intrinsics
+    k = stripe_layout(model).across
+    size, c, f = ((intr.height, intr.cy, intr.fy) if k == 1 else (intr.width, intr.cx, intr.fx))
+    rays = []
+    for px in (c - fraction * size / 2, c + fraction * size / 2):
+        ray = np.array([0.0, 0.0, 1.0])
+        ray[k] = (px - c) / f
+        rays.append(ray)
+    return rays
 
 
 def expected_rows(model: RigModel, faces_v0, voltages, width: int,
