@@ -1,7 +1,7 @@
 """The one meeting point of the physical simulator and the reconstruction model.
 
 With the ideal rig (every imperfection zero) the simulator's ray-traced geometry must be
-exactly what the model of DESIGN.md section 2 says: the virtual camera poses and the laser
+exactly what the model of docs/design.md section 2 says: the virtual camera poses and the laser
 planes agree to 1e-9, and the model, fed the simulator's true parameters and its true stripe
 pixels, reconstructs the simulator's true stripe points to within 1 um.
 """

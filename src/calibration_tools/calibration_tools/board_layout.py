@@ -4,7 +4,7 @@ Board frame W (OpenCV object convention): the board is the plane z = 0, x runs a
 (increasing column index), y along a column (increasing row index) and z points into the
 board, away from a camera that sees the printed side with x right and y down.
 
-The circle board (DESIGN.md section 3): 35 x 35 circles at 20 mm pitch in 25 sub-patterns of
+The circle board (docs/design.md section 3): 35 x 35 circles at 20 mm pitch in 25 sub-patterns of
 7 x 7; the centre circle of each sub-pattern is 15 mm across, the others 10 mm. Circle
 ``(row, col)`` has index ``row * cols + col`` and sits at
 ``((col - centre_col) * pitch, (row - centre_row) * pitch, 0)``: the origin of W is the
@@ -158,7 +158,7 @@ class CircleBoard:
         return idx.astype(np.int64)
 
 
-#: The paper's 740 x 740 mm board (DESIGN.md section 3).
+#: The paper's 740 x 740 mm board (docs/design.md section 3).
 PAPER_CIRCLE_BOARD = CircleBoard()
 
 

@@ -1,4 +1,4 @@
-"""Circle-board detection and identification (DESIGN.md section 3, step 2). No rclpy.
+"""Circle-board detection and identification (docs/design.md section 3, step 2). No rclpy.
 
 Detection (:func:`detect_circles`): Otsu threshold, connected components, then for each blob
 sub-pixel edge points where rays from its centroid cross the level midway between the

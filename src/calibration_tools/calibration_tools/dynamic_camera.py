@@ -1,6 +1,6 @@
 """Dynamic-camera calibration: l, d (and the G1 gains) from circle-board views (no rclpy).
 
-DESIGN.md section 3 step 2 and the paper's section III (Eqs. 9-16, 18-1):
+docs/design.md section 3 step 2 and the paper's section III (Eqs. 9-16, 18-1):
 
 1. Detect and identify the circles of every view (:mod:`calibration_tools.circle_board`),
    refining the model while identifying (:func:`identify_views`), so that the final

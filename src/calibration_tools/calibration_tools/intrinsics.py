@@ -1,6 +1,6 @@
 """Camera intrinsics by Zhang's method (OpenCV) from board images at U1 = 0 (no rclpy).
 
-DESIGN.md section 3 step 1. The targets are small boards that fit the ~60 x 45 mm view
+docs/design.md section 3 step 1. The targets are small boards that fit the ~60 x 45 mm view
 (:class:`~calibration_tools.board_layout.Checkerboard`,
 :class:`~calibration_tools.board_layout.CircleGrid`). With a 54 mm telephoto lens the field
 of view is ~5 degrees, so the focal length is only determined through the perspective of

@@ -1,4 +1,4 @@
-"""Joint correction of the dynamic camera and dynamic laser (paper's Algorithm 1, DESIGN.md §3
+"""Joint correction of the dynamic camera and dynamic laser (paper's Algorithm 1, docs/design.md §3
 step 5). No rclpy.
 
 With G2 held still, the laser stripe on a calibration sphere is one fixed physical curve;

@@ -1,4 +1,4 @@
-"""Laser rotation axis (DESIGN.md §3 step 4, paper Eq. 17) and the G2 angle per volt.
+"""Laser rotation axis (docs/design.md §3 step 4, paper Eq. 17) and the G2 angle per volt.
 
 The laser planes ``pi_i`` measured at G2 tilt voltages ``U_i`` all contain the G2 tilt axis
 (when the fan contains the mirror axis), so:
@@ -16,8 +16,8 @@ The laser planes ``pi_i`` measured at G2 tilt voltages ``U_i`` all contain the G
 Every plane's residual to the common axis is reported: the angle between the axis and the
 plane and the distance of ``P`` from the plane.
 
-Laser mounting error (DESIGN.md §5 source 6): a fan that is rolled about its beam or offset
-from the mirror axis is still turned rigidly about the axis by the mirror, but its planes no
+Laser mounting error (docs/design.md §5, the laser fan not containing G2's axis): a fan
+that is rolled about its beam or offset from the mirror axis is still turned rigidly about the axis by the mirror, but its planes no
 longer contain the axis: their normals lie on a cone about n (``n . n_i = cos`` of a constant
 angle) and they are tangent to a cylinder about it. ``method='cone'`` fits that general case:
 n is the eigenvector with the smallest eigenvalue of the covariance of the normals about their

@@ -1,4 +1,4 @@
-"""Laser plane at U2 = 0 (DESIGN.md §3 step 3): board plane by PnP, stripe back-projection,
+"""Laser plane at U2 = 0 (docs/design.md §3 step 3): board plane by PnP, stripe back-projection,
 SVD plane fit with outlier rejection. No rclpy.
 
 Building blocks

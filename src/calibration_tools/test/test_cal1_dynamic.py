@@ -60,7 +60,7 @@ def test_eq16_recovers_l_and_d_from_exact_transfers(l, d, seed):
     rng = np.random.default_rng(seed)
     th = math.pi / 4 + rng.uniform(-0.35, 0.35, (12, 2))
     ref = np.array([math.pi / 4 + 0.01, math.pi / 4 - 0.02])
-    # Measured transfers computed independently from the three factors of DESIGN.md §2.
+    # Measured transfers computed independently from the three factors of docs/design.md §2.
     T = rigid_inverse(g_T_v(ref[0], ref[1], l, d)) @ g_T_v(th[:, 0], th[:, 1], l, d)
     res = solve_l_d_linear(th[:, 0], th[:, 1], T, ref)
     assert res.l == pytest.approx(l, abs=1e-12) and res.d == pytest.approx(d, abs=1e-12)

@@ -2,7 +2,7 @@
 
 The simulator is the rig when there is no hardware: it is the driver's default backend,
 the source of calibration data and the ground truth accuracy is measured against. It is
-an independent physical model (DESIGN.md section 5): mirrors are explicit planes with
+an independent physical model (docs/design.md section 5): mirrors are explicit planes with
 their real imperfections, pixel rays and the laser fan are traced off them, and images
 are formed with a sensor model.
 

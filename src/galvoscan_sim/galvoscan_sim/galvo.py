@@ -1,7 +1,7 @@
 """Physical galvanometer mirrors: explicit planes that rotate about (possibly tilted) axes.
 
 A galvo head has a *pan* mirror and a *tilt* mirror. In the head's own frame (G for
-Galvanometer-1, G2 for Galvanometer-2, DESIGN.md section 2):
+Galvanometer-1, G2 for Galvanometer-2, docs/design.md section 2):
 
 - the pan axis is the z axis through the origin, and the pan mirror's normal at angle
   theta is ``(cos theta, -sin theta, 0)``, i.e. the reference normal (1, 0, 0) turned by
@@ -11,13 +11,13 @@ Galvanometer-1, G2 for Galvanometer-2, DESIGN.md section 2):
   theta about +x.
 
 With these normals the reflection ``I - 2 n n^T`` about the pan plane is exactly
-DESIGN.md's ``Pan`` matrix and the reflection about the tilt plane (through (0, d, 0)) is
+docs/design.md's ``Pan`` matrix and the reflection about the tilt plane (through (0, d, 0)) is
 exactly its ``Tilt`` matrix, so the camera ray along +x is sent along +y by the pan mirror
 and along +z by the tilt mirror at theta = 45 deg. The normals point *away* from the side
 the light arrives from.
 
-Real mirrors deviate (DESIGN.md section 5, source 2): the reflective surface sits
-``surface_offset`` [m] in front of the rotation axis (towards the incoming light), and the
+Real mirrors deviate (docs/design.md §5, the mirror surfaces off their axes): the reflective
+surface sits ``surface_offset`` [m] in front of the rotation axis (towards the incoming light), and the
 axis (with the mirror on it) is tilted by two small angles. Both are explicit here; nothing
 is linearised.
 """

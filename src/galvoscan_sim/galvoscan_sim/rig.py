@@ -1,6 +1,6 @@
 """The physical rig: camera, Galvanometer-1, Galvanometer-2 with the line laser, DAC.
 
-Frames (DESIGN.md section 2): C real camera (optical), G Galvanometer-1 head, G2
+Frames (docs/design.md section 2): C real camera (optical), G Galvanometer-1 head, G2
 Galvanometer-2 head, V virtual camera (C seen through both G1 mirrors), V0 = V at
 U1 = 0, W world (the scene's frame; the rig file fixes ``W_T_G``).
 
@@ -44,7 +44,7 @@ RIG_FILES = FileKind(RIG_FORMAT_VERSION, RIG_DIR)
 #: Output bit depths of the camera (Mono8, Mono10, Mono12, Mono16).
 BIT_DEPTHS = (8, 10, 12, 16)
 
-#: Fixed factor of DESIGN.md: maps C to G before the mirrors, with l = 0 (added below).
+#: Fixed factor of docs/design.md: maps C to G before the mirrors, with l = 0 (added below).
 _M0_ROT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
@@ -199,7 +199,7 @@ class LaserSheet:
 
 @dataclass(frozen=True)
 class ModelParameters:
-    """The reconstruction model's parameters that a rig corresponds to (DESIGN.md sec. 2).
+    """The reconstruction model's parameters that a rig corresponds to (docs/design.md sec. 2).
 
     For a rig without geometric imperfections they are exact: the model with these values
     reproduces the simulator's virtual camera poses and laser planes. With imperfections
@@ -312,7 +312,7 @@ class Rig:
         G1 geometry [m]: camera centre at (-l, 0, 0) in G, tilt axis through (0, d, 0).
     g1, g2 : GalvoHead
     G_T_C : ndarray, shape (4, 4)
-        Real camera pose in G (DESIGN.md's M0, times the camera mounting error).
+        Real camera pose in G (docs/design.md's M0, times the camera mounting error).
     G_T_G2 : ndarray, shape (4, 4)
     laser : LaserSource
     dac : Dac

@@ -2,7 +2,7 @@
 
 :func:`draw_rig` returns a rig description (a dict in the format of ``rigs/reference.yaml``,
 read unchanged by :func:`galvoscan_sim.rig_from_dict`) of a scanner as another workshop
-might have built it: every imperfection of DESIGN.md's Table 3 drawn inside the range of
+might have built it: every imperfection of docs/design.md §5 drawn inside the range of
 :data:`RANGES` (the one place where the ranges and their reasons are written), the geometry
 (l, d, lens, principal point, G2 head placement, triangulation angle) varied as real builds
 vary, and the whole set up for a working distance: the laser sheet at U2 = 0 crosses the
@@ -263,7 +263,7 @@ HEADS: dict[str, HeadClass] = {
     # 0.8 V/deg: +-10 V full range), linearity 99.9 %, repeatability 15 urad (GVS series
     # specifications).
     'GVS011': _head(12.5, 0.999, 15e-6, 5e-3, 'Thorlabs GVS011/012 specifications'),
-    # Sunny Technology TSH8310-class head (the reference rig's, DESIGN.md sources 1, 5):
+    # Sunny Technology TSH8310-class head (the reference rig's head, docs/design.md §5):
     # +-20 deg mechanical at +-10 V, linearity 99.9 % over 40 deg, repeatability 8 urad,
     # scale error < 0.5 %.
     'TSH8310': _head(20.0, 0.999, 8e-6, 5e-3, 'TSH8310 data sheet (sources 1, 5)'),

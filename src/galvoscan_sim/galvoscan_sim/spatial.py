@@ -1,6 +1,6 @@
 """Rigid transforms, rotations, mirror reflections and planes (numpy only).
 
-Conventions (DESIGN.md section 2): ``A_T_B`` is a 4x4 array mapping B coordinates to A
+Conventions (docs/design.md section 2): ``A_T_B`` is a 4x4 array mapping B coordinates to A
 coordinates, ``p_A = A_T_B @ p_B``. A plane is a 4-vector ``(a, b, c, e)`` with
 ``a x + b y + c z + e = 0``; if ``p_A = A_T_B p_B`` then ``pi_B = A_T_B.T @ pi_A``.
 """

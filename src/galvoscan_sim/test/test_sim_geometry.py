@@ -1,6 +1,6 @@
 """Physical geometry of the simulated rig: mirrors, virtual camera, laser sheet, DAC.
 
-The ideal rig is checked against DESIGN.md section 2's matrices written out here; the
+The ideal rig is checked against docs/design.md section 2's matrices written out here; the
 reference rig is checked for self-consistency (ray tracing vs point reflection) and for
 the imperfections actually changing the geometry.
 """
@@ -30,7 +30,7 @@ volts = st.floats(-10.0, 10.0)
 
 
 def design_G_T_V(t1, t2, l, d):
-    """DESIGN.md: G_T_V = Tilt(theta2) @ Pan(theta1) @ M0."""
+    """docs/design.md: G_T_V = Tilt(theta2) @ Pan(theta1) @ M0."""
     c1, s1, c2, s2 = math.cos(2 * t1), math.sin(2 * t1), math.cos(2 * t2), math.sin(2 * t2)
     tilt = np.array([[1, 0, 0, 0], [0, c2, s2, d * (1 - c2)], [0, s2, -c2, -d * s2],
                      [0, 0, 0, 1]])

@@ -1,4 +1,4 @@
-"""Run-time joint-correction table (DESIGN.md §3 step 5, the paper's Algorithm 1).
+"""Run-time joint-correction table (docs/design.md §3 step 5, the paper's Algorithm 1).
 
 The joint calibration stores, for G1 voltages on a rectangular grid, rigid transforms
 ``V0c_T_V0`` that map points triangulated by the model (frame V0) into the corrected output

@@ -1,6 +1,6 @@
 """Geometric model of the rig: dynamic camera, dynamic laser, camera, triangulation.
 
-Public entry point of the pure-numpy model library (no rclpy). See DESIGN.md sections 2-4 for
+Public entry point of the pure-numpy model library (no rclpy). See docs/design.md sections 2-4 for
 the mathematics and notation; the implementation lives in ``reconstructor.geometry``.
 """
 

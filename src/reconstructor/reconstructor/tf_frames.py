@@ -8,7 +8,7 @@ The tree (names are the node's parameters; defaults shown)::
 - ``world -> v0``: ``cell_T_v0``, the pose of the scanner's fixed output frame V0 in the
   robot cell: the calibration file's ``cell_T_v0`` when it has one, else the node's
   ``cell_T_v0`` parameter (identity by default).
-- ``v0 -> v``: ``V0_T_V`` at the frame's G1 voltages (DESIGN.md section 2), followed by the
+- ``v0 -> v``: ``V0_T_V`` at the frame's G1 voltages (docs/design.md section 2), followed by the
   joint correction when the model has one, so that a point in ``v`` maps to where the
   clouds put it. ``v`` is the virtual camera: the camera as seen through both G1 mirrors.
 - ``v -> camera_optical``: identity. V already has the optical convention of REP 103 (z

@@ -1,4 +1,4 @@
-"""Dynamic-camera model (DESIGN.md §2, paper Eq. 2): factors, G_T_V, V0_T_V, mirror response.
+"""Dynamic-camera model (docs/design.md §2, paper Eq. 2): factors, G_T_V, V0_T_V, mirror response.
 
 The independent reference builds G_T_V from the physical set-up, not from the model's
 matrices: the camera at (-l, 0, 0) in G looking along +x_G, the pan mirror (a plane containing

@@ -52,7 +52,7 @@ def model_with_laser(axis_dir, axis_point, plane, g2=None):
 @settings(max_examples=100, deadline=None)
 @given(volts)
 def test_plane_equals_rodrigues_when_axis_lies_in_plane(u):
-    """DESIGN.md: normal = R(n, 2 theta4) n0 and e = -normal . P (P on pi0)."""
+    """docs/design.md: normal = R(n, 2 theta4) n0 and e = -normal . P (P on pi0)."""
     model = nominal_example_rig()  # its U2 = 0 plane contains the axis
     n, P = model.laser_axis_dir, model.laser_axis_point
     n0 = model.laser_plane_v0[:3].copy()  # model arrays are read-only

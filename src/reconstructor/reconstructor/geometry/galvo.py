@@ -1,4 +1,4 @@
-"""Galvanometer mirrors: voltage-to-angle, and the dynamic-camera transform of DESIGN.md section 2.
+"""Galvanometer mirrors: voltage-to-angle, and the dynamic-camera transform (docs/design.md §2).
 
 ``G_T_V(theta_pan, theta_tilt) = Tilt(theta_tilt) @ Pan(theta_pan) @ M0`` is the pose of the
 virtual camera {V} in the Galvanometer-1 base frame {G} (the paper's ^V T_G, Eq. 2). It is
@@ -176,7 +176,7 @@ def m0_factor(l: float) -> np.ndarray:
 
 
 def g_T_v(theta_pan, theta_tilt, l: float, d: float) -> np.ndarray:
-    """Pose of the virtual camera {V} in {G}: ``Tilt(θ2) @ Pan(θ1) @ M0`` (DESIGN.md §2).
+    """Pose of the virtual camera {V} in {G}: ``Tilt(θ2) @ Pan(θ1) @ M0`` (docs/design.md §2).
 
     Parameters
     ----------

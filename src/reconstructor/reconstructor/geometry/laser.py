@@ -1,4 +1,4 @@
-"""Dynamic laser (DESIGN.md §2, paper Eqs. 6-7) and plane transforms.
+"""Dynamic laser (docs/design.md §2, paper Eqs. 6-7) and plane transforms.
 
 The G2 tilt mirror rotates about an axis lying in its surface, so the reflected laser plane is
 the U2 = 0 plane ``pi0`` rotated rigidly about the axis (unit n through P, in V0) by
@@ -8,7 +8,7 @@ the U2 = 0 plane ``pi0`` rotated rigidly about the axis (unit n through P, in V0
     e      = e0 + n0·P - normal·P
 
 When P lies on pi0 (``n0·P + e0 = 0``, which the axis calibration makes true up to its
-residual) this is exactly DESIGN.md's ``e = -normal·P``; when it does not, the rigid rotation
+residual) this is exactly docs/design.md's ``e = -normal·P``; when it does not, the rigid rotation
 keeps pi0 at U2 = 0 and still models a fan plane that misses the mirror axis exactly.
 """
 

@@ -1,6 +1,6 @@
 """The physical mirror model: each galvo mirror as a plane turning about its axis.
 
-The paper's model (DESIGN.md §2) idealises Galvanometer-1 as two mirrors whose surfaces
+The paper's model (docs/design.md §2) idealises Galvanometer-1 as two mirrors whose surfaces
 contain their rotation axes, the pan axis along G's z, the tilt axis along G's x through
 (0, d, 0), and the camera looking along G's x from (-l, 0, 0) with the fixed orientation M0;
 the laser plane turns rigidly about the G2 tilt axis. Real mirrors are glued some tenths of a
@@ -46,7 +46,7 @@ from ..correction import rotvec_to_matrix
 from .checks import check_keys, finite_scalar, finite_vector
 from .galvo import broadcast_angles
 
-#: M0's rotation: maps camera axes (x right, y down, z forward) to G (DESIGN.md §2).
+#: M0's rotation: maps camera axes (x right, y down, z forward) to G (docs/design.md §2).
 M0_ROT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 

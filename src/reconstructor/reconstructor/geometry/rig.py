@@ -21,7 +21,7 @@ MODEL_KINDS = ("paper", "physical")
 
 @runtime_checkable
 class JointCorrection(Protocol):
-    """Interface of the joint-correction table (DESIGN.md §3 step 5), applied after V0_T_V.
+    """Interface of the joint-correction table (docs/design.md §3 step 5), applied after V0_T_V.
 
     ``V0c_T_V0(u1_pan, u1_tilt)`` takes G1 voltages (floats, or arrays of one shape (...),
     volts) and returns rigid transforms of shape (..., 4, 4) from the model's V0 to the

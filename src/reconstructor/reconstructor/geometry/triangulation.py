@@ -1,4 +1,4 @@
-"""Triangulation of stripe pixels against the dynamic laser plane (DESIGN.md §2, Eq. 8), and
+"""Triangulation of stripe pixels against the dynamic laser plane (docs/design.md §2, Eq. 8), and
 prediction of pixels from V0 points.
 
 For an undistorted normalised ray ``r = (x, y, 1)`` in V and the laser plane
