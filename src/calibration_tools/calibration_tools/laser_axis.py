@@ -17,8 +17,8 @@ Every plane's residual to the common axis is reported: the angle between the axi
 plane and the distance of ``P`` from the plane.
 
 Laser mounting error (docs/design.md §5, the laser fan not containing G2's axis): a fan
-that is rolled about its beam or offset from the mirror axis is still turned rigidly about the axis by the mirror, but its planes no
-longer contain the axis: their normals lie on a cone about n (``n . n_i = cos`` of a constant
+that is rolled about its beam or offset from the mirror axis is still turned rigidly about
+the axis by the mirror, but its planes no longer contain the axis: their normals lie on a cone about n (``n . n_i = cos`` of a constant
 angle) and they are tangent to a cylinder about it. ``method='cone'`` fits that general case:
 n is the eigenvector with the smallest eigenvalue of the covariance of the normals about their
 mean (``sum (n_i - mean)(n_i - mean)^T``), and P comes with the common offset rho. It needs a
