@@ -17,9 +17,9 @@ and along +z by the tilt mirror at theta = 45 deg. The normals point *away* from
 the light arrives from.
 
 Real mirrors deviate (docs/design.md §5, the mirror surfaces off their axes): the reflective
-surface sits ``surface_offset`` [m] in front of the rotation axis (towards the incoming
-light), and the axis (with the mirror on it) is tilted by two small angles. Both are explicit here; nothing
-is linearised.
+surface sits ``surface_offset`` [m] in front of the rotation axis (towards the incoming light),
+and the axis (with the mirror on it) is tilted by two small angles. Both are explicit here;
+nothing is linearised.
 """
 
 from __future__ import annotations
