@@ -20,10 +20,11 @@ Laser mounting error (docs/design.md §5, the laser fan not containing G2's axis
 rolled about its beam or offset from the mirror axis is still turned rigidly about the axis by
 the mirror, but its planes no longer contain the axis: their normals lie on a cone about n
 (``n . n_i = cos`` of a constant angle) and they are tangent to a cylinder about it.
-``method='cone'`` fits that general case: n is the eigenvector with the smallest eigenvalue of the covariance of the normals about their
-mean (``sum (n_i - mean)(n_i - mean)^T``), and P comes with the common offset rho. It needs a
-wider sweep than the paper's method (the cone's opening is told apart from a tilt of n only
-by the curvature of the arc the normals trace). No rclpy.
+``method='cone'`` fits that general case: n is the eigenvector with the smallest eigenvalue of
+the covariance of the normals about their mean (``sum (n_i - mean)(n_i - mean)^T``), and P
+comes with the common offset rho. It needs a wider sweep than the paper's method (the cone's
+opening is told apart from a tilt of n only by the curvature of the arc the normals trace).
+No rclpy.
 """
 
 from __future__ import annotations
