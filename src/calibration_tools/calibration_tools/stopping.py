@@ -83,8 +83,10 @@ MIN_PLACEMENTS = {'intrinsics': 5, 'laser_plane': 3, 'laser_axis': 6}
 #: the stage asks for every plane of its plan (they span G2's range, which the curvature
 #: needs) before its standard errors count.
 ROW_BOARDS = 2
-#: The stages whose standard errors are predicted here (the others: see the module).
-PREDICTED = ('intrinsics', 'laser_plane', 'laser_axis')
+#: The stages whose standard errors are predicted here, each with what they are predicted
+#: from: the camera's projection (``camera``), one laser sheet (``sheet``) or the sheets of
+#: the G2 planes about the laser axis (``axis``). The others: see the module.
+PREDICTED = {'intrinsics': 'camera', 'laser_plane': 'sheet', 'laser_axis': 'axis'}
 
 
 @dataclass
@@ -306,11 +308,12 @@ def _perp(v) -> tuple[np.ndarray, np.ndarray]:
     return a, np.cross(v, a)
 
 
-def _sheet_params(stage: str, model, centre):
-    """The stage's sheet parameters: (name, unit, perturb, step)."""
+def _sheet_params(kind: str, model, centre):
+    """The sheet parameters of a ``kind`` of :data:`PREDICTED`: (name, unit, perturb,
+    step)."""
     import dataclasses
 
-    if stage == 'laser_plane':
+    if kind == 'sheet':
         pi = np.asarray(model.laser_plane_v0, dtype=np.float64)
         t1, t2 = _perp(pi[:3])
         c = np.asarray(centre, dtype=np.float64)
@@ -414,7 +417,8 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
                           best=0 if candidates else None,
                           advice=(f'next: {_describe(model, candidates[0])} (this stage '
                                   'takes every placement of its plan)') if candidates else '')
-    if stage == 'intrinsics':
+    kind = PREDICTED[stage]
+    if kind == 'camera':
         names, units = list(INTRINSICS_NAMES), list(_INTRINSICS_UNITS)
         target = _intrinsics_targets(model, targets)
         prior = _intrinsics_prior()
@@ -430,7 +434,7 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
                 region.append((pts, u2))
         centre = (np.vstack([r[0] for r in region]).mean(axis=0) if region
                   else np.array([0.0, 0.0, targets.depth]))
-        params = _sheet_params(stage, model, centre)
+        params = _sheet_params(kind, model, centre)
         names, units = [q[0] for q in params], [q[1] for q in params]
         sp = [(q[0], q[2], q[3]) for q in params]
         target = _sheet_targets(model, sp, region, targets)
@@ -483,7 +487,7 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
 
 def _row(p):
     """The G2 voltage a laser-axis board is lit at (its plane), rounded; None otherwise."""
-    if p.stage != 'laser_axis':
+    if PREDICTED.get(p.stage) != 'axis':
         return None
     u = _lit_voltage(p)
     return None if u is None else round(u, 3)
@@ -491,7 +495,9 @@ def _row(p):
 
 def _rows(stage: str, places) -> set:
     """The laser axis's planes (G2 voltages) of its plan; empty for the other stages."""
-    return {_row(p) for p in places if _row(p) is not None} if stage == 'laser_axis' else set()
+    if PREDICTED.get(stage) != 'axis':
+        return set()
+    return {_row(p) for p in places if _row(p) is not None}
 
 
 def _sigma(info: np.ndarray) -> np.ndarray:
