@@ -49,9 +49,9 @@ BENCHMARKS = {
     'firmware_simavr': (['benchmarks/firmware_simavr.py'], True,
                         'the board firmware in simavr: 10,000 triggers at 500 Hz, watchdog, '
                         'interlock'),
-    'twin_scan': (['benchmarks/twin_scan.py'], False,
+    'twin_scan': (['benchmarks/twin_scan.py', '--positions', '18'], False,
                   'a stair scan through the twin (firmware in simavr, GigE Vision camera '
-                  'path) against the same scan on the sim backend'),
+                  'path) against the same scan on the sim backend, 18 stair positions'),
     'materials': (['benchmarks/materials.py'], False,
                   'stair, plate and outliers per material, countermeasures off and on'),
     'calibration_chain': (['benchmarks/calibration_chain.py'], False,
