@@ -14,35 +14,19 @@ object with the RMS per angle and its ratio to the 0 deg RMS measured in the sam
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import math
 
 import numpy as np
 import yaml
-from scipy.spatial.transform import Rotation
 
 from galvoscan_sim import Simulator
 from galvoscan_sim.config import read_yaml_file
 from galvoscan_sim.rig import RIG_DIR, load_rig_text
-from galvoscan_sim.rig_family import _plane_scene, working_point
-from galvoscan_sim.spatial import invert_transform
+from galvoscan_sim.rig_family import _plane_scene, g2_turned, working_point
 from stripe_extractor.extractor import ExtractorConfig, extract
 
 ANGLES_DEG = (0, 10, 20, 30, 40)
-
-
-def turned(data: dict, degrees: float) -> dict:
-    """The rig with its G2 head turned about the actual V0's z axis by ``degrees``."""
-    rig = load_rig_text(yaml.safe_dump(data))
-    R = np.eye(4)
-    R[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(degrees)]).as_matrix()
-    T = rig.G_T_V0 @ R @ invert_transform(rig.G_T_V0) @ rig.G_T_G2
-    out = copy.deepcopy(data)
-    out['g2']['pose_in_g1'] = {
-        'translation': [float(v) for v in T[:3, 3]],
-        'rotation_vector': [float(v) for v in Rotation.from_matrix(T[:3, :3]).as_rotvec()]}
-    return out
 
 
 def normal_errors(rig, frames: int) -> tuple[np.ndarray, object]:
@@ -72,7 +56,7 @@ def main(argv=None) -> int:
         ref['imperfections']['image']['speckle_contrast'] = 0.0
     out = {}
     for deg in ANGLES_DEG:
-        e, lay = normal_errors(load_rig_text(yaml.safe_dump(turned(ref, deg))), args.frames)
+        e, lay = normal_errors(load_rig_text(yaml.safe_dump(g2_turned(ref, deg))), args.frames)
         rms = float(np.sqrt(np.mean(e ** 2)))
         out[str(deg)] = {'tilt_deg': math.degrees(lay.tilt), 'points': int(e.size),
                          'bias_px': float(np.median(e)), 'rms_px': rms}

@@ -56,13 +56,14 @@ from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
+import yaml
 from scipy.spatial.transform import Rotation
 
 from galvoscan_common.stripe_layout import MAX_STRIPE_TILT as _STRIPE_MAX_TILT
 from galvoscan_common.stripe_layout import StripeLayout
 
 from .config import ConfigError, read_yaml_file
-from .rig import RIG_DIR, Rig, rig_from_dict
+from .rig import RIG_DIR, Rig, load_rig_text, rig_from_dict
 from .scene import load_scene_text
 from .simulator import Simulator
 from .spatial import invert_transform, transform_plane
@@ -825,6 +826,21 @@ def working_point(rig: dict | Rig) -> np.ndarray:
     r = rig if isinstance(rig, Rig) else rig_from_dict(rig, '<rig>')
     s = _crossing_V0(r)
     return (r.W_T_V0 @ np.array([0.0, 0.0, s, 1.0]))[:3]
+
+
+def g2_turned(data: dict, degrees: float) -> dict:
+    """A rig description (``rigs/*.yaml`` as a dict) with its G2 head turned about the
+    camera's optical axis (the actual V0's z) by ``degrees``: the laser moved round the
+    camera, the sheet still crossing the axis where it did. ``data`` is left unchanged."""
+    rig = load_rig_text(yaml.safe_dump(data))
+    R = np.eye(4)
+    R[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(degrees)]).as_matrix()
+    T = rig.G_T_V0 @ R @ invert_transform(rig.G_T_V0) @ rig.G_T_G2
+    out = copy.deepcopy(data)
+    out['g2']['pose_in_g1'] = {
+        'translation': [float(v) for v in T[:3, 3]],
+        'rotation_vector': [float(v) for v in Rotation.from_matrix(T[:3, :3]).as_rotvec()]}
+    return out
 
 
 def working_distance(rig: dict | Rig) -> float:

@@ -370,24 +370,6 @@ def test_a_12_bit_rig_sees_the_stripe_as_an_8_bit_one_does():
     assert abs(rows[8][1] - rows[12][1]) < 0.05 * rows[8][1] + 1.0
 
 
-def _g2_turned(data, degrees):
-    """The rig with its G2 head turned about the camera's optical axis (the actual V0's z):
-    the laser moved round the camera, the sheet still crossing the axis where it did."""
-    from scipy.spatial.transform import Rotation
-
-    from galvoscan_sim.spatial import invert_transform
-
-    rig = load_rig_text(yaml.safe_dump(data))
-    R = np.eye(4)
-    R[:3, :3] = Rotation.from_rotvec([0.0, 0.0, math.radians(degrees)]).as_matrix()
-    T = rig.G_T_V0 @ R @ invert_transform(rig.G_T_V0) @ rig.G_T_G2
-    out = copy.deepcopy(data)
-    out['g2']['pose_in_g1'] = {
-        'translation': [float(v) for v in T[:3, 3]],
-        'rotation_vector': [float(v) for v in Rotation.from_matrix(T[:3, :3]).as_rotvec()]}
-    return out
-
-
 def test_a_laser_beside_the_camera_is_taken_and_an_oblique_sheet_refused_up_front():
     ref = read_yaml_file(RIG_DIR / 'reference.yaml')
     z = rf.working_distance(ref)
@@ -397,13 +379,13 @@ def test_a_laser_beside_the_camera_is_taken_and_an_oblique_sheet_refused_up_fron
     for degrees, orientation in ((3.0, 'horizontal'), (180.0, 'horizontal'),
                                  (90.0, 'vertical'), (-90.0, 'vertical'),
                                  (75.0, 'vertical')):
-        turned = _g2_turned(ref, degrees)
+        turned = rf.g2_turned(ref, degrees)
         rig = load_rig_text(yaml.safe_dump(turned))
         assert rig.stripe_layout().orientation == orientation, degrees
         assert rf.check_rig(turned, z) == [], degrees
     limit = math.degrees(rf.MAX_STRIPE_TILT)
     for degrees in (30.0, -45.0, 135.0):
-        turned = _g2_turned(ref, degrees)
+        turned = rf.g2_turned(ref, degrees)
         tilt = math.degrees(rf.stripe_tilt(load_rig_text(yaml.safe_dump(turned))))
         off = abs(degrees) % 90.0
         assert abs(tilt - min(off, 90.0 - off)) < 1.0, (degrees, tilt)
