@@ -1115,13 +1115,10 @@ def _twin_evaluate(args) -> int:
     ``--truth-calibration``), then scan the stair block at the working point. Writes
     ``metrics.json`` (and ``failure.json`` when it stops) into ``--out``."""
     t0 = time.monotonic()
-    try:
-        rig, _, site, wd, out = _load(args)
-    except (ValueError, OSError) as exc:
-        print(f'galvoscan evaluate: {exc}', file=sys.stderr)
+    loaded = _load_fresh(args)
+    if loaded is None:
         return 2
-    for stale in ('failure.json', 'metrics.json'):
-        (out / stale).unlink(missing_ok=True)
+    rig, _, site, wd, out = loaded
     if args.frame_rate == build_parser().get_default('frame_rate'):
         args.frame_rate = TWIN_FRAME_RATE
     q = args.quick
@@ -1244,6 +1241,19 @@ def _load(args):
     return rig, description, site, working_distance(rig), _output_folder(Path(args.out))
 
 
+def _load_fresh(args):
+    """:func:`_load`, saying on stderr why it failed (then None), with the last run's
+    ``failure.json`` and ``metrics.json`` removed from the output folder."""
+    try:
+        loaded = _load(args)
+    except (ValueError, OSError) as exc:
+        print(f'galvoscan evaluate: {exc}', file=sys.stderr)
+        return None
+    for stale in ('failure.json', 'metrics.json'):
+        (loaded[-1] / stale).unlink(missing_ok=True)
+    return loaded
+
+
 def _operator_metrics(operator, details) -> dict:
     """``metrics.json``'s ``operator``: the simulated operator's figures of the evaluated
     rig's own calibration (per stage: placements made and kept, instructions given, views
@@ -1281,13 +1291,10 @@ def main(argv=None):
     from galvoscan.simulated_rig import nominal_rig
 
     t0 = time.monotonic()
-    try:
-        rig, description, site, wd, out = _load(args)
-    except (ValueError, OSError) as exc:
-        print(f'galvoscan evaluate: {exc}', file=sys.stderr)
+    loaded = _load_fresh(args)
+    if loaded is None:
         return 2
-    for stale in ('failure.json', 'metrics.json'):
-        (out / stale).unlink(missing_ok=True)
+    rig, description, site, wd, out = loaded
     progress = Progress()
     progress.log(f'rig {rig.name}: working distance {wd * 1e3:.1f} mm (stand-off from the '
                  f'G1 exit mirror), working point {site.depth * 1e3:.1f} mm deep, scene '
