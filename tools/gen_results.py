@@ -64,15 +64,20 @@ BENCHMARKS = {
                           'two seeds of one rig against their stated uncertainty'),
     'uncertainty_check': (['benchmarks/uncertainty_check.py', '--rigs', '10'], False,
                           'predicted uncertainty against the measured error, drawn rigs'),
-    'rig_family': (['benchmarks/rig_family.py', '--rigs', '20'], False,
-                   'drawn rigs calibrated and evaluated through the graph'),
+    'rig_family': (['benchmarks/rig_family.py', '--rigs', '20', '--distances', 'none'], False,
+                   'drawn rigs calibrated and evaluated through the graph, at their own '
+                   'working distance'),
+    'operator_family': (['benchmarks/rig_family.py', '--operator', '--reference-rig', '--rigs',
+                         '10', '--distances', 'none', '--out', 'out/operator_family'], False,
+                        'the reference rig and drawn rigs calibrated through the simulated '
+                        'operator, against the zero-error operator'),
     'joint_bundle': (['benchmarks/joint_bundle.py'], False,
                      'one bundle over camera and laser against the staged calibration'),
     'hosts_apart': (['benchmarks/hosts_apart.py'], False,
                     'the image path across a network link (root: network namespaces)'),
 }
-ACCURACY = ('rig_family', 'uncertainty_check', 'calibration_seeds', 'joint_bundle',
-            'materials')
+ACCURACY = ('rig_family', 'operator_family', 'uncertainty_check', 'calibration_seeds',
+            'joint_bundle', 'materials')
 
 #: metrics.json keys shown on the accuracy page, with the paper's figure where it gives one
 DEMO_ROWS = (
@@ -140,7 +145,20 @@ def load_store() -> dict:
     return {'demo': None, 'benchmarks': {}}
 
 
-def run_benchmark(name: str, store: dict) -> None:
+def save_entry(section: str, entry: dict, name: str | None = None) -> dict:
+    """Write one entry into results.json as it is on disk now (another run may have written
+    its own entry meanwhile); the store as written."""
+    store = load_store()
+    if name is None:
+        store[section] = entry
+    else:
+        store.setdefault(section, {})[name] = entry
+    STORE.write_text(json.dumps(store, indent=1) + '\n')
+    return store
+
+
+def run_benchmark(name: str) -> dict:
+    """Run benchmark ``name``; its entry (the result, or the error it ended with)."""
     args, _, _ = BENCHMARKS[name]
     command = '.venv/bin/python ' + ' '.join(args)
     print(f'[results] {command}', flush=True)
@@ -155,10 +173,10 @@ def run_benchmark(name: str, store: dict) -> None:
     except ValueError as exc:
         entry['error'] = str(exc)
         print(f'[results] {name}: not measured: {exc}', flush=True)
-    store['benchmarks'][name] = entry
+    return entry
 
 
-def record_demo(out: Path, store: dict, command: str, wall_s: float | None) -> None:
+def record_demo(out: Path, command: str, wall_s: float | None) -> dict:
     metrics = json.loads((out / 'metrics.json').read_text())
     entry = {'command': command, 'date': now(), 'commit': commit(), 'machine': machine(),
              'wall_s': wall_s, 'metrics': metrics, 'plots': []}
@@ -166,7 +184,7 @@ def record_demo(out: Path, store: dict, command: str, wall_s: float | None) -> N
         if (out / plot).exists():
             shutil.copyfile(out / plot, RESULTS / plot)
             entry['plots'].append(plot)
-    store['demo'] = entry
+    return entry
 
 
 def _fmt(v) -> str:
@@ -296,7 +314,7 @@ def main(argv=None) -> int:
             p.error(f"unknown: {', '.join(sorted(unknown))}; known: demo, "
                     f"{', '.join(BENCHMARKS)}")
         if args.demo_out:
-            record_demo(args.demo_out, store, 'make demo', None)
+            store = save_entry('demo', record_demo(args.demo_out, 'make demo', None))
         elif 'demo' in wanted:
             out = ROOT / 'build' / 'results_demo'
             # the demo's main job, and the paper's method calibrated again on the same rig
@@ -310,11 +328,11 @@ def main(argv=None) -> int:
             if rc != 0:
                 print(f'[results] the evaluation failed (exit code {rc}); its page is unchanged')
             else:
-                record_demo(out, store, command, round(time.monotonic() - t0, 1))
+                store = save_entry('demo', record_demo(out, command,
+                                                       round(time.monotonic() - t0, 1)))
         for name in wanted:
             if name != 'demo':
-                run_benchmark(name, store)
-        STORE.write_text(json.dumps(store, indent=1) + '\n')
+                store = save_entry('benchmarks', run_benchmark(name), name)
     render(store)
     print(f'[results] wrote {RESULTS.relative_to(ROOT)}/')
     return 0
