@@ -24,6 +24,7 @@ import platform
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -163,13 +164,24 @@ def run_benchmark(name: str) -> dict:
     command = '.venv/bin/python ' + ' '.join(args)
     print(f'[results] {command}', flush=True)
     t0 = time.monotonic()
-    proc = subprocess.run([PY, *args], cwd=ROOT, text=True, capture_output=True)
+    # the benchmark's progress lines are shown as they come (a long run reports each step)
+    with subprocess.Popen([PY, *args], cwd=ROOT, text=True, stdout=subprocess.PIPE,
+                          stderr=subprocess.PIPE) as proc:
+        err = []
+        reader = threading.Thread(target=lambda: err.extend(proc.stderr), daemon=True)
+        reader.start()
+        out = []
+        for line in proc.stdout:
+            out.append(line)
+            print(f'[{name}] {line}', end='', flush=True)
+        proc.wait()
+        reader.join()
     entry = {'command': command, 'date': now(), 'commit': commit(), 'machine': machine(),
              'wall_s': round(time.monotonic() - t0, 1)}
     try:
         if proc.returncode != 0:
-            raise ValueError(f'exit code {proc.returncode}: {proc.stderr.strip()[-400:]}')
-        entry['result'] = last_json(proc.stdout)
+            raise ValueError(f"exit code {proc.returncode}: {''.join(err).strip()[-400:]}")
+        entry['result'] = last_json(''.join(out))
     except ValueError as exc:
         entry['error'] = str(exc)
         print(f'[results] {name}: not measured: {exc}', flush=True)
