@@ -1,7 +1,12 @@
 """Drawn rigs of the family, each calibrated and evaluated through the graph.
 
 Run: ``.venv/bin/python benchmarks/rig_family.py [--rigs 20] [--seed-start 0] [--quick]
-[--out DIR] [--timeout S] [--operator [--reference-rig] [--distances MM,..|none]]``
+[--out DIR] [--timeout S] [--jobs N] [--resume] [--operator [--reference-rig]]
+[--distances MM,..|none]``
+
+A full-plan rig takes 6 to 10 minutes on two cores: ``--jobs 2`` evaluates two rigs at once
+(each graph in a ROS domain of its own), and ``--resume`` lets a stopped run go on where it
+stopped, reusing the rigs completed on the same source tree with the same arguments.
 
 For each seed from ``--seed-start``: ``galvoscan_sim.rig_family.draw_rig(seed)`` (a rig of
 the family, at a working distance drawn in 100..1000 mm) is written to
@@ -40,15 +45,19 @@ import argparse
 import json
 import math
 import os
+import random
 import shutil
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from galvoscan_common.runtime import RUN_DOMAINS
 from galvoscan_sim.rig_family import build_of, draw_rig, working_distance
 from reconstructor.uncertainty import prediction_summary
 
@@ -100,10 +109,46 @@ def _read_json(path: Path):
         return None
 
 
+def source_tree() -> str | None:
+    """The git tree of ``src/`` (the code a rig's figures come from), or None when it has
+    uncommitted changes or is not in git: then no earlier rig's result is reused."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        tree = subprocess.run(['git', 'rev-parse', 'HEAD:src'], cwd=root, text=True,
+                              capture_output=True, check=True).stdout.strip()
+        dirty = subprocess.run(['git', 'status', '--porcelain', '--', 'src'], cwd=root,
+                               text=True, capture_output=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return None if dirty else tree
+
+
 def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
-            model: str = 'physical', extra=(), rig_name: str | None = None) -> dict:
+            model: str = 'physical', extra=(), rig_name: str | None = None,
+            resume: bool = False, domain: int | None = None) -> dict:
     """Draw rig ``seed`` (or use the shipped rig ``rig_name``) and evaluate it with the extra
-    ``evaluate`` arguments; never raises (a failure is recorded)."""
+    ``evaluate`` arguments; never raises (a failure is recorded).
+
+    The row is kept in ``folder/row.json`` with what it was measured with (the source tree,
+    the plans, the model and the arguments). With ``resume``, a completed row measured with
+    the same is returned as it is instead of evaluating the rig again, so that a long run
+    that was stopped goes on where it stopped. ``domain``: the graph's ROS domain (evaluate
+    draws a private one when None)."""
+    key = {'src': source_tree(), 'quick': bool(quick), 'model': model, 'extra': list(extra),
+           'rig': rig_name, 'seed': seed}
+    cached = _read_json(folder / 'row.json') if resume and key['src'] else None
+    if cached and cached.get('key') == key and cached.get('row', {}).get('completed'):
+        return {**cached['row'], 'resumed': True}
+    row = _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain)
+    try:
+        (folder / 'row.json').write_text(json.dumps({'key': key, 'row': row}, indent=1,
+                                                    default=float))
+    except OSError:
+        pass
+    return row
+
+
+def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain) -> dict:
     t0 = time.monotonic()
     row = {'seed': seed, 'completed': False, 'failures': []}
     try:
@@ -129,9 +174,12 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
             '--out', str(out), '--seed', str(seed), '--model', model, '--no-paper-method'] \
         + (['--quick'] if quick else []) + list(extra)
     try:
+        env = os.environ.copy()
+        if domain is not None:
+            env['ROS_DOMAIN_ID'] = str(domain)
         with open(folder / 'evaluate.log', 'w') as log:
             rc = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT, timeout=timeout,
-                                env=os.environ.copy()).returncode
+                                env=env).returncode
     except subprocess.TimeoutExpired:
         rc = None
     row['wall_s'] = time.monotonic() - t0
@@ -158,6 +206,35 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
                                     'message': d.get('reason', '').removeprefix(
                                         'not measured: ')})
     return row
+
+
+def run_many(specs, jobs: int, done=None) -> list[dict]:
+    """``run_rig(**spec)`` for every spec, ``jobs`` at a time (each evaluation is a graph of
+    its own in a ROS domain of its own); the rows in the specs' order. ``done(i, row)`` is
+    called as each finishes."""
+    domains = random.Random(len(specs)).sample(range(RUN_DOMAINS[0], RUN_DOMAINS[1] + 1),
+                                              max(jobs, 1))
+    rows = [None] * len(specs)
+    slots = list(domains)
+    lock = threading.Lock()
+
+    def one(i):
+        with lock:
+            domain = slots.pop()
+        try:
+            row = run_rig(**specs[i], domain=domain if jobs > 1 else None)
+        finally:
+            with lock:
+                slots.append(domain)
+        rows[i] = row
+        if done is not None:
+            with lock:
+                done(i, row)
+        return row
+
+    with ThreadPoolExecutor(max_workers=max(jobs, 1)) as pool:
+        list(pool.map(one, range(len(specs))))
+    return rows
 
 
 def drop_bags(folder: Path) -> int:
@@ -262,6 +339,7 @@ def summarise(rows, wall_s: float, quick: bool) -> dict:
     print(f'{family} of {n} rigs completed at stair <= {FAMILY_STAIR_LIMIT_MM} mm and plate '
           f'<= {FAMILY_PLATE_LIMIT_MM} mm')
     summary = {'rigs': n, 'completed': completed, 'passed': passed, 'distances_finite': finite,
+               'resumed': sum(bool(r.get('resumed')) for r in rows),
                'at_family_level': int(family), 'quick': quick, 'builds': build_counts(rows)}
     for kind, counts in summary['builds'].items():
         print(f'  {kind:32s} ' + ', '.join(f'{k}: {v}' for k, v in counts.items()))
@@ -312,32 +390,40 @@ def main(argv=None) -> int:
                    help='with --operator: the reference rig first, then the drawn rigs')
     p.add_argument('--distances', default=None, metavar='MM[,MM..]|none',
                    help="evaluate's --distances (default: the paper's six)")
+    p.add_argument('--jobs', type=int, default=1,
+                   help='rigs evaluated at once, each a graph of its own (default 1; on a '
+                        'machine with cores to spare, 2 or more shortens a long run)')
+    p.add_argument('--resume', action='store_true',
+                   help="reuse the rows of rigs already completed in --out with the same source "
+                        "tree and arguments (a stopped run goes on where it stopped)")
     p.add_argument('--keep-bags', action='store_true',
                    help="keep every rig's recorded calibration bags (default: only of the rigs "
                         'that did not pass)')
     args = p.parse_args(argv)
     if args.rigs < (0 if args.operator and args.reference_rig else 1) \
-            or args.seed_start < 0 or args.timeout <= 0:
+            or args.seed_start < 0 or args.timeout <= 0 or not 1 <= args.jobs <= 16:
         p.error('--rigs must be >= 1 (>= 0 with --operator --reference-rig), --seed-start '
-                '>= 0 and --timeout > 0')
+                '>= 0, --timeout > 0 and --jobs in 1..16')
     t0 = time.monotonic()
     if args.operator:
         return operator_family(args, t0)
     models = ('paper', 'physical') if args.model == 'both' else (args.model,)
     extra = ['--distances', args.distances] if args.distances else []
-    rows = {m: [] for m in models}
     seeds = range(args.seed_start, args.seed_start + args.rigs)
-    for i, seed in enumerate(seeds, 1):
-        for m in models:
-            folder = Path(args.out) / f'seed_{seed:03d}'
-            row = run_rig(seed, folder / m if len(models) > 1 else folder, args.quick,
-                          args.timeout, m, extra)
-            row['model'] = m
-            rows[m].append(row)
-            print(f'[{m}] ' + _line(i, args.rigs, row), flush=True)
-            if _passes(row) and not args.keep_bags:
-                row['bags_deleted_bytes'] = drop_bags(folder / m if len(models) > 1
-                                                      else folder)
+    specs = [dict(seed=seed, folder=Path(args.out) / f'seed_{seed:03d}' / (
+                      m if len(models) > 1 else ''),
+                  quick=args.quick, timeout=args.timeout, model=m, extra=extra,
+                  resume=args.resume)
+             for seed in seeds for m in models]
+
+    def report(i, row):
+        row['model'] = specs[i]['model']
+        print(f"[{row['model']}] " + _line(i // len(models) + 1, args.rigs, row), flush=True)
+        if _passes(row) and not args.keep_bags:
+            row['bags_deleted_bytes'] = drop_bags(specs[i]['folder'])
+
+    all_rows = run_many(specs, args.jobs, report)
+    rows = {m: [r for r in all_rows if r['model'] == m] for m in models}
     wall = time.monotonic() - t0
     summary = {}
     for m in models:
@@ -385,17 +471,23 @@ def operator_family(args, t0: float) -> int:
     extra = ['--distances', args.distances] if args.distances else []
     runs = ([(None, 'reference')] if args.reference_rig else []) + [
         (s, None) for s in range(args.seed_start, args.seed_start + args.rigs)]
-    rows = []
-    for i, (seed, name) in enumerate(runs, 1):
+    specs = []
+    for seed, name in runs:
         folder = Path(args.out) / (name or f'seed_{seed:03d}')
-        s = 0 if seed is None else seed
-        person = run_rig(s, folder / 'operator', args.quick, args.timeout, args.model,
-                         extra, name)
-        exact = run_rig(s, folder / 'exact_operator', args.quick, args.timeout, args.model,
-                        extra + ['--exact-operator'], name)
-        row = operator_row(person, exact)
-        rows.append(row)
-        print(f"[{i}/{len(runs)}] {row['rig']}: " + (
+        for sub, more in (('operator', []), ('exact_operator', ['--exact-operator'])):
+            specs.append(dict(seed=0 if seed is None else seed, folder=folder / sub,
+                              quick=args.quick, timeout=args.timeout, model=args.model,
+                              extra=extra + more, rig_name=name, resume=args.resume))
+    finished = {}
+    rows = [None] * len(runs)
+
+    def report(k, one):
+        finished[k] = one
+        i = k // 2
+        if not (2 * i in finished and 2 * i + 1 in finished):
+            return
+        row = rows[i] = operator_row(finished[2 * i], finished[2 * i + 1])
+        print(f"[{i + 1}/{len(runs)}] {row['rig']}: " + (
             f"stair {_f(row['stair_mm'])} mm (zero-error operator {_f(row['stair_exact_mm'])}, "
             f"ratio {_f(row['stair_ratio'])}), plate {_f(row['plate_mm'])} mm "
             f"({_f(row['plate_exact_mm'])}, ratio {_f(row['plate_ratio'])}); placements "
@@ -403,8 +495,10 @@ def operator_family(args, t0: float) -> int:
             'not completed: ' + _short('; '.join(f"{f.get('stage')}: {f.get('message')}"
                                                  for f in row['failures']))), flush=True)
         if not args.keep_bags:
-            for sub in ('operator', 'exact_operator'):
-                drop_bags(folder / sub)
+            for j in (2 * i, 2 * i + 1):
+                drop_bags(specs[j]['folder'])
+
+    run_many(specs, args.jobs, report)
     done = [r for r in rows if r['completed']]
 
     def worst(key):
@@ -419,6 +513,7 @@ def operator_family(args, t0: float) -> int:
                'placements_within_limit': all(r['placements_within_limit'] for r in done),
                'placement_limit': f'{PLACEMENT_FACTOR:g} x kept + {PLACEMENT_SLACK} per stage',
                'quick': bool(args.quick), 'distances': args.distances or 'paper six',
+               'resumed': sum(bool(r.get('resumed')) for r in finished.values()),
                'wall_s': time.monotonic() - t0, 'rows': rows}
     (Path(args.out) / 'operator_rigs.json').write_text(json.dumps(rows, indent=1,
                                                                   default=float))

@@ -61,3 +61,52 @@ def test_operator_row_compares_the_operator_with_the_zero_error_one():
     assert not row['placements_within_limit']  # 20 > 2 x 6 + 2
     failed = bench.operator_row(person, {**exact, 'completed': False, 'stair_rmse_mm': None})
     assert not failed['completed'] and failed['stair_ratio'] is None
+
+
+def test_rigs_run_in_parallel_in_their_own_domains_and_a_stopped_run_resumes(tmp_path,
+                                                                           monkeypatch):
+    import threading
+    import time
+
+    calls, active, seen = [], set(), []
+    lock = threading.Lock()
+
+    def evaluate(seed, folder, quick, timeout, model, extra, rig_name, domain):
+        with lock:
+            assert domain not in active, 'two graphs at once in one domain'
+            active.add(domain)
+            seen.append(len(active))
+            calls.append(seed)
+        time.sleep(0.05)
+        with lock:
+            active.discard(domain)
+        return {'seed': seed, 'completed': seed != 2, 'failures': [], 'stair_rmse_mm': seed}
+
+    monkeypatch.setattr(bench, '_evaluate_rig', evaluate)
+    monkeypatch.setattr(bench, 'source_tree', lambda: 'tree-a')
+    specs = [dict(seed=s, folder=tmp_path / f'seed_{s:03d}', quick=False, timeout=10.0,
+                  resume=True) for s in range(5)]
+    for spec in specs:
+        spec['folder'].mkdir()
+    order = []
+    rows = bench.run_many(specs, 2, lambda i, row: order.append(i))
+    assert [r['seed'] for r in rows] == list(range(5)) and sorted(order) == list(range(5))
+    assert sorted(calls) == list(range(5)) and max(seen) == 2
+    # resumed: the completed rigs are not evaluated again, the one that failed is
+    calls.clear()
+    rows = bench.run_many(specs, 2)
+    assert calls == [2]
+    assert [r.get('resumed', False) for r in rows] == [True, True, False, True, True]
+    # other code, or other arguments: everything again
+    monkeypatch.setattr(bench, 'source_tree', lambda: 'tree-b')
+    calls.clear()
+    bench.run_many(specs, 1)
+    assert sorted(calls) == list(range(5))
+    calls.clear()
+    bench.run_many([{**s, 'quick': True} for s in specs], 1)
+    assert sorted(calls) == list(range(5))
+    # a tree with uncommitted changes never reuses
+    monkeypatch.setattr(bench, 'source_tree', lambda: None)
+    calls.clear()
+    bench.run_many(specs, 1)
+    assert sorted(calls) == list(range(5))

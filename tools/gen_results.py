@@ -65,11 +65,13 @@ BENCHMARKS = {
                           'two seeds of one rig against their stated uncertainty'),
     'uncertainty_check': (['benchmarks/uncertainty_check.py', '--rigs', '10'], False,
                           'predicted uncertainty against the measured error, drawn rigs'),
-    'rig_family': (['benchmarks/rig_family.py', '--rigs', '20', '--distances', 'none'], False,
+    'rig_family': (['benchmarks/rig_family.py', '--rigs', '20', '--distances', 'none',
+                    '--jobs', '2', '--resume'], False,
                    'drawn rigs calibrated and evaluated through the graph, at their own '
                    'working distance'),
     'operator_family': (['benchmarks/rig_family.py', '--operator', '--reference-rig', '--rigs',
-                         '10', '--distances', 'none', '--out', 'out/operator_family'], False,
+                         '10', '--distances', 'none', '--out', 'out/operator_family', '--jobs',
+                         '2', '--resume'], False,
                         'the reference rig and drawn rigs calibrated through the simulated '
                         'operator, against the zero-error operator'),
     'joint_bundle': (['benchmarks/joint_bundle.py'], False,
