@@ -47,6 +47,7 @@ import math
 import os
 import random
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -151,6 +152,8 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
 def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain) -> dict:
     t0 = time.monotonic()
     row = {'seed': seed, 'completed': False, 'failures': []}
+    if _STOP.is_set():
+        return _stopped(row, t0)
     try:
         folder.mkdir(parents=True, exist_ok=True)
         if rig_name is not None:
@@ -173,15 +176,25 @@ def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain) 
     argv = [sys.executable, '-m', 'galvoscan.cli', 'evaluate', '--rig', str(rig_path),
             '--out', str(out), '--seed', str(seed), '--model', model, '--no-paper-method'] \
         + (['--quick'] if quick else []) + list(extra)
+    env = os.environ.copy()
+    if domain is not None:
+        env['ROS_DOMAIN_ID'] = str(domain)
+    with open(folder / 'evaluate.log', 'w') as log, _RUNNING_LOCK:
+        if _STOP.is_set():
+            return _stopped(row, t0)
+        proc = _start(argv, log, env)
+        _RUNNING.add(proc)
     try:
-        env = os.environ.copy()
-        if domain is not None:
-            env['ROS_DOMAIN_ID'] = str(domain)
-        with open(folder / 'evaluate.log', 'w') as log:
-            rc = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT, timeout=timeout,
-                                env=env).returncode
+        rc = proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
         rc = None
+    finally:
+        with _RUNNING_LOCK:
+            _RUNNING.discard(proc)
+    if _STOP.is_set() and rc != 0:
+        return _stopped(row, t0)
     row['wall_s'] = time.monotonic() - t0
     metrics = _read_json(out / 'metrics.json')
     if rc != 0 or metrics is None:
@@ -206,6 +219,42 @@ def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain) 
                                     'message': d.get('reason', '').removeprefix(
                                         'not measured: ')})
     return row
+
+
+#: Set when the run is asked to stop (Ctrl-C, SIGTERM): no rig starts after it, the running
+#: evaluations are stopped, and the rigs finished so far are summarised.
+_STOP = threading.Event()
+_RUNNING: set = set()
+_RUNNING_LOCK = threading.Lock()
+
+
+def _start(argv, log, env) -> subprocess.Popen:
+    """One rig's ``galvoscan evaluate``, its output to ``log``."""
+    return subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, env=env)
+
+
+def _stopped(row: dict, t0: float) -> dict:
+    row.update(stopped=True, wall_s=time.monotonic() - t0)
+    row['failures'].append({'distance': None, 'stage': None,
+                            'message': 'not evaluated to the end: the run was stopped'})
+    return row
+
+
+def stop_run(*_) -> None:
+    """Stop the run: no further rig starts, and the running evaluations get Ctrl-C (each
+    stops its graph)."""
+    if _STOP.is_set():
+        return
+    _STOP.set()
+    print('\nstopping: the rigs finished so far are summarised', flush=True)
+    with _RUNNING_LOCK:
+        for proc in _RUNNING:
+            proc.send_signal(signal.SIGINT)
+
+
+def finished_rows(rows) -> list[dict]:
+    """The rows of rigs evaluated to the end (not stopped part-way by :func:`stop_run`)."""
+    return [r for r in rows if r is not None and not r.get('stopped')]
 
 
 def run_many(specs, jobs: int, done=None) -> list[dict]:
@@ -405,6 +454,8 @@ def main(argv=None) -> int:
         p.error('--rigs must be >= 1 (>= 0 with --operator --reference-rig), --seed-start '
                 '>= 0, --timeout > 0 and --jobs in 1..16')
     t0 = time.monotonic()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, stop_run)
     if args.operator:
         return operator_family(args, t0)
     models = ('paper', 'physical') if args.model == 'both' else (args.model,)
@@ -423,7 +474,11 @@ def main(argv=None) -> int:
             row['bags_deleted_bytes'] = drop_bags(specs[i]['folder'])
 
     all_rows = run_many(specs, args.jobs, report)
-    rows = {m: [r for r in all_rows if r['model'] == m] for m in models}
+    # the rigs every model evaluated to the end (a stopped run leaves some part-way)
+    seeds_done = [seed for seed in seeds if all(
+        r['seed'] != seed or not r.get('stopped') for r in all_rows)]
+    rows = {m: [r for r in finished_rows(all_rows) if r['model'] == m
+                and r['seed'] in seeds_done] for m in models}
     wall = time.monotonic() - t0
     summary = {}
     for m in models:
@@ -438,6 +493,9 @@ def main(argv=None) -> int:
         summary = {**summary['physical'], 'paper': summary['paper'],
                    **compare(rows['paper'], rows['physical'])}
         summary['wall_s'] = wall
+    summary.update(rigs_asked=args.rigs, stopped=_STOP.is_set())
+    if _STOP.is_set():
+        print(f'stopped: {len(seeds_done)} of {args.rigs} rigs evaluated to the end')
     print(json.dumps(summary, default=float))
     return 0
 
@@ -487,6 +545,9 @@ def operator_family(args, t0: float) -> int:
         if not (2 * i in finished and 2 * i + 1 in finished):
             return
         row = rows[i] = operator_row(finished[2 * i], finished[2 * i + 1])
+        if finished[2 * i].get('stopped') or finished[2 * i + 1].get('stopped'):
+            row['stopped'] = True
+            return
         print(f"[{i + 1}/{len(runs)}] {row['rig']}: " + (
             f"stair {_f(row['stair_mm'])} mm (zero-error operator {_f(row['stair_exact_mm'])}, "
             f"ratio {_f(row['stair_ratio'])}), plate {_f(row['plate_mm'])} mm "
@@ -499,6 +560,7 @@ def operator_family(args, t0: float) -> int:
                 drop_bags(specs[j]['folder'])
 
     run_many(specs, args.jobs, report)
+    rows = finished_rows(rows)
     done = [r for r in rows if r['completed']]
 
     def worst(key):
@@ -514,6 +576,7 @@ def operator_family(args, t0: float) -> int:
                'placement_limit': f'{PLACEMENT_FACTOR:g} x kept + {PLACEMENT_SLACK} per stage',
                'quick': bool(args.quick), 'distances': args.distances or 'paper six',
                'resumed': sum(bool(r.get('resumed')) for r in finished.values()),
+               'rigs_asked': len(runs), 'stopped': _STOP.is_set(),
                'wall_s': time.monotonic() - t0, 'rows': rows}
     (Path(args.out) / 'operator_rigs.json').write_text(json.dumps(rows, indent=1,
                                                                   default=float))

@@ -110,3 +110,50 @@ def test_rigs_run_in_parallel_in_their_own_domains_and_a_stopped_run_resumes(tmp
     calls.clear()
     bench.run_many(specs, 1)
     assert sorted(calls) == list(range(5))
+
+
+def test_a_stopped_run_summarises_the_rigs_finished(tmp_path, monkeypatch):
+    """Ctrl-C (or SIGTERM) part-way: the running evaluation is stopped, no rig starts after
+    it, and the summary holds the rigs evaluated to the end, saying it was stopped."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    started = []
+
+    def start(argv, log, env):
+        """Stands in for `galvoscan evaluate`: seed 0 finishes at once, seed 1 runs until it
+        gets Ctrl-C (SIGINT), as a graph does."""
+        seed = int(argv[argv.index('--seed') + 1])
+        started.append(seed)
+        if seed == 1:       # Ctrl-C while it runs
+            threading.Timer(0.5, bench.stop_run).start()
+        out = Path(argv[argv.index('--out') + 1])
+        out.mkdir(parents=True, exist_ok=True)
+        code = ('import json, pathlib, sys, time; '
+                f'p = pathlib.Path({str(out)!r}); '
+                + ("(p / 'metrics.json').write_text(json.dumps({"
+                   "'stair_step_error_rmse_mm': 0.02, 'plate_flatness_rmse_mm': 0.06}))"
+                   if seed == 0 else 'time.sleep(60)'))
+        return subprocess.Popen([sys.executable, '-c', code], stdout=log, env=env)
+
+    monkeypatch.setattr(bench, '_start', start)
+    monkeypatch.setattr(bench, 'source_tree', lambda: 'tree-a')
+    monkeypatch.setattr(bench, '_STOP', threading.Event())
+    out = tmp_path / 'family'
+    try:
+        import contextlib
+        import io
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            assert bench.main(['--rigs', '4', '--distances', 'none', '--out', str(out)]) == 0
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT
+                          else signal.SIG_DFL)
+    summary = json.loads(buf.getvalue().strip().splitlines()[-1])
+    assert started == [0, 1]                      # seeds 2 and 3 never started
+    assert summary['stopped'] and summary['rigs_asked'] == 4
+    assert summary['rigs'] == 1 and summary['completed'] == 1 and summary['passed'] == 1
