@@ -44,6 +44,10 @@ BENCHMARKS = {
                  'reading a 720x540 image from a bag'),
     'protocol_fuzz': (['benchmarks/protocol_fuzz.py'], True,
                       'the board protocol decoder under 10^6 random and damaged frames'),
+    'protocol_fuzz_firmware': (['benchmarks/protocol_fuzz.py', '--frames', '100000',
+                                '--firmware', '20000'], True,
+                               'the same decoder under 10^5 frames, and the board firmware in '
+                               'simavr under 20,000 of them'),
     'driver_idle': (['benchmarks/driver_idle.py', '--seconds', '10'], True,
                     'CPU of an idle driver against a bare rclpy node'),
     'firmware_simavr': (['benchmarks/firmware_simavr.py'], True,
