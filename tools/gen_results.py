@@ -519,6 +519,14 @@ def render(store: dict) -> None:
             lines += _benchmark_section(name, store['benchmarks'].get(name))
     (RESULTS / 'performance.md').write_text('\n'.join(lines).rstrip() + '\n')
 
+    index = ['- [the demo: the reference rig](accuracy.md#demo), and '
+             '[its calibration through the simulated operator](accuracy.md#demo-operator)']
+    for name in (*ACCURACY, *(n for n in BENCHMARKS if n not in ACCURACY)):
+        page = 'accuracy.md' if name in ACCURACY else 'performance.md'
+        measured = store['benchmarks'].get(name)
+        when = (f" ({measured['date']})" if measured and 'error' not in measured
+                else ' (not measured yet)')
+        index.append(f'- [`{name}`]({page}#{name}): {BENCHMARKS[name][2]}{when}')
     (RESULTS / 'README.md').write_text('\n'.join([
         '# Results', '', banner, '',
         '- [Accuracy](accuracy.md): the demo on the simulated reference rig, and the benchmarks '
@@ -526,7 +534,9 @@ def render(store: dict) -> None:
         '- [Performance](performance.md): the timing benchmarks.', '',
         'Regenerate with `make results` (the demo and the benchmarks that take about a minute '
         'or less); `.venv/bin/python tools/gen_results.py --long` also runs the long ones, '
-        '`--only NAME[,NAME]` one or a few.', '']))
+        '`--only NAME[,NAME]` one or a few. A guide that quotes a figure links the section that '
+        'holds it (`accuracy.md#NAME`); `tests/test_doc_figures.py` checks that the figure is '
+        'there.', '', '## Sections', '', *index, '']))
 
 
 def main(argv=None) -> int:
