@@ -12,6 +12,8 @@ import json
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / 'docs' / 'results'
 
@@ -121,3 +123,30 @@ def test_the_families_are_drawn_as_tables_per_rig(tmp_path, monkeypatch):
     gen.render({'demo': None, 'benchmarks': {'rig_family': _entry(family)}})
     assert 'recorded no per-rig rows' in _section((tmp_path / 'accuracy.md').read_text(),
                                                   'rig_family')
+
+
+def test_rows_from_a_runs_rigs_json_are_attached_with_the_benchmarks_pass_rule(tmp_path,
+                                                                               monkeypatch):
+    gen = _generator()
+    monkeypatch.setattr(gen, 'RESULTS', tmp_path)
+    monkeypatch.setattr(gen, 'STORE', tmp_path / 'results.json')
+    summary = {'rigs': 2, 'completed': 2, 'passed': 1, 'builds': {}}
+    store = {'demo': None, 'benchmarks': {'rig_family': _entry(summary)}}
+    gen.STORE.write_text(json.dumps(store))
+    build = {'sensor': 'IMX287', 'bit_depth': 8, 'head': 'GVS011', 'laser': 'below'}
+    rows = [{'seed': s, 'completed': True, 'build': build, 'working_distance_mm': 650.0,
+             'stair_rmse_mm': stair, 'plate_rmse_mm': 0.05, 'distances': [],
+             'by_distance_mm': {}, 'failures': []} for s, stair in ((0, 0.03), (1, 0.2))]
+    rigs = tmp_path / 'rigs.json'
+
+    rigs.write_text('{"not": "rows"}')  # bad input: a clear error, and the store unchanged
+    with pytest.raises(SystemExit):
+        gen.main(['--only', 'rig_family', '--attach-rows', str(rigs)])
+    assert json.loads(gen.STORE.read_text()) == store
+
+    rigs.write_text(json.dumps(rows))
+    assert gen.main(['--only', 'rig_family', '--attach-rows', str(rigs)]) == 0
+    table = _rows(_section((tmp_path / 'accuracy.md').read_text(), 'rig_family'))
+    assert table[1][0] == '0' and table[1][-1] == 'yes'  # within 0.165 mm and 0.281 mm
+    assert table[2][0] == '1' and table[2][-1] == 'no'  # stair over the paper's 0.165 mm
+    assert json.loads(gen.STORE.read_text())['benchmarks']['rig_family']['rows_from'] == str(rigs)

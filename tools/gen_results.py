@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import importlib.util
 import json
 import os
 import platform
@@ -213,6 +214,26 @@ def record_demo(out: Path, command: str, wall_s: float | None) -> dict:
             shutil.copyfile(out / plot, RESULTS / plot)
             entry['plots'].append(plot)
     return entry
+
+
+def attach_rows(entry: dict | None, rigs_json: Path) -> dict:
+    """The stored rig-family entry with the rows of its run's ``rigs.json``, each with its
+    verdict by benchmarks/rig_family.py's own rule."""
+    if not entry or 'result' not in entry:
+        raise ValueError('no rig_family result is stored to attach rows to')
+    rows = json.loads(rigs_json.read_text())
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and 'seed' in r for r in rows):
+        raise ValueError('not a rigs.json of benchmarks/rig_family.py (a list of rigs)')
+    spec = importlib.util.spec_from_file_location('rig_family', ROOT / 'benchmarks' /
+                                                  'rig_family.py')
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    result = {**entry['result'], 'rows': [{**r, 'passed': bench._passes(r)} for r in rows]}
+    seeds = len({r['seed'] for r in rows})
+    if seeds != result.get('rigs', seeds):
+        raise ValueError(f"{seeds} rigs in the file, but the stored run had "
+                         f"{result.get('rigs')}")
+    return {**entry, 'result': result, 'rows_from': str(rigs_json)}
 
 
 def _fmt(v) -> str:
@@ -546,10 +567,22 @@ def main(argv=None) -> int:
     p.add_argument('--demo-out', type=Path,
                    help='record this finished demo run instead of running the demo')
     p.add_argument('--render', action='store_true', help='only rewrite the pages')
+    p.add_argument('--attach-rows', metavar='FILE',
+                   help="with --only rig_family: add the per-rig rows of that run's rigs.json "
+                        '(with the benchmark\'s own pass rule) to the stored result of a run '
+                        'whose last line had none, and rewrite the pages')
     args = p.parse_args(argv)
     store = load_store()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    if not args.render:
+    if args.attach_rows:
+        if args.only != 'rig_family':
+            p.error('--attach-rows goes with --only rig_family')
+        try:
+            store = save_entry('benchmarks', attach_rows(store['benchmarks'].get('rig_family'),
+                                                         Path(args.attach_rows)), 'rig_family')
+        except (OSError, ValueError, KeyError) as exc:
+            p.error(f'--attach-rows {args.attach_rows}: {exc}')
+    elif not args.render:
         wanted = (args.only.split(',') if args.only else
                   ['demo', *(n for n, (_, quick, _) in BENCHMARKS.items()
                              if quick or args.long)])
