@@ -611,7 +611,7 @@ def main(argv=None) -> int:
             if name != 'demo':
                 store = save_entry('benchmarks', run_benchmark(name), name)
     render(store)
-    print(f'[results] wrote {RESULTS.relative_to(ROOT)}/')
+    print(f'[results] wrote {os.path.relpath(RESULTS, ROOT)}/')
     return 0
 
 
