@@ -441,8 +441,7 @@ def _operator_stages(r: dict) -> list[str]:
     lines += _table(('stage', 'figure', "a person's imprecision", 'exact placements'), rows)
     off = r.get('sheet_offset_error_mm') or {}
     return lines + ['', f"Laser sheet offset error at the working point: {_fmt(off.get('person'))}"
-                    f" mm against {_fmt(off.get('exact'))} mm (ratio {_fmt(r.get('ratio'))}).",
-                    '']
+                    f" mm against {_fmt(off.get('exact'))} mm (ratio {_fmt(r.get('ratio'))})."]
 
 
 #: sections drawn as tables of their own; every other result is a ``figure | value`` table
