@@ -273,7 +273,8 @@ def _benchmark_section(name: str, e: dict | None) -> list[str]:
         return lines
     lines += _provenance(e) + ['']
     if 'error' in e:
-        return lines + [f"Not measured: the run failed ({e['error']}).", '']
+        # on one line: a log's lines would break the page's layout
+        return lines + [f"Not measured: the run failed ({' '.join(e['error'].split())}).", '']
     return lines + RENDERERS.get(name, _figures)(e['result']) + ['']
 
 
