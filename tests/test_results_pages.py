@@ -150,3 +150,17 @@ def test_rows_from_a_runs_rigs_json_are_attached_with_the_benchmarks_pass_rule(t
     assert table[1][0] == '0' and table[1][-1] == 'yes'  # within 0.165 mm and 0.281 mm
     assert table[2][0] == '1' and table[2][-1] == 'no'  # stair over the paper's 0.165 mm
     assert json.loads(gen.STORE.read_text())['benchmarks']['rig_family']['rows_from'] == str(rigs)
+
+
+def test_a_failed_run_is_recorded_with_the_reason_it_left(tmp_path, monkeypatch):
+    """A run that fails is stored as an error (never as figures), with the stage and message
+    of the failure.json its output folder holds (what `galvoscan evaluate` writes)."""
+    gen = _generator()
+    out = tmp_path / 'o'
+    script = ('import json, pathlib, sys; d = pathlib.Path(sys.argv[2]); d.mkdir(); '
+              "(d / 'failure.json').write_text(json.dumps({'stage': 'intrinsics', "
+              "'message': 'link lost'})); print('{\"stair_mm\": 1.0}'); sys.exit(1)")
+    monkeypatch.setattr(gen, 'BENCHMARKS', {'x': (['-c', script, '--out', str(out)], True, 'x')})
+    entry = gen.run_benchmark('x')
+    assert entry['error'] == 'exit code 1: stage intrinsics: link lost'
+    assert 'result' not in entry

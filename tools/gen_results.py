@@ -197,12 +197,25 @@ def run_benchmark(name: str) -> dict:
              'wall_s': round(time.monotonic() - t0, 1)}
     try:
         if proc.returncode != 0:
-            raise ValueError(f'exit code {proc.returncode}: {proc.stderr.strip()[-400:]}')
+            raise ValueError(f'exit code {proc.returncode}: {_failure_reason(args, proc)}')
         entry['result'] = last_json(proc.stdout)
     except ValueError as exc:
         entry['error'] = str(exc)
         print(f'[results] {name}: not measured: {exc}', flush=True)
     return entry
+
+
+def _failure_reason(args: list[str], proc) -> str:
+    """Why a run failed: the stage and message `galvoscan evaluate` leaves in its output
+    folder's failure.json, else the end of its stderr."""
+    if '--out' in args[:-1]:
+        try:
+            failure = json.loads((ROOT / args[args.index('--out') + 1] / 'failure.json')
+                                 .read_text())
+            return f"stage {failure.get('stage') or '?'}: {failure.get('message')}"
+        except (OSError, ValueError, AttributeError):
+            pass
+    return proc.stderr.strip()[-400:]
 
 
 def record_demo(out: Path, command: str, wall_s: float | None) -> dict:
