@@ -164,3 +164,35 @@ def test_a_failed_run_is_recorded_with_the_reason_it_left(tmp_path, monkeypatch)
     entry = gen.run_benchmark('x')
     assert entry['error'] == 'exit code 1: stage intrinsics: link lost'
     assert 'result' not in entry
+
+
+def test_the_family_benchmarks_last_line_carries_the_rows_the_page_draws(tmp_path, monkeypatch,
+                                                                         capsys):
+    """benchmarks/rig_family.py's last line (plain mode) holds every rig's row with its
+    verdict, and the page draws them; the rigs' evaluations are replaced by their rows here
+    (the benchmark runs `galvoscan evaluate` for each, minutes a rig)."""
+    spec = importlib.util.spec_from_file_location('rig_family_bench',
+                                                  ROOT / 'benchmarks' / 'rig_family.py')
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    build = {'sensor': 'PYTHON500', 'bit_depth': 8, 'head': 'WIDE25', 'laser': 'above'}
+
+    def evaluated(seed, folder, quick, timeout, model='physical', extra=(), rig_name=None):
+        return {'seed': seed, 'completed': True, 'failures': [], 'wall_s': 1.0,
+                'working_distance_mm': 587.0, 'build': build, 'distances': (),
+                'by_distance_mm': {}, 'stair_rmse_mm': 0.04 + 0.2 * seed,
+                'plate_rmse_mm': 0.156, 'transfer_matrix_error_rmse_mm': 0.73}
+
+    monkeypatch.setattr(bench, 'run_rig', evaluated)
+    assert bench.main(['--rigs', '2', '--distances', 'none', '--out', str(tmp_path)]) == 0
+    last = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert [(r['seed'], r['passed']) for r in last['rows']] == [(0, True), (1, False)]
+
+    gen = _generator()
+    monkeypatch.setattr(gen, 'RESULTS', tmp_path)
+    gen.render({'demo': None, 'benchmarks': {'rig_family': _entry(last)}})
+    rows = _rows(_section((tmp_path / 'accuracy.md').read_text(), 'rig_family'))
+    assert ['0', 'PYTHON500, 8 bit, WIDE25, laser above', '587', '0.04', '0.156', '0.73',
+            'yes'] in rows
+    assert ['1', 'PYTHON500, 8 bit, WIDE25, laser above', '587', '0.24', '0.156', '0.73',
+            'no'] in rows
