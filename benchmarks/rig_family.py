@@ -487,12 +487,15 @@ def main(argv=None) -> int:
         summary[m] = summarise(rows[m], wall, args.quick)
     (Path(args.out) / 'rigs.json').write_text(
         json.dumps([r for m in models for r in rows[m]], indent=1, default=float))
+    # the rows (each with its verdict) ride on the last line, for the results page
+    every = [{**r, 'passed': _passes(r)} for m in models for r in rows[m]]
     if len(models) == 1:
-        summary = summary[models[0]]
+        summary = {**summary[models[0]], 'rows': every}
     else:
         summary = {**summary['physical'], 'paper': summary['paper'],
                    **compare(rows['paper'], rows['physical'])}
         summary['wall_s'] = wall
+        summary['rows'] = every
     summary.update(rigs_asked=args.rigs, stopped=_STOP.is_set())
     if _STOP.is_set():
         print(f'stopped: {len(seeds_done)} of {args.rigs} rigs evaluated to the end')

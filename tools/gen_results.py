@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import importlib.util
 import json
 import os
 import platform
@@ -45,6 +46,10 @@ BENCHMARKS = {
                  'reading a 720x540 image from a bag'),
     'protocol_fuzz': (['benchmarks/protocol_fuzz.py'], True,
                       'the board protocol decoder under 10^6 random and damaged frames'),
+    'protocol_fuzz_firmware': (['benchmarks/protocol_fuzz.py', '--frames', '100000',
+                                '--firmware', '20000'], True,
+                               'the same decoder under 10^5 frames, and the board firmware in '
+                               'simavr under 20,000 of them'),
     'driver_idle': (['benchmarks/driver_idle.py', '--seconds', '10'], True,
                     'CPU of an idle driver against a bare rclpy node'),
     'firmware_simavr': (['benchmarks/firmware_simavr.py'], True,
@@ -53,8 +58,23 @@ BENCHMARKS = {
     'twin_scan': (['benchmarks/twin_scan.py', '--positions', '18'], False,
                   'a stair scan through the twin (firmware in simavr, GigE Vision camera '
                   'path) against the same scan on the sim backend, 18 stair positions'),
+    'twin_evaluate': (['-m', 'galvoscan.cli', 'evaluate', '--twin', '--quick', '--distances',
+                       'none', '--no-paper-method', '--out', 'out/twin_evaluate'], False,
+                      'the reference rig calibrated through the twin by the simulated '
+                      'operator (quick plans), then the test objects scanned through it'),
+    'stripe_tilt': (['benchmarks/stripe_tilt.py'], True,
+                    'stripe centres normal to a stripe turned off the image rows, no speckle'),
+    'stripe_tilt_speckle': (['benchmarks/stripe_tilt.py', '--speckle'], True,
+                            "the same with the rig's laser speckle"),
     'materials': (['benchmarks/materials.py'], False,
                   'stair, plate and outliers per material, countermeasures off and on'),
+    'materials_graph': (['-m', 'galvoscan.cli', 'evaluate', '--materials', '--quick',
+                         '--truth-calibration', '--out', 'out/materials_graph'], False,
+                        'every material through the graph, each countermeasure off and on '
+                        '(the true parameters as calibration)'),
+    'operator_stages': (['benchmarks/operator_stages.py', '--seed', '1'], False,
+                        "each calibration stage's errors with a person's imprecision and "
+                        'with exact placements, quick plans, in one process'),
     'calibration_chain': (['benchmarks/calibration_chain.py'], False,
                           'the whole calibration chain in-process, quick and full plans'),
     'camera_trigger': (['benchmarks/camera_trigger.py'], False,
@@ -79,8 +99,9 @@ BENCHMARKS = {
     'hosts_apart': (['benchmarks/hosts_apart.py'], False,
                     'the image path across a network link (root: network namespaces)'),
 }
-ACCURACY = ('rig_family', 'operator_family', 'uncertainty_check', 'calibration_seeds',
-            'joint_bundle', 'materials')
+ACCURACY = ('rig_family', 'operator_family', 'operator_stages', 'uncertainty_check',
+            'calibration_seeds', 'joint_bundle', 'materials', 'materials_graph', 'stripe_tilt',
+            'stripe_tilt_speckle', 'twin_evaluate')
 
 #: metrics.json keys shown on the accuracy page, with the paper's figure where it gives one
 DEMO_ROWS = (
@@ -101,7 +122,15 @@ DEMO_ROWS = (
     ('measured_systematic_error_mm', "the same without the galvos' frame noise [mm]", None),
     ('range_x_mm', 'range covered at the working depth, x [mm]', 1100),
     ('range_y_mm', 'range covered at the working depth, y [mm]', 1300),
+    ('cell_extrinsic_error_mm', "the scanner's pose in its cell: position error [mm]", None),
 )
+#: the demo's calibration through the simulated operator, per stage (metrics.json `operator`)
+DEMO_OPERATOR = (('placements', 'placements made (retakes included)'),
+                 ('placements_kept', 'placements kept'),
+                 ('instructions', 'instructions given'),
+                 ('search_views', 'search views'),
+                 ('views_rejected', 'views rejected'),
+                 ('wall_s', 'capture and compute [s]'))
 DEMO_PLOTS = ('plate_deviation_map.png', 'stair_error_by_distance.png', 'uncertainty_map.png')
 
 
@@ -182,12 +211,26 @@ def run_benchmark(name: str) -> dict:
              'wall_s': round(time.monotonic() - t0, 1)}
     try:
         if proc.returncode != 0:
-            raise ValueError(f"exit code {proc.returncode}: {''.join(err).strip()[-400:]}")
+            raise ValueError(f"exit code {proc.returncode}: "
+                             f"{_failure_reason(args, ''.join(err))}")
         entry['result'] = last_json(''.join(out))
     except ValueError as exc:
         entry['error'] = str(exc)
         print(f'[results] {name}: not measured: {exc}', flush=True)
     return entry
+
+
+def _failure_reason(args: list[str], stderr: str) -> str:
+    """Why a run failed: the stage and message `galvoscan evaluate` leaves in its output
+    folder's failure.json, else the end of its stderr."""
+    if '--out' in args[:-1]:
+        try:
+            failure = json.loads((ROOT / args[args.index('--out') + 1] / 'failure.json')
+                                 .read_text())
+            return f"stage {failure.get('stage') or '?'}: {failure.get('message')}"
+        except (OSError, ValueError, AttributeError):
+            pass
+    return stderr.strip()[-400:]
 
 
 def record_demo(out: Path, command: str, wall_s: float | None) -> dict:
@@ -201,9 +244,31 @@ def record_demo(out: Path, command: str, wall_s: float | None) -> dict:
     return entry
 
 
+def attach_rows(entry: dict | None, rigs_json: Path) -> dict:
+    """The stored rig-family entry with the rows of its run's ``rigs.json``, each with its
+    verdict by benchmarks/rig_family.py's own rule."""
+    if not entry or 'result' not in entry:
+        raise ValueError('no rig_family result is stored to attach rows to')
+    rows = json.loads(rigs_json.read_text())
+    if not isinstance(rows, list) or not all(isinstance(r, dict) and 'seed' in r for r in rows):
+        raise ValueError('not a rigs.json of benchmarks/rig_family.py (a list of rigs)')
+    spec = importlib.util.spec_from_file_location('rig_family', ROOT / 'benchmarks' /
+                                                  'rig_family.py')
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    result = {**entry['result'], 'rows': [{**r, 'passed': bench._passes(r)} for r in rows]}
+    seeds = len({r['seed'] for r in rows})
+    if seeds != result.get('rigs', seeds):
+        raise ValueError(f"{seeds} rigs in the file, but the stored run had "
+                         f"{result.get('rigs')}")
+    return {**entry, 'result': result, 'rows_from': str(rigs_json)}
+
+
 def _fmt(v) -> str:
     if v is None:
         return '–'
+    if isinstance(v, float) and v != v:
+        return 'n/a'
     if isinstance(v, float):
         return f'{v:.4g}' if abs(v) < 1e4 else f'{v:.0f}'
     if isinstance(v, (list, dict)):
@@ -220,9 +285,14 @@ def _provenance(e: dict) -> list[str]:
             f"Python {m['python']}, load average {', '.join(map(str, m['load_average']))}"]
 
 
+def _anchor(name: str) -> str:
+    """The link target of a section: guides link ``accuracy.md#NAME`` to quote its figures."""
+    return f'<a id="{name}"></a>'
+
+
 def _benchmark_section(name: str, e: dict | None) -> list[str]:
     args, quick, what = BENCHMARKS[name]
-    lines = [f'### `{name}`: {what}', '']
+    lines = [_anchor(name), f'### `{name}`: {what}', '']
     if e is None:
         lines += ['Not measured yet. Run '
                   f"`.venv/bin/python tools/gen_results.py --only {name}` "
@@ -231,10 +301,182 @@ def _benchmark_section(name: str, e: dict | None) -> list[str]:
         return lines
     lines += _provenance(e) + ['']
     if 'error' in e:
-        return lines + [f"Not measured: the run failed ({e['error']}).", '']
-    lines += ['| figure | value |', '|---|---|']
-    lines += [f'| `{k}` | {_fmt(v)} |' for k, v in _flat(e['result']).items()]
-    return lines + ['']
+        # on one line: a log's lines would break the page's layout
+        return lines + [f"Not measured: the run failed ({' '.join(e['error'].split())}).", '']
+    return lines + RENDERERS.get(name, _figures)(e['result']) + ['']
+
+
+def _figures(result: dict, skip=()) -> list[str]:
+    """Every figure of a result as a ``figure | value`` row (nested keys as ``a.b``)."""
+    rows = {k: v for k, v in _flat(result).items() if k.split('.')[0] not in skip}
+    if not rows:
+        return []
+    return ['| figure | value |', '|---|---|'] + [f'| `{k}` | {_fmt(v)} |'
+                                                  for k, v in rows.items()]
+
+
+def _table(header, rows) -> list[str]:
+    """A Markdown table; cells that are not text are formatted as figures."""
+    return (['| ' + ' | '.join(header) + ' |', '|' + '---|' * len(header)]
+            + ['| ' + ' | '.join(c if isinstance(c, str) else _fmt(c) for c in r) + ' |'
+               for r in rows])
+
+
+def _yes(v) -> str:
+    return 'yes' if v else 'no'
+
+
+def _build(b: dict | None) -> str:
+    if not b:
+        return '–'
+    return (f"{b.get('sensor')}, {b.get('bit_depth')} bit, {b.get('head')}, "
+            f"laser {b.get('laser')}")
+
+
+def _failure(row: dict) -> str:
+    f = (row.get('failures') or [{}])[0]
+    where = f" at {f['distance']} mm" if f.get('distance') else ''
+    return f"failed{where}: {f.get('stage') or '?'}"
+
+
+#: figures of the family's summary shown as median / p90 / max, with their labels
+FAMILY_STATS = (('stair_rmse_mm', 'stair step error RMSE [mm]'),
+                ('plate_rmse_mm', 'plate flatness RMSE [mm]'),
+                ('plate_range_scaled_rmse_mm', 'plate flatness, scaled with depth [mm]'),
+                ('sphere_radius_error_mm', 'sphere radius error [mm]'),
+                ('transfer_matrix_error_rmse_mm', 'transfer-matrix error RMSE [mm]'),
+                ('predicted_uncertainty_mm', 'predicted uncertainty [mm]'),
+                ('measured_shape_error_mm', 'measured shape error [mm]'))
+
+
+def _rig_family(r: dict) -> list[str]:
+    """Per rig (when the run recorded its rows), the build counts, then the summary."""
+    lines = []
+    rows = r.get('rows')
+    both = len({x.get('model') for x in rows or []}) > 1  # --model both: each rig twice
+    if rows:
+        lines += ['Per rig (pass: stair <= 0.165 mm and plate <= 0.281 mm at its own working '
+                  'distance, the paper\'s figures):', '']
+        lines += _table(
+            ('seed', 'build: sensor, bit depth, head, laser side', 'working distance [mm]',
+             'stair [mm]', 'plate [mm]', 'transfer [mm]', 'pass'),
+            [(str(x.get('seed')) + (f" ({x.get('model')})" if both else ''),
+              _build(x.get('build')), x.get('working_distance_mm'),
+              x.get('stair_rmse_mm'), x.get('plate_rmse_mm'),
+              x.get('transfer_matrix_error_rmse_mm'),
+              _yes(x.get('passed')) if x.get('completed') else _failure(x))
+             for x in rows]) + ['']
+    else:
+        lines += ['The run recorded no per-rig rows (its `rigs.json` holds them).', '']
+    builds = r.get('builds') or {}
+    if builds:
+        lines += ['Rigs per build kind:', '']
+        lines += _table(('kind', 'value', 'drawn', 'completed', 'passed'),
+                        [(kind, str(value), c.get('drawn'), c.get('completed'), c.get('passed'))
+                         for kind, counts in builds.items() for value, c in counts.items()])
+        lines += ['']
+    lines += [f"Summary: {r.get('rigs')} rigs, {r.get('completed')} completed, "
+              f"{r.get('passed')} passed, {r.get('at_family_level')} at the family's level "
+              "(stair <= 0.05 mm and plate <= 0.12 mm); "
+              f"{r.get('distances_finite')} with a finite stair figure at every re-set "
+              'distance asked.', '']
+    stats = [(label, r.get(f'{k}_median'), r.get(f'{k}_p90'), r.get(f'{k}_max'))
+             for k, label in FAMILY_STATS if f'{k}_median' in r]
+    if stats:
+        lines += _table(('figure', 'median', 'p90', 'max'), stats) + ['']
+    shown = {'rows', 'builds', 'rigs', 'completed', 'passed', 'at_family_level',
+             'distances_finite', *(f'{k}_{s}' for k, _ in FAMILY_STATS
+                                   for s in ('median', 'p90', 'max'))}
+    rest = _figures(r, skip=shown)
+    return lines + (['Every other figure of the run:', ''] + rest if rest else [])
+
+
+def _operator_family(r: dict) -> list[str]:
+    """Per rig the operator against the zero-error operator, placements per stage, summary."""
+    rows = r.get('rows') or []
+    limit = r.get('ratio_limit')
+    lines = [f'Per rig: stair and plate errors [mm] calibrated through the simulated operator '
+             f'and through the zero-error operator, and their ratios (limit {_fmt(limit)}):', '']
+    lines += _table(
+        ('rig', 'stair', 'stair, zero-error', 'stair ratio', 'plate', 'plate, zero-error',
+         'plate ratio', f'within {_fmt(limit)}'),
+        [(str(x.get('rig')), x.get('stair_mm'), x.get('stair_exact_mm'), x.get('stair_ratio'),
+          x.get('plate_mm'), x.get('plate_exact_mm'), x.get('plate_ratio'),
+          (_yes(limit is not None and all(x.get(k) is not None and x[k] <= limit
+                                          for k in ('stair_ratio', 'plate_ratio')))
+           if x.get('completed') else _failure(x)))
+         for x in rows]) + ['']
+    stages = list(dict.fromkeys(s for x in rows for s in (x.get('placements') or {})))
+    if stages:
+        lines += ["Placements each stage took under the operator (retakes included):", '']
+        lines += _table(('rig', *stages),
+                        [(str(x.get('rig')), *((x.get('placements') or {}).get(s)
+                                               for s in stages)) for x in rows]) + ['']
+    lines += [f"Summary: {r.get('rigs')} rigs, {r.get('completed')} completed both ways; "
+              f"largest ratio {_fmt(r.get('stair_ratio_max'))} (stair) and "
+              f"{_fmt(r.get('plate_ratio_max'))} (plate) against the limit {_fmt(limit)}; "
+              f"most placements one stage took {_fmt(r.get('placements_max'))}, every stage "
+              f"within {r.get('placement_limit')}: "
+              f"{_yes(r.get('placements_within_limit'))}.", '']
+    rest = _figures(r, skip={'rows', 'rigs', 'completed', 'stair_ratio_max', 'plate_ratio_max',
+                             'ratio_limit', 'placements_max', 'placements_within_limit',
+                             'placement_limit'})
+    return lines + (['Every other figure of the run:', ''] + rest if rest else [])
+
+
+def _materials(r: dict) -> list[str]:
+    """The per-material table (outliers in per cent), then the run's summary figures."""
+    per = r.get('per_material') or {}
+    lines = []
+    if per:
+        lines += _table(
+            ('material, countermeasures', 'stair error RMSE [mm]', 'plate flatness [mm]',
+             'outliers [%]', 'coverage', 'own bias [mm]'),
+            [(name.replace('_on', ', on').replace('_off', ', off'), m.get('stair_rmse_mm'),
+              m.get('plate_flatness_mm'),
+              None if m.get('outlier_fraction') is None else 100 * m['outlier_fraction'],
+              m.get('coverage'), m.get('material_bias_mm')) for name, m in per.items()])
+        lines += ['', 'Summary figures (fractions, not per cent):', '']
+    return lines + _figures(r, skip={'per_material'})
+
+
+def _stripe_tilt(r: dict) -> list[str]:
+    angles = r.get('angles') or {}
+    lines = [f"{r.get('frames')} frames per angle, speckle "
+             f"{'on' if r.get('speckle') else 'off'}:", '']
+    return lines + _table(
+        ('G2 head turned [deg]', 'stripe off the rows or columns [deg]', 'centres',
+         'bias [px]', 'RMS [px]', 'RMS over 0 deg'),
+        [(k, a.get('tilt_deg'), a.get('points'), a.get('bias_px'), a.get('rms_px'),
+          a.get('rms_ratio_to_0_deg')) for k, a in angles.items()])
+
+
+def _operator_stages(r: dict) -> list[str]:
+    """Each stage's placements and errors against the truth, person against exact."""
+    person = {x['stage']: x for x in r.get('person') or []}
+    exact = {x['stage']: x for x in r.get('exact') or []}
+    rows = []
+    for stage in dict.fromkeys([*person, *exact]):
+        a, b = person.get(stage, {}), exact.get(stage, {})
+        rows.append((stage, 'placements kept of planned',
+                     f"{a.get('kept')} of {a.get('planned')}",
+                     f"{b.get('kept')} of {b.get('planned')}"))
+        for k in dict.fromkeys([*(a.get('errors') or {}), *(b.get('errors') or {})]):
+            rows.append((stage, k, (a.get('errors') or {}).get(k),
+                         (b.get('errors') or {}).get(k)))
+    lines = [f"Rig {r.get('rig')}, seed {r.get('seed')}, "
+             f"{'full' if r.get('full') else 'quick'} plans; errors against the simulator's "
+             'truth:', '']
+    lines += _table(('stage', 'figure', "a person's imprecision", 'exact placements'), rows)
+    off = r.get('sheet_offset_error_mm') or {}
+    return lines + ['', f"Laser sheet offset error at the working point: {_fmt(off.get('person'))}"
+                    f" mm against {_fmt(off.get('exact'))} mm (ratio {_fmt(r.get('ratio'))})."]
+
+
+#: sections drawn as tables of their own; every other result is a ``figure | value`` table
+RENDERERS = {'rig_family': _rig_family, 'operator_family': _operator_family,
+             'materials': _materials, 'stripe_tilt': _stripe_tilt,
+             'stripe_tilt_speckle': _stripe_tilt, 'operator_stages': _operator_stages}
 
 
 def _flat(d: dict, prefix: str = '') -> dict:
@@ -248,6 +490,31 @@ def _flat(d: dict, prefix: str = '') -> dict:
     return out
 
 
+def _demo_operator(op: dict | None) -> list[str]:
+    """The demo's own calibration through the simulated operator, per stage."""
+    if not op or not op.get('placements'):
+        return []
+    stages = list(op['placements'])
+
+    def cell(key, stage):
+        v = (op.get(key) or {}).get(stage)
+        if isinstance(v, dict):  # views rejected, by reason
+            return ', '.join(f'{n} {k}' for k, n in v.items()) or '0'
+        return v
+
+    lines = ['', _anchor('demo-operator'),
+             f"The rig's calibration through the simulated operator (seed {op.get('seed')}), "
+             'per stage:', '']
+    lines += _table(('', *stages), [(label, *(cell(key, s) for s in stages))
+                                    for key, label in DEMO_OPERATOR])
+    mistakes = op.get('mistakes_whole_run') or {}
+    if mistakes:
+        lines += ['', f"The operator's mistakes over the whole run "
+                  f"({op.get('placements_whole_run')} placements): "
+                  + ', '.join(f'{k.replace("_", " ")} {n}' for k, n in mistakes.items()) + '.']
+    return lines
+
+
 def render(store: dict) -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     banner = ('<!-- Written by tools/gen_results.py (`make results`) from results.json; do not '
@@ -256,7 +523,8 @@ def render(store: dict) -> None:
     lines = ['# Accuracy', '', banner, '',
              'Every figure here was measured on the simulated rig by the command named with it; '
              'no real rig has been measured yet. What each figure means: '
-             '[evaluation.md](../evaluation.md).', '', '## The demo: the reference rig', '']
+             '[evaluation.md](../evaluation.md).', '', _anchor('demo'),
+             '## The demo: the reference rig', '']
     demo = store.get('demo')
     if demo is None:
         lines += ['Not measured yet: run `make results` (or `make demo`, then '
@@ -279,6 +547,7 @@ def render(store: dict) -> None:
                       'there [mm]:', '', '| distance [mm] | ' + ' | '.join(keys) + ' |',
                       '|---|' + '---|' * len(keys),
                       '| RMSE | ' + ' | '.join(_fmt(by_distance[k]) for k in keys) + ' |']
+        lines += _demo_operator(metrics.get('operator'))
         lines += ['', "The whole `metrics.json` of this run: [demo_metrics.json]"
                   "(demo_metrics.json).", '']
         (RESULTS / 'demo_metrics.json').write_text(json.dumps(metrics, indent=2) + '\n')
@@ -299,6 +568,14 @@ def render(store: dict) -> None:
             lines += _benchmark_section(name, store['benchmarks'].get(name))
     (RESULTS / 'performance.md').write_text('\n'.join(lines).rstrip() + '\n')
 
+    index = ['- [the demo: the reference rig](accuracy.md#demo), and '
+             '[its calibration through the simulated operator](accuracy.md#demo-operator)']
+    for name in (*ACCURACY, *(n for n in BENCHMARKS if n not in ACCURACY)):
+        page = 'accuracy.md' if name in ACCURACY else 'performance.md'
+        measured = store['benchmarks'].get(name)
+        when = (f" ({measured['date']})" if measured and 'error' not in measured
+                else ' (not measured yet)')
+        index.append(f'- [`{name}`]({page}#{name}): {BENCHMARKS[name][2]}{when}')
     (RESULTS / 'README.md').write_text('\n'.join([
         '# Results', '', banner, '',
         '- [Accuracy](accuracy.md): the demo on the simulated reference rig, and the benchmarks '
@@ -306,7 +583,9 @@ def render(store: dict) -> None:
         '- [Performance](performance.md): the timing benchmarks.', '',
         'Regenerate with `make results` (the demo and the benchmarks that take about a minute '
         'or less); `.venv/bin/python tools/gen_results.py --long` also runs the long ones, '
-        '`--only NAME[,NAME]` one or a few.', '']))
+        '`--only NAME[,NAME]` one or a few. A guide that quotes a figure links the section that '
+        'holds it (`accuracy.md#NAME`); `tests/test_doc_figures.py` checks that the figure is '
+        'there.', '', '## Sections', '', *index, '']))
 
 
 def main(argv=None) -> int:
@@ -316,10 +595,22 @@ def main(argv=None) -> int:
     p.add_argument('--demo-out', type=Path,
                    help='record this finished demo run instead of running the demo')
     p.add_argument('--render', action='store_true', help='only rewrite the pages')
+    p.add_argument('--attach-rows', metavar='FILE',
+                   help="with --only rig_family: add the per-rig rows of that run's rigs.json "
+                        '(with the benchmark\'s own pass rule) to the stored result of a run '
+                        'whose last line had none, and rewrite the pages')
     args = p.parse_args(argv)
     store = load_store()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    if not args.render:
+    if args.attach_rows:
+        if args.only != 'rig_family':
+            p.error('--attach-rows goes with --only rig_family')
+        try:
+            store = save_entry('benchmarks', attach_rows(store['benchmarks'].get('rig_family'),
+                                                         Path(args.attach_rows)), 'rig_family')
+        except (OSError, ValueError, KeyError) as exc:
+            p.error(f'--attach-rows {args.attach_rows}: {exc}')
+    elif not args.render:
         wanted = (args.only.split(',') if args.only else
                   ['demo', *(n for n, (_, quick, _) in BENCHMARKS.items()
                              if quick or args.long)])
@@ -348,7 +639,7 @@ def main(argv=None) -> int:
             if name != 'demo':
                 store = save_entry('benchmarks', run_benchmark(name), name)
     render(store)
-    print(f'[results] wrote {RESULTS.relative_to(ROOT)}/')
+    print(f'[results] wrote {os.path.relpath(RESULTS, ROOT)}/')
     return 0
 
 
