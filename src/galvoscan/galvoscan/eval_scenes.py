@@ -357,22 +357,28 @@ GROOVE_THICKNESS = 0.01
 
 
 def v_groove(position, material: str | None = 'machined_aluminium',
-             wall_distance: float = 0.05) -> tuple[str, dict]:
+             wall_distance: float = 0.05, layout=None) -> tuple[str, dict]:
     """An inside corner: two faces meeting along a line through ``position`` [m] (the
-    groove's bottom, its axis along W's y), opening towards the scanner, and a matt wall
-    ``wall_distance`` [m] behind. A specular material throws the stripe from each face
+    groove's bottom, its axis across the stripe), opening towards the scanner, and a matt
+    wall ``wall_distance`` [m] behind. A specular material throws the stripe from each face
     onto the other.
+
+    ``layout``: the rig's stripe layout, as for :func:`stair` (None: a laser below, the
+    axis along W's y); the groove is turned about the optical axis by ``layout.turn``, so
+    that the stripe crosses both faces.
 
     Returns the scene text and ``{'faces': [(n (3,), point (3,))] * 2, 'axis_W'}``: the
     faces' planes (outward unit normal and a point) in W and the groove's bottom point.
     """
     p = np.asarray(position, dtype=np.float64)
+    turn = Rotation.from_rotvec([0.0, 0.0, 0.0 if layout is None else float(layout.turn)])
     half = GROOVE_ANGLE / 2.0
     faces, objects = [], []
     for sign, name in ((-1.0, 'left'), (1.0, 'right')):
-        # the face runs from the axis out to x = sign * ..., towards the scanner (-z)
-        out = np.array([sign * math.sin(half), 0.0, -math.cos(half)])   # along the face
-        n = np.array([-sign * math.cos(half), 0.0, -math.sin(half)])    # outward normal
+        # the face runs from the axis out to x = sign * ..., towards the scanner (-z), for
+        # a laser below; turned to the laser's side
+        out = turn.apply([sign * math.sin(half), 0.0, -math.cos(half)])   # along the face
+        n = turn.apply([-sign * math.cos(half), 0.0, -math.sin(half)])    # outward normal
         R = Rotation.align_vectors([n, out], [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])[0]
         centre = p + out * GROOVE_FACE / 2 - n * GROOVE_THICKNESS / 2
         faces.append((n, p.copy()))

@@ -92,3 +92,23 @@ def test_the_expected_stripe_follows_the_stripe_direction(side):
     assert len(truth) > 0.5 * size
     assert np.all(np.isfinite(expected[truth.column]))
     assert np.max(np.abs(expected[truth.column] - across)) < 0.05
+
+
+@pytest.mark.parametrize('side', ('left', 'above'))
+def test_the_v_groove_turns_its_axis_across_the_stripe(side):
+    """The stripe climbs both faces of the groove: its points reach far from the bottom."""
+    rig, model = _design(side)
+    reach = {}
+    for name, layout in (('turned', stripe_layout(model)), ('unturned', None)):
+        text, info = eval_scenes.v_groove(working_point(rig), material=None, layout=layout)
+        sim = Simulator(rig, load_scene_text(text, 'groove'), seed=0)
+        _, truth = _frame(sim, model, info['axis_W'])
+        reach[name] = []
+        for f, (n, _) in zip(('left_face', 'right_face'), info['faces'], strict=True):
+            p = truth.points_W[truth.object_index == sim.scene.object_index(f)]
+            # distance from the bottom line, towards the scanner along the face
+            reach[name].append(float(np.max(-(p - info['axis_W']) @ np.cross(
+                n, np.cross([0.0, 0.0, 1.0], n)), initial=0.0)) * 1e3)
+    assert min(reach['turned']) >= 10.0, reach  # [mm] up each 40 mm face
+    if side == 'left':  # a groove set up for a laser below: the stripe along its bottom
+        assert max(reach['unturned']) < 2.0, reach
