@@ -224,7 +224,9 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None,
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) every kernel for uint8 and uint16 images.
+    """Compile (or load from numba's on-disk cache) every kernel for uint8 and uint16 images,
+    writable and read-only (a node's images are read-only views of the messages' buffers,
+    a type of their own to numba).
 
     Call once per process before timing or before the first real frame.
     """
@@ -233,5 +235,8 @@ def warm_up() -> None:
     img = 10.0 + 150.0 * np.exp(-0.5 * ((rows - 20.3) / 2.0) ** 2) + rng.normal(0, 1, (40, 48))
     for dtype, scale in ((np.uint8, 1), (np.uint16, 200)):
         frame = np.clip(img * scale, 0, np.iinfo(dtype).max).astype(dtype)
+        read_only = frame.copy()
+        read_only.setflags(write=False)
         for method in METHODS:
-            extract(frame, ExtractorConfig(method=method, min_strength=5.0))
+            for f in (frame, read_only):
+                extract(f, ExtractorConfig(method=method, min_strength=5.0))
