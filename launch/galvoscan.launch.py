@@ -15,6 +15,12 @@ Arguments:
     nodes        comma-separated node names, as ``galvoscan run --nodes`` (default: driver,
                  extractor, reconstructor; ``calibration`` is the fourth)
 
+The parameters file is completed as ``galvoscan run`` completes it
+(``galvoscan.bringup.prepare_params``): where it leaves them open, the stripe extractor's
+``orientation`` and the driver's ``raster_g1_axis`` follow the rig's calibration (a laser
+beside the camera: a stripe along the columns, a raster stepping G1's pan), and with the
+simulated rig the calibration node and the reconstructor start from its calibration.
+
 The driver is a lifecycle node; with its ``autostart`` parameter (default true) it
 configures and activates itself, so no transition events are needed here. With
 ``autostart: false`` it waits unconfigured for ``ros2 lifecycle set /galvo_driver
@@ -24,13 +30,15 @@ selects the multi-host Fast DDS profile). No namespace argument: the parameters 
 the nodes without one, as ``galvoscan run`` starts them.
 """
 
+import tempfile
 from pathlib import Path
 
-from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.actions import DeclareLaunchArgument, OpaqueFunction, SetLaunchConfiguration
 from launch.launch_description import LaunchDescription
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import LifecycleNode, Node
 
+from galvoscan.bringup import prepare_params
 from galvoscan_common.runtime import ENV, PROFILE_VARS, child_env
 
 #: The parameters file used unless ``params_file:=`` names another (beside this file).
@@ -70,7 +78,14 @@ def _nodes(context):
     unknown = [n for n in selected if n not in actions]
     if unknown:
         raise RuntimeError(f"nodes: unknown {', '.join(unknown)}; known: {', '.join(actions)}")
-    return [actions[n] for n in selected]
+    given = LaunchConfiguration('params_file').perform(context)
+    try:
+        params = prepare_params(given, selected, tempfile.mkdtemp(prefix='galvoscan-launch-'))
+    except ValueError as exc:
+        raise RuntimeError(f'params_file: {exc}') from None
+    # the nodes read params_file when they are started, after this has set it
+    return [SetLaunchConfiguration('params_file', str(params)),
+            *(actions[n] for n in selected)]
 
 
 def generate_launch_description():

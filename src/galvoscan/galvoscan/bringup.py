@@ -236,6 +236,24 @@ def with_stripe_orientation(params_file, nodes, workdir) -> str | None:
     return str(out)
 
 
+def prepare_params(params_file, nodes, workdir) -> str | None:
+    """The parameters file both bring-ups (``galvoscan run``, ``launch/galvoscan.launch.py``)
+    start ``nodes`` with: ``params_file`` completed, where it leaves them open, with the
+    calibration node's start (:func:`with_sim_starting_calibration`), the reconstructor's
+    calibration (:func:`with_reconstructor_calibration`) and the stripe's direction for the
+    extractor and the driver's raster (:func:`with_stripe_orientation`), written to
+    ``workdir`` when anything was added.
+
+    Raises
+    ------
+    ValueError
+        An unreadable parameters or calibration file, or an unknown rig.
+    """
+    params = with_sim_starting_calibration(params_file, nodes, workdir)
+    params = with_reconstructor_calibration(params, nodes, workdir)
+    return with_stripe_orientation(params, nodes, workdir)
+
+
 def _bin(script: str) -> str:
     """The console script installed beside this interpreter (the venv's bin/)."""
     candidate = Path(sys.executable).with_name(script)

@@ -65,9 +65,7 @@ def _run(argv):
     try:
         # refuse a bad file before starting anything
         workdir = tempfile.mkdtemp(prefix='galvoscan-run-')
-        params = bringup.with_sim_starting_calibration(args.params, nodes, workdir)
-        params = bringup.with_reconstructor_calibration(params, nodes, workdir)
-        params = bringup.with_stripe_orientation(params, nodes, workdir)
+        params = bringup.prepare_params(args.params, nodes, workdir)
         if args.one_process:
             bringup.run_one_process(nodes, params, args.duration)
             return 0

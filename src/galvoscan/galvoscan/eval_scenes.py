@@ -25,7 +25,10 @@ from scipy.spatial.transform import Rotation
 
 STAIR_SIZE = (0.12, 0.10, 0.02)   # footprint x, y and base height [m]
 STAIR_STEP = 0.03                 # the paper's 30 mm step [m]
-STAIR_TILT = (0.12, -0.35, 0.0)   # rotation vector [rad] that shows the riser to the laser
+#: Rotation vector [rad] that shows the riser to a laser below the camera (the block's step
+#: runs along x, across a stripe along the image rows); :func:`stair` turns the block with
+#: the rig's stripe layout for a laser elsewhere.
+STAIR_TILT = (0.12, -0.35, 0.0)
 SPHERE_RADIUS = 0.0254            # 2 inch calibration sphere [m]
 PLATE_SIZE = 0.74                 # [m]
 #: Plate raster (:func:`plate_raster`): neighbouring views of a row overlap by this
@@ -188,15 +191,23 @@ def _surface(material: str | None, albedo: float) -> str:
     return f'    material: {material}\n'
 
 
-def stair(position, material: str | None = None) -> tuple[str, dict]:
+def stair(position, material: str | None = None, layout=None) -> tuple[str, dict]:
     """The 30 mm stair block with its upper face near ``position`` [m], facing the scanner.
 
     ``material``: a name of ``galvoscan_sim.materials.MATERIALS`` (default: Lambertian,
-    albedo 0.6). Returns the scene text and ``{'W_T_O', 'size', 'step_height', 'aim_W'}``;
-    ``aim_W`` is the middle of the riser, where the view should be centred.
+    albedo 0.6). ``layout``: the rig's stripe layout
+    (``galvoscan_common.stripe_layout.StripeLayout``, e.g.
+    ``reconstructor.planning.stripe_layout`` of its calibration; None: the paper's, the
+    laser below the camera). The block is set up for a laser below (its step across the
+    stripe, :data:`STAIR_TILT` showing the riser to the laser) and turned about the
+    optical axis by ``layout.turn``: the stripe crosses the riser, and the riser faces the
+    laser, wherever it sits. Returns the scene text and ``{'W_T_O', 'size',
+    'step_height', 'aim_W'}``; ``aim_W`` is the middle of the riser, where the view should
+    be centred.
     """
     p = np.asarray(position, dtype=np.float64)
-    R = facing(p, STAIR_TILT)
+    turn = Rotation.from_rotvec([0.0, 0.0, 0.0 if layout is None else float(layout.turn)])
+    R = turn * facing(turn.inv().apply(p), STAIR_TILT)
     depth = STAIR_SIZE[2] + STAIR_STEP
     t = p + p / np.linalg.norm(p) * depth  # resting face behind the upper face
     W_T_O = _pose(R, t)
@@ -346,22 +357,28 @@ GROOVE_THICKNESS = 0.01
 
 
 def v_groove(position, material: str | None = 'machined_aluminium',
-             wall_distance: float = 0.05) -> tuple[str, dict]:
+             wall_distance: float = 0.05, layout=None) -> tuple[str, dict]:
     """An inside corner: two faces meeting along a line through ``position`` [m] (the
-    groove's bottom, its axis along W's y), opening towards the scanner, and a matt wall
-    ``wall_distance`` [m] behind. A specular material throws the stripe from each face
+    groove's bottom, its axis across the stripe), opening towards the scanner, and a matt
+    wall ``wall_distance`` [m] behind. A specular material throws the stripe from each face
     onto the other.
+
+    ``layout``: the rig's stripe layout, as for :func:`stair` (None: a laser below, the
+    axis along W's y); the groove is turned about the optical axis by ``layout.turn``, so
+    that the stripe crosses both faces.
 
     Returns the scene text and ``{'faces': [(n (3,), point (3,))] * 2, 'axis_W'}``: the
     faces' planes (outward unit normal and a point) in W and the groove's bottom point.
     """
     p = np.asarray(position, dtype=np.float64)
+    turn = Rotation.from_rotvec([0.0, 0.0, 0.0 if layout is None else float(layout.turn)])
     half = GROOVE_ANGLE / 2.0
     faces, objects = [], []
     for sign, name in ((-1.0, 'left'), (1.0, 'right')):
-        # the face runs from the axis out to x = sign * ..., towards the scanner (-z)
-        out = np.array([sign * math.sin(half), 0.0, -math.cos(half)])   # along the face
-        n = np.array([-sign * math.cos(half), 0.0, -math.sin(half)])    # outward normal
+        # the face runs from the axis out to x = sign * ..., towards the scanner (-z), for
+        # a laser below; turned to the laser's side
+        out = turn.apply([sign * math.sin(half), 0.0, -math.cos(half)])   # along the face
+        n = turn.apply([-sign * math.cos(half), 0.0, -math.sin(half)])    # outward normal
         R = Rotation.align_vectors([n, out], [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])[0]
         centre = p + out * GROOVE_FACE / 2 - n * GROOVE_THICKNESS / 2
         faces.append((n, p.copy()))

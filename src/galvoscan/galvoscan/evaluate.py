@@ -271,7 +271,7 @@ class Evaluation:
 
     def stair_at(self, position, frames):
         """Three views (Plane-1, the riser, Plane-2), each swept by the stripe."""
-        text, info = eval_scenes.stair(position)
+        text, info = eval_scenes.stair(position, layout=stripe_layout(self.model))
         self.client.set_scene(text)
         W_T_O, sz, step = info['W_T_O'], info['size'][2], info['step_height']
         # on Plane-1, the riser and Plane-2, at their depths (the stripe's place in a view

@@ -46,6 +46,7 @@ import numpy as np
 
 from galvoscan import eval_scenes, material_scores, metrics
 from reconstructor.cloud import CLOUD_DTYPE, xyz
+from reconstructor.planning import stripe_layout
 
 #: The countermeasures of each setting.
 SETTINGS = {
@@ -125,7 +126,8 @@ class MaterialRun:
 
         two = 'two_view' in SETTINGS[setting]
         stair_frames, plate_frames = self.frames
-        text, info = eval_scenes.stair(self.site.offset((0.0, 0.0, 0.0)), material=mat)
+        text, info = eval_scenes.stair(self.site.offset((0.0, 0.0, 0.0)), material=mat,
+                                       layout=stripe_layout(self.model))
         sweeps = material_scores.stair_sweeps(self.model, self.V0_T_W, info, stair_frames)
         stair_p, n1 = self._scan(text, sweeps, two)
         stair_off = material_scores.surface_offsets(load_scene_text(text), self.W_T_V0,

@@ -85,7 +85,8 @@ def laser_plane_errors(model, rig) -> dict:
     """The model's U2 = 0 laser plane against the true one.
 
     Returns ``normal_deg`` (angle between the normals) and ``at_work_m`` (largest distance of
-    the model's plane from points of the true plane at x in +-100 mm, depth 600..700 mm).
+    the model's plane from points of the true plane at +-100 mm along the stripe, depth
+    600..700 mm).
     """
     true = _true_planes(rig, [0.0])[0]
     pl = np.asarray(model.laser_plane_v0, dtype=np.float64)
@@ -96,10 +97,16 @@ def laser_plane_errors(model, rig) -> dict:
 
 
 def _plane_gap(pred, true) -> float:
+    """Largest distance of plane ``pred`` from points of plane ``true`` at +-100 mm along the
+    stripe (V0's x for a sheet from below or above the camera, y from beside it:
+    ``galvoscan_common.stripe_layout``) and depth 600..700 mm [m]."""
+    from galvoscan_common.stripe_layout import stripe_layout
+
+    layout = stripe_layout(true, 1.0, 1.0)
     worst = 0.0
     for x in (-0.1, 0.0, 0.1):
         for z in (0.6, 0.65, 0.7):
-            p = np.array([x, -(true[0] * x + true[2] * z + true[3]) / true[1], z])
+            p = layout.point_on_plane(true, x, z)
             worst = max(worst, abs(pred[:3] @ p + pred[3]) / np.linalg.norm(pred[:3]))
     return worst
 
@@ -110,7 +117,8 @@ SWEEP_VOLTS = tuple(float(u) for u in np.linspace(-4.0, 4.0, 17))
 
 def laser_sweep_error_m(model, rig, volts=SWEEP_VOLTS) -> float:
     """Largest distance between the model's laser plane and the true one at G2 tilt voltages
-    (default +-4 V), over points of the true plane at x in +-100 mm, depth 600..700 mm."""
+    (default +-4 V), over points of the true plane at +-100 mm along the stripe, depth
+    600..700 mm."""
     from reconstructor.model import laser_plane_v0
 
     worst = 0.0

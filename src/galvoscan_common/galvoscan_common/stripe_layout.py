@@ -60,6 +60,10 @@ class StripeLayout:
     sign : float
         +1 when increasing U2 tilt moves the sheet towards +``across`` on the optical axis
         (the laser below, or to the right, as seen by the camera), -1 the other way.
+    side : float
+        +1 when the laser sits on the +``across`` side of the camera (below it, V0's y
+        pointing down, or to its right), -1 on the other (above, left): where the sheet
+        lies at the camera's depth.
     """
 
     orientation: str
@@ -67,6 +71,17 @@ class StripeLayout:
     across: int
     along: int
     sign: float
+    side: float = 1.0
+
+    @property
+    def turn(self) -> float:
+        """The turn about V0's z (the optical axis) [rad] that takes the paper's layout, the
+        laser below the camera, to this one: 0 below, pi above, -pi/2 to the right, pi/2 to
+        the left (``galvoscan_sim.rig_family.LASER_SIDES``). An object set up for a laser
+        below, turned by it, meets this laser as the paper's object meets the paper's."""
+        if self.across == 1:
+            return 0.0 if self.side > 0 else math.pi
+        return -math.pi / 2 if self.side > 0 else math.pi / 2
 
     @property
     def image_axis(self) -> int:
@@ -131,6 +146,8 @@ def stripe_layout(plane_v0, fx: float, fy: float, plane_moved=None) -> StripeLay
     angle_to_rows = math.atan2(gx, gy)            # normal's angle from the image's v axis
     across = 1 if angle_to_rows <= math.pi / 4 else 0
     tilt = angle_to_rows if across == 1 else math.pi / 2 - angle_to_rows
+    # the laser's side: where the sheet lies at the camera's depth (z = 0), across the stripe
+    side = 1.0 if -pi[3] / pi[across] >= 0.0 else -1.0
     sign = 1.0
     if plane_moved is not None:
         q = np.asarray(plane_moved, dtype=np.float64).reshape(-1)
@@ -141,4 +158,5 @@ def stripe_layout(plane_v0, fx: float, fy: float, plane_moved=None) -> StripeLay
             a0 = -(pi[2] * z + pi[3]) / pi[across]
             a1 = -(q[2] * z + q[3]) / q[across]
             sign = 1.0 if a1 >= a0 else -1.0
-    return StripeLayout(ORIENTATION_OF_ACROSS[across], float(tilt), across, 1 - across, sign)
+    return StripeLayout(ORIENTATION_OF_ACROSS[across], float(tilt), across, 1 - across, sign,
+                        side)

@@ -33,6 +33,18 @@ def test_the_side_of_the_laser_gives_the_stripe_direction(turn, orientation, acr
     assert abs(_plane(turn)[:3] @ p + _plane(turn)[3]) < 1e-12 and p[lay.along] == 0.01
 
 
+@pytest.mark.parametrize('turn, side', [(0.0, 1.0), (180.0, -1.0), (-90.0, 1.0), (90.0, -1.0),
+                                         (15.0, 1.0), (-110.0, 1.0)])
+def test_the_laser_side_and_the_turn_from_a_laser_below(turn, side):
+    """Below (+y, V0's y down) and right (+x) are the + side; the turn is the laser side's
+    (rig_family.LASER_SIDES), nearest to the plane's own turn."""
+    for depth in (0.1, 0.65, 1.5):
+        lay = stripe_layout(_plane(turn, depth), 7800.0, 5000.0)
+        assert lay.side == side
+        nearest = 90.0 * round(turn / 90.0)
+        assert math.degrees(lay.turn) == pytest.approx(math.remainder(nearest, 360.0) or 0.0)
+
+
 def test_an_oblique_stripe_is_refused_with_the_reason():
     lay = stripe_layout(_plane(35.0), 7800.0, 7800.0)
     assert lay.tilt > MAX_STRIPE_TILT

@@ -227,13 +227,17 @@ def view_edge_rays(model: RigModel, fraction: float) -> list[np.ndarray]:
     return rays
 
 
-def expected_rows(model: RigModel, faces_v0, voltages, width: int,
+def expected_rows(model: RigModel, faces_v0, voltages, size: int | None = None,
                   samples: int = 400) -> np.ndarray:
-    """Rows where the stripe should cross each image column on a part of nominal shape.
+    """Where the stripe should cross each image column (each row, for a stripe along the
+    columns) on a part of nominal shape: the extractor's prior (``expected_v`` of
+    ``stripe_extractor.extractor.extract``).
 
     The part is a set of rectangular faces (its CAD, placed where the operator put it).
     Each face is cut with the model's laser plane of the frame; the cut is projected into
-    the frame's view; per column the nearest face (smallest depth) gives the row.
+    the frame's view; per column (row) the nearest face (smallest depth) gives the row
+    (column). Which way the stripe runs is the model's (:func:`stripe_layout`): along the
+    rows for a laser below or above the camera, along the columns beside it.
 
     Parameters
     ----------
@@ -243,23 +247,33 @@ def expected_rows(model: RigModel, faces_v0, voltages, width: int,
         turned away from the view are skipped.
     voltages : array_like, shape (4,), volts
         The frame's (U1_pan, U1_tilt, U2_pan, U2_tilt).
-    width : int
-        Image width [px].
+    size : int, optional
+        Image columns (rows, for a stripe along the columns) [px]; default the model's
+        image width (height).
+    samples : int
+        Points along each face's cut.
 
     Returns
     -------
-    ndarray, shape (width,), px
-        Expected row per column; NaN where no face is cut.
+    ndarray, shape (size,), px
+        Expected row per column (column per row); NaN where no face is cut.
     """
     U = np.asarray(voltages, dtype=np.float64)
     if U.shape != (4,) or not np.all(np.isfinite(U)):
         raise ValueError(f'voltages: expected 4 finite volts, got {U}')
+    # image axis along the stripe (0: u, one value per column) and across it
+    across = stripe_layout(model).image_axis
+    along = 1 - across
+    if size is None:
+        size = model.intrinsics.width if along == 0 else model.intrinsics.height
+    if not (isinstance(size, (int, np.integer)) and size >= 1):
+        raise ValueError(f'size: expected a positive number of pixels, got {size}')
     plane = laser_plane_v0(model, U[3])
     T = v0_T_v(model, U[0], U[1])
     centre = T[:3, 3]
-    rows = np.full(int(width), np.nan)
-    depth = np.full(int(width), np.inf)
-    cols = np.arange(int(width), dtype=np.float64)
+    rows = np.full(int(size), np.nan)
+    depth = np.full(int(size), np.inf)
+    cols = np.arange(int(size), dtype=np.float64)
     for c, e1, e2, half in faces_v0:
         c, e1, e2 = (np.asarray(x, dtype=np.float64) for x in (c, e1, e2))
         n = np.cross(e1, e2)
@@ -287,8 +301,8 @@ def expected_rows(model: RigModel, faces_v0, voltages, width: int,
         if np.count_nonzero(keep) < 2:
             continue
         uv, z = uv[keep], z[keep]
-        order = np.argsort(uv[:, 0])
-        uu, vv, zz = uv[order, 0], uv[order, 1], z[order]
+        order = np.argsort(uv[:, along])
+        uu, vv, zz = uv[order, along], uv[order, across], z[order]
         inside = (cols >= uu[0]) & (cols <= uu[-1])
         v_face = np.interp(cols[inside], uu, vv)
         z_face = np.interp(cols[inside], uu, zz)

@@ -39,7 +39,7 @@ from .config import (
     stacked_kernels,
     white_level,
 )
-from .selection import COUNT_NAMES, MODE_CODES, no_expectation
+from .selection import COUNT_NAMES, MODE_CODES, kernel_expected, no_expectation
 from .steger import steger_columns
 
 __all__ = ['FWHM_PER_SIGMA', 'LINE_WIDTH_RANGE_PX', 'METHODS', 'MIN_STRENGTH_RANGE_DN',
@@ -110,15 +110,18 @@ def check_image(image) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def _expected_rows(expected, n: int) -> np.ndarray:
-    """``expected`` as float32 (n,): None -> NaN, a scalar broadcast, an array checked."""
+def _expected_across(expected, n: int) -> np.ndarray:
+    """``expected`` as float32 (n,), one per position along the stripe (the columns of the
+    image :func:`extract_columns` works on: the image's rows for a vertical stripe): None ->
+    NaN, a scalar broadcast, an array checked."""
     if expected is None:
         return no_expectation(n)
     e = np.asarray(expected, dtype=np.float32)
     if e.ndim == 0:
         return np.full(n, float(e), np.float32)
     if e.shape != (n,):
-        raise ValueError(f'expected_v: expected a scalar or shape ({n},), got {e.shape}')
+        raise ValueError(f'expected_v: expected a scalar or shape ({n},) (one per image '
+                         f'column, per row for a vertical stripe), got {e.shape}')
     return np.ascontiguousarray(e)
 
 
@@ -129,7 +132,7 @@ def _prior_offset(img, config, columns, method_arg, rows, threshold) -> np.float
     out = np.empty((4, img.shape[1]), np.float32)
     counts = np.zeros(len(COUNT_NAMES), np.int64)
     n, _ = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
-                   threshold, out, MODE_CODES['nearest'], rows,
+                   threshold, out, MODE_CODES['nearest'], kernel_expected(rows),
                    config.ambiguity_ratio, counts)
     d = out[1, :n] - rows[np.clip(np.rint(out[0, :n]).astype(np.int64), 0, len(rows) - 1)]
     d = d[np.isfinite(d)]
@@ -167,13 +170,13 @@ def extract_columns(img: np.ndarray, config: ExtractorConfig, expected=None,
         columns, method_arg = cog_columns, cog_half_window(config.line_width_px)
     threshold = config.threshold_dn(white_level(img, config.bit_depth) if white is None
                                     else white)
-    rows = _expected_rows(expected, img.shape[1])
+    rows = _expected_across(expected, img.shape[1])
     if config.peak_mode == 'nearest' and np.any(np.isfinite(rows)):
         rows = rows + _prior_offset(img, config, columns, method_arg, rows, threshold)
     out = np.empty((4, img.shape[1]), np.float32)
     counts = np.zeros(len(COUNT_NAMES), np.int64)
     n, nsec = columns(img, config.roi_half_height, stacked_kernels(config.sigma), method_arg,
-                      threshold, out, MODE_CODES[config.peak_mode], rows,
+                      threshold, out, MODE_CODES[config.peak_mode], kernel_expected(rows),
                       config.ambiguity_ratio, counts)
     u, v, w, s = out[0, :n], out[1, :n], out[2, :n], out[3, :n]
     if config.peak_mode == 'nearest' and config.max_offset_px > 0 and n:
@@ -221,7 +224,9 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None,
 
 
 def warm_up() -> None:
-    """Compile (or load from numba's on-disk cache) every kernel for uint8 and uint16 images.
+    """Compile (or load from numba's on-disk cache) every kernel for uint8 and uint16 images,
+    writable and read-only (a node's images are read-only views of the messages' buffers,
+    a type of their own to numba).
 
     Call once per process before timing or before the first real frame.
     """
@@ -230,5 +235,8 @@ def warm_up() -> None:
     img = 10.0 + 150.0 * np.exp(-0.5 * ((rows - 20.3) / 2.0) ** 2) + rng.normal(0, 1, (40, 48))
     for dtype, scale in ((np.uint8, 1), (np.uint16, 200)):
         frame = np.clip(img * scale, 0, np.iinfo(dtype).max).astype(dtype)
+        read_only = frame.copy()
+        read_only.setflags(write=False)
         for method in METHODS:
-            extract(frame, ExtractorConfig(method=method, min_strength=5.0))
+            for f in (frame, read_only):
+                extract(f, ExtractorConfig(method=method, min_strength=5.0))

@@ -7,7 +7,8 @@ own (:func:`.profile.is_secondary`), the mode decides which one the extractors c
 
 ``strongest``   the strongest (the extractors' behaviour without selection);
 ``nearest``     the local maximum of the smoothed profile nearest the expected row of the
-                column (``expected`` (W,) [px]; NaN: no expectation, the strongest), within
+                column (``expected`` (W,) [px]; :data:`NO_EXPECTATION`, from NaN by
+                :func:`kernel_expected`: no expectation, the strongest), within
                 ``R`` rows of it and ``min_strength`` above the background: a prior from
                 where the part should be (its nominal pose, projected) or from the previous
                 frame. Unlike the others it also separates a reflection that merges into
@@ -32,6 +33,10 @@ from .config import PEAK_MODES
 from .profile import is_secondary, roi_profile_peak, smooth_column
 
 MODE_CODES = {m: i for i, m in enumerate(PEAK_MODES)}
+#: "No expectation" in the kernels' ``expected`` (:func:`kernel_expected`), and the value
+#: above which one is taken as a row.
+NO_EXPECTATION = -1.0e9
+NO_EXPECTATION_ABOVE = -1.0e8
 #: ``counts`` entries.
 #: Diagnostic names of the ``counts`` entries.
 COUNT_NAMES = ('two_peaks', 'kept_strongest', 'took_other', 'dropped_ambiguous',
@@ -91,7 +96,7 @@ def select_peaks(img, R, K, g0, min_strength, cand, sec, mode, expected, ratio, 
         p = cand[c]
         if mode == 1 and p >= 0:
             e = expected[c]
-            if e == e:  # not NaN
+            if e > NO_EXPECTATION_ABOVE:
                 r = _nearest_local_max(img, c, e, R, K, g0, min_strength, H)
                 if q >= 0:
                     a = max(p - R, K + 1)
@@ -142,3 +147,12 @@ def select_peaks(img, R, K, g0, min_strength, cand, sec, mode, expected, ratio, 
 def no_expectation(width: int) -> np.ndarray:
     """An ``expected`` array without expectations (all NaN), shape (width,)."""
     return np.full(int(width), np.nan, np.float32)
+
+
+def kernel_expected(expected) -> np.ndarray:
+    """``expected`` (NaN: none) as :func:`select_peaks` takes it: float32, NaN (and any
+    other value that is not finite) replaced by :data:`NO_EXPECTATION`. The kernels are
+    compiled with fastmath, which assumes no NaN: a NaN test there may be folded away, and
+    a NaN row then read as a garbage integer."""
+    e = np.asarray(expected, dtype=np.float32)
+    return np.ascontiguousarray(np.where(np.isfinite(e), e, np.float32(NO_EXPECTATION)))

@@ -108,6 +108,21 @@ def test_modes_on_synthetic_columns():
                        atol=0.2)
 
 
+def test_a_stripe_along_the_columns_takes_its_prior_per_row():
+    """Vertical: the expected column per row; the image transposed gives the same picks."""
+    img = np.ascontiguousarray(_two_peaks().T)  # 40 rows, the two stripes along the columns
+    config = ExtractorConfig(peak_mode='nearest', orientation='vertical')
+    prior = np.full(img.shape[0], 22.0)
+    prior[:5] = np.nan  # no expectation there: the strongest
+    res = extract(img, config, prior)
+    inner = slice(8, -8)
+    assert np.allclose(res.v, np.arange(img.shape[0]))  # one centre per row
+    assert np.allclose(res.u[inner], 20.0, atol=0.2)
+    assert np.allclose(res.u[:5], 45.0, atol=0.2)
+    with pytest.raises(ValueError, match='expected_v'):
+        extract(img, config, np.full(img.shape[1], 22.0))  # one per column: refused
+
+
 def test_bad_selection_parameters_are_refused():
     with pytest.raises(ValueError, match='peak_mode'):
         ExtractorConfig(peak_mode='loudest')
