@@ -454,10 +454,16 @@ def main(argv=None) -> int:
         p.error('--rigs must be >= 1 (>= 0 with --operator --reference-rig), --seed-start '
                 '>= 0, --timeout > 0 and --jobs in 1..16')
     t0 = time.monotonic()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, stop_run)
-    if args.operator:
-        return operator_family(args, t0)
+    previous = {sig: signal.signal(sig, stop_run) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return operator_family(args, t0) if args.operator else family(args, t0)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def family(args, t0: float) -> int:
+    """Every rig evaluated once per model form asked for."""
     models = ('paper', 'physical') if args.model == 'both' else (args.model,)
     extra = ['--distances', args.distances] if args.distances else []
     seeds = range(args.seed_start, args.seed_start + args.rigs)

@@ -177,7 +177,8 @@ def test_the_family_benchmarks_last_line_carries_the_rows_the_page_draws(tmp_pat
     spec.loader.exec_module(bench)
     build = {'sensor': 'PYTHON500', 'bit_depth': 8, 'head': 'WIDE25', 'laser': 'above'}
 
-    def evaluated(seed, folder, quick, timeout, model='physical', extra=(), rig_name=None):
+    def evaluated(seed, folder, quick, timeout, model='physical', extra=(), rig_name=None,
+                  **_):
         return {'seed': seed, 'completed': True, 'failures': [], 'wall_s': 1.0,
                 'working_distance_mm': 587.0, 'build': build, 'distances': (),
                 'by_distance_mm': {}, 'stair_rmse_mm': 0.04 + 0.2 * seed,

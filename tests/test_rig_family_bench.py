@@ -143,16 +143,14 @@ def test_a_stopped_run_summarises_the_rigs_finished(tmp_path, monkeypatch):
     monkeypatch.setattr(bench, 'source_tree', lambda: 'tree-a')
     monkeypatch.setattr(bench, '_STOP', threading.Event())
     out = tmp_path / 'family'
-    try:
-        import contextlib
-        import io
-        buf = io.StringIO()
-        with contextlib.redirect_stdout(buf):
-            assert bench.main(['--rigs', '4', '--distances', 'none', '--out', str(out)]) == 0
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT
-                          else signal.SIG_DFL)
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert bench.main(['--rigs', '4', '--distances', 'none', '--out', str(out)]) == 0
+    # the handlers are the caller's again
+    assert signal.getsignal(signal.SIGINT) is not bench.stop_run
     summary = json.loads(buf.getvalue().strip().splitlines()[-1])
     assert started == [0, 1]                      # seeds 2 and 3 never started
     assert summary['stopped'] and summary['rigs_asked'] == 4
