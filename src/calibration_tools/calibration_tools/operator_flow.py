@@ -411,6 +411,8 @@ class Located:
         capture and compares ``features``.
     features : ndarray, shape (n, 2) or None
         The target's features in that view, pixels.
+    stamp : float or None
+        That view's image stamp [s] (what ``features`` were detected in).
     """
 
     V0_T_target: np.ndarray | None
@@ -419,6 +421,7 @@ class Located:
     note: str
     check_voltages: np.ndarray | None = None
     features: np.ndarray | None = None
+    stamp: float | None = None
 
 
 def _bright_blob(img, min_area: int = 400, half_px=None):
@@ -585,11 +588,12 @@ def locate(model, p: Placement, views) -> Located:
             T = _sphere_pose(model, float(p.target), v.image, u[:2])
             if T is not None:
                 return Located(T, None, len(blobs), 'sphere outline seen whole', u,
-                               blob[4][None])
+                               blob[4][None], float(v.stamp))
             continue
         got = _board_pose(model, p.target, v.image, u[:2])
         if got is not None:
-            return Located(got[0], None, len(blobs), 'whole pattern detected', u, got[1])
+            return Located(got[0], None, len(blobs), 'whole pattern detected', u, got[1],
+                           float(v.stamp))
     w = np.array([b[2][1] for b in blobs], dtype=np.float64)
     pts = np.array([_ray_point(model, np.asarray(v.voltages)[:2], b[0], float(p.centre[2]))
                     for _, v, b in blobs])
@@ -604,12 +608,13 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
     from calibration_tools.circle_board import detect_circles
     from calibration_tools.small_board import as_uint8_image
 
-    dets, U = [], []
+    dets, U, stamps = [], [], []
     for v in views:
         d = detect_circles(as_uint8_image(np.asarray(v.image)), dark_circles=True)
         if len(d) >= 4:
             dets.append(d)
             U.append(np.asarray(v.voltages, dtype=np.float64)[:2])
+            stamps.append(float(v.stamp))
     if len(dets) < 2:
         return Located(None, None, len(dets), f'{len(dets)} search view(s) show circles')
     try:
@@ -624,7 +629,7 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
     k = int(np.argmax([len(d) for d in dets]))
     return Located(np.asarray(ident.board_poses[0]), None, len(dets),
                    f'{ok} of {len(dets)} search views identified',
-                   np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres)
+                   np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres, stamps[k])
 
 
 def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=None):

@@ -210,7 +210,7 @@ REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
     # The reference rig's galvos are non-linear by up to ~0.02 deg: fit their cubic.
     Stage('dynamic_camera',
           lambda model, quick: cp.dynamic_camera_steps(
-              model, [20] if quick else [40, 12, 12, 12, 12]),
+              model, [20] if quick else [40, 24, 24, 24, 24]),
           _run_dynamic_camera, _options(refine_poly=2, model='physical', measured_poses=None),
           targets=_circle_board),
     Stage('laser_plane',

@@ -111,8 +111,20 @@ def test_motion_gate_catches_a_moved_board_and_passes_a_still_one(bench):
     p = of.placements('laser_plane', plan('laser_plane', cal, quick=True))[0]
     T = _off(p, [-0.03, 0.004, 0.01], 0.05)
     _place(sim, p, T)
-    loc, move = of.search(model, p, targets, _looker(sim))
+    seen = []
+
+    def look(volts):
+        got = _looker(sim)(volts)
+        seen.extend(got)
+        return got
+    loc, move = of.search(model, p, targets, look)
     assert move is None, move.words
+    # the features come with the stamp of the image they were detected in (the progress
+    # topic's view_stamp), the view at the gate's voltages
+    src = [v for v in seen if v.stamp == loc.stamp
+           and np.allclose(v.voltages[:2], loc.check_voltages[:2])]
+    assert len(src) == 1
+    assert of.feature_shift_px(loc.features, of.features(p, src[0].image)) < 1e-9
     check = of.check_step(p, loc.check_voltages)
     still = execute_in_process(sim, [check])[0][0]
     assert of.feature_shift_px(loc.features, of.features(p, still.image)) < of.MOVED_PX
