@@ -17,7 +17,12 @@ parameters, each placement's own pose taken out (Schur complement):
   placement's G2 voltage crosses the board, their distance from the sheet differentiated
   with respect to the sheet's parameters; each point's noise is the stripe centre's
   (:data:`STRIPE_NOISE_PX`), and all points of one board share its pose's error along its
-  normal (from its pattern's corners; :func:`_board_depth_sigma`).
+  normal (from its pattern's corners; :func:`_board_depth_sigma`);
+- ``dynamic_camera``: the circle centres in every view of the large board, the views
+  planned around the pose the scanner measured (:func:`operator_flow.views_for`), with
+  respect to l and d and what the stage estimates with them (G1's gains and pan zero, the
+  pinhole; the intrinsics stage's standard errors as the pinhole's prior), noise
+  :data:`FEATURE_NOISE_PX`.
 
 The targets follow from one budget, :data:`BUDGET_M` at the design working distance (scaled
 with the working depth, as the targets and views are): a parameter's target is the
@@ -27,11 +32,12 @@ stage's whole plan). The principal point and the focal lengths are the exception
 of the principal point is a turn of the camera, which the dynamic camera's mirror angles
 take up, so its target is the lens prior's (:data:`PRINCIPAL_POINT_TARGET_PX`); the focal
 lengths' is set by how far their error carries into the dynamic camera and the laser
-sheet (:data:`FOCAL_TARGET_REL`).
+sheet (:data:`FOCAL_TARGET_REL`). The dynamic camera states targets for l and d alone, each
+the budget over the RMS move of points at the working depth over G1's range that the
+stage's other parameters cannot reproduce (:func:`_dynamic_targets`).
 
-``dynamic_camera`` (one to five circle-board placements, each a whole raster of views) and
-``joint_correction`` (sphere positions chained through shared G1 grid nodes) need every
-placement of their plan: their standard errors come from the stage's own solution
+``joint_correction`` (sphere positions chained through shared G1 grid nodes) needs every
+placement of its plan: its standard errors come from the stage's own solution
 (``calibration/compute``), and :func:`assess` reports them as not estimable before it.
 """
 
