@@ -590,6 +590,13 @@ class CalibrationNode(Node):
                     reason = 'moved'
                     stats['rejected']['moved'] = stats['rejected'].get('moved', 0) + got
                 moves += 1
+                if moves > max_moves:  # a gate that rejects every retake: leave it out
+                    self.get_logger().warning(f'{stage} placement {p.index} skipped after '
+                                              f'{max_moves} retakes: {reason}')
+                    stats['skipped'] += 1
+                    order.pop(0)
+                    state, text, moves = 'place', '', 0
+                    continue
                 state, move = 'place', None
                 text = {'moved': f'The target moved during the capture ({shift:.1f} px): '
                                  'its views are retaken. ',
