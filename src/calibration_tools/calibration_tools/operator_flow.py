@@ -368,7 +368,8 @@ def search_voltages(model, p: Placement, centre=None, rings: int = SEARCH_RINGS,
 
     A square spiral on the plane of the requested depth, ``step_views`` views apart, nearest
     first (the large circle board: +-2 whole views first, then +-3 half views); aims out of
-    G1 reach are left out.
+    G1 reach are left out (the large circle board, when none is left: the same search
+    around a point nearer the axis, at 85, 70 or 55 % of its lateral offset).
 
     Returns
     -------
@@ -386,9 +387,16 @@ def search_voltages(model, p: Placement, centre=None, rings: int = SEARCH_RINGS,
     step = step_views * np.array([w, h])
     cells = sorted(((i, j) for i in range(-rings, rings + 1) for j in range(-rings, rings + 1)),
                    key=lambda ij: (max(abs(ij[0]), abs(ij[1])), math.atan2(ij[1], ij[0])))
-    pts = np.array([c + np.array([i * step[0], j * step[1], 0.0]) for i, j in cells])
-    u = aim_g1(model, pts, max_abs_u=MAX_ABS_VOLTAGE)
-    u = u[np.isfinite(u).all(axis=1) & (np.abs(u) <= MAX_ABS_VOLTAGE).all(axis=1)]
+    # the large circle board reaches past G1's range where its plan put it at the edge (its
+    # large circles in reach, its centre not): then its part nearer the axis is searched
+    shrink = (1.0, 0.85, 0.7, 0.55) if p.kind == 'circle_board' else (1.0,)
+    for f in shrink:
+        at = np.array([c[0] * f, c[1] * f, c[2]])
+        pts = np.array([at + np.array([i * step[0], j * step[1], 0.0]) for i, j in cells])
+        u = aim_g1(model, pts, max_abs_u=MAX_ABS_VOLTAGE)
+        u = u[np.isfinite(u).all(axis=1) & (np.abs(u) <= MAX_ABS_VOLTAGE).all(axis=1)]
+        if len(u):
+            break
     return np.column_stack([u, np.zeros((len(u), 2))])
 
 
@@ -756,8 +764,14 @@ def check_pose(model, p: Placement, T, targets: cp.Targets) -> Move | None:
         d = np.array([0.0, 0.0, p.centre[2] - c[2]])
         return Move('too_far', d, f'too far ({c[2] * 1e3:.0f} mm, focus to '
                                   f'{hi * 1e3:.0f} mm): ' + _direction_words(d))
-    g1 = aim_g1(model, c, max_abs_u=MAX_ABS_VOLTAGE)
-    if not np.all(np.isfinite(g1)) or np.abs(g1).max() > MAX_ABS_VOLTAGE:
+    if p.kind == 'circle_board':  # in reach where its views can be identified: as planned
+        from calibration_tools.dynamic_camera import anchor_voltages
+
+        reach = len(anchor_voltages(model, p.target, T, max_abs_u=MAX_ABS_VOLTAGE)) >= 2
+    else:
+        g1 = aim_g1(model, c, max_abs_u=MAX_ABS_VOLTAGE)
+        reach = bool(np.all(np.isfinite(g1))) and np.abs(g1).max() <= MAX_ABS_VOLTAGE
+    if not reach:
         d = p.centre - c
         return Move('out_of_reach', d, 'out of G1 reach: ' + _direction_words(d))
     off = c - p.centre

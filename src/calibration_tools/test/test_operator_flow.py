@@ -178,6 +178,28 @@ def test_the_circle_boards_views_are_not_judged_by_edge_blur(bench):
     assert 'circle_board' not in of.BLUR_GATED
 
 
+def test_a_circle_board_reaching_past_g1s_range_is_found_and_taken(bench):
+    """The large circle board with its centre beyond G1's reach but two large circles in
+    it (where its plan puts it on a rig of short reach) is searched on its part nearer the
+    axis, found, and its views are planned."""
+    from calibration_tools.dynamic_camera import anchor_voltages
+
+    _, cal, model, targets, sim = bench
+    p = of.placements('dynamic_camera', plan('dynamic_camera', cal, quick=True))[0]
+    T = p.V0_T_target.copy()
+    for x in np.arange(0.3, 0.9, 0.01):  # the first x whose centre is out of reach
+        T[0, 3] = x
+        if np.abs(aim_g1(model, T[:3, 3], max_abs_u=20.0)).max() > of.MAX_ABS_VOLTAGE:
+            break
+    assert len(anchor_voltages(model, p.target, T, max_abs_u=of.MAX_ABS_VOLTAGE)) >= 2
+    p.V0_T_target = T
+    _place(sim, p, T)
+    loc, move = of.search(model, p, targets, _looker(sim))
+    assert move is None, move.words
+    assert np.linalg.norm(loc.V0_T_target[:3, 3] - T[:3, 3]) < 5e-3
+    assert len(of.views_for(model, p, loc.V0_T_target, targets)[0].voltages) >= 3
+
+
 def test_placements_of_the_plans_and_their_instructions(bench):
     """Every stage's plan becomes placements whose instructions name a kit target, a region
     around the plan's pose and a tilt; the laser stages' boards go on the laser line."""
