@@ -549,7 +549,7 @@ class CalibrationNode(Node):
                 if loc is not None and loc.features is not None:
                     self._publish_progress(progress, stats, assessment,
                                            (loc.features, why is None, '' if why is None
-                                            else why.reason))
+                                            else why.reason, loc.stamp))
                 if why is None:
                     try:
                         views = operator_flow.views_for(model, p, T, targets)
@@ -590,6 +590,13 @@ class CalibrationNode(Node):
                     reason = 'moved'
                     stats['rejected']['moved'] = stats['rejected'].get('moved', 0) + got
                 moves += 1
+                if moves > max_moves:  # a gate that rejects every retake: leave it out
+                    self.get_logger().warning(f'{stage} placement {p.index} skipped after '
+                                              f'{max_moves} retakes: {reason}')
+                    stats['skipped'] += 1
+                    order.pop(0)
+                    state, text, moves = 'place', '', 0
+                    continue
                 state, move = 'place', None
                 text = {'moved': f'The target moved during the capture ({shift:.1f} px): '
                                  'its views are retaken. ',
@@ -641,10 +648,13 @@ class CalibrationNode(Node):
         """The stage's standard errors against its targets and the advice (the placements
         still to ask for are the candidates)."""
         try:
+            from calibration_tools.dynamic_camera import intrinsics_standard_errors
+
             return stopping.assess(stage, model, targets,
                                    [(q, T) for q, _, _, _, T in kept if T is not None],
                                    [places[k] for k in order], places,
-                                   noise_px=progress.feature_noise_px())
+                                   noise_px=progress.feature_noise_px(),
+                                   prior_sigma=intrinsics_standard_errors(self.calibration))
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.get_logger().warning(f'{stage}: standard errors not predicted: {exc}')
             return stopping.assess('', model, targets, [], [places[k] for k in order])

@@ -36,7 +36,7 @@ stage                     targets (scene per step)                full plan    q
 ========================  ======================================  ===========  ============
 intrinsics                4 mm checkerboard at U1 = 0, tilted      30 views     8 views
                           ~34 deg in directions all around         30 steps     8 steps
-dynamic_camera            740 mm circle board at 650 mm, centred   88 views     20 views
+dynamic_camera            740 mm circle board at 650 mm, centred  136 views     20 views
                           and at 4 placements 420 mm to the sides  5 steps      1 step
 laser_plane               small circle grids on the U2 = 0 laser   8 boards,    4 boards,
                           plane, near and far (4 per scene)        16 frames    8 frames

@@ -368,7 +368,8 @@ def search_voltages(model, p: Placement, centre=None, rings: int = SEARCH_RINGS,
 
     A square spiral on the plane of the requested depth, ``step_views`` views apart, nearest
     first (the large circle board: +-2 whole views first, then +-3 half views); aims out of
-    G1 reach are left out.
+    G1 reach are left out (the large circle board, when none is left: the same search
+    around a point nearer the axis, at 85, 70 or 55 % of its lateral offset).
 
     Returns
     -------
@@ -386,9 +387,16 @@ def search_voltages(model, p: Placement, centre=None, rings: int = SEARCH_RINGS,
     step = step_views * np.array([w, h])
     cells = sorted(((i, j) for i in range(-rings, rings + 1) for j in range(-rings, rings + 1)),
                    key=lambda ij: (max(abs(ij[0]), abs(ij[1])), math.atan2(ij[1], ij[0])))
-    pts = np.array([c + np.array([i * step[0], j * step[1], 0.0]) for i, j in cells])
-    u = aim_g1(model, pts, max_abs_u=MAX_ABS_VOLTAGE)
-    u = u[np.isfinite(u).all(axis=1) & (np.abs(u) <= MAX_ABS_VOLTAGE).all(axis=1)]
+    # the large circle board reaches past G1's range where its plan put it at the edge (its
+    # large circles in reach, its centre not): then its part nearer the axis is searched
+    shrink = (1.0, 0.85, 0.7, 0.55) if p.kind == 'circle_board' else (1.0,)
+    for f in shrink:
+        at = np.array([c[0] * f, c[1] * f, c[2]])
+        pts = np.array([at + np.array([i * step[0], j * step[1], 0.0]) for i, j in cells])
+        u = aim_g1(model, pts, max_abs_u=MAX_ABS_VOLTAGE)
+        u = u[np.isfinite(u).all(axis=1) & (np.abs(u) <= MAX_ABS_VOLTAGE).all(axis=1)]
+        if len(u):
+            break
     return np.column_stack([u, np.zeros((len(u), 2))])
 
 
@@ -411,6 +419,8 @@ class Located:
         capture and compares ``features``.
     features : ndarray, shape (n, 2) or None
         The target's features in that view, pixels.
+    stamp : float or None
+        That view's image stamp [s] (what ``features`` were detected in).
     """
 
     V0_T_target: np.ndarray | None
@@ -419,6 +429,7 @@ class Located:
     note: str
     check_voltages: np.ndarray | None = None
     features: np.ndarray | None = None
+    stamp: float | None = None
 
 
 def _bright_blob(img, min_area: int = 400, half_px=None):
@@ -585,11 +596,12 @@ def locate(model, p: Placement, views) -> Located:
             T = _sphere_pose(model, float(p.target), v.image, u[:2])
             if T is not None:
                 return Located(T, None, len(blobs), 'sphere outline seen whole', u,
-                               blob[4][None])
+                               blob[4][None], float(v.stamp))
             continue
         got = _board_pose(model, p.target, v.image, u[:2])
         if got is not None:
-            return Located(got[0], None, len(blobs), 'whole pattern detected', u, got[1])
+            return Located(got[0], None, len(blobs), 'whole pattern detected', u, got[1],
+                           float(v.stamp))
     w = np.array([b[2][1] for b in blobs], dtype=np.float64)
     pts = np.array([_ray_point(model, np.asarray(v.voltages)[:2], b[0], float(p.centre[2]))
                     for _, v, b in blobs])
@@ -604,12 +616,13 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
     from calibration_tools.circle_board import detect_circles
     from calibration_tools.small_board import as_uint8_image
 
-    dets, U = [], []
+    dets, U, stamps = [], [], []
     for v in views:
         d = detect_circles(as_uint8_image(np.asarray(v.image)), dark_circles=True)
         if len(d) >= 4:
             dets.append(d)
             U.append(np.asarray(v.voltages, dtype=np.float64)[:2])
+            stamps.append(float(v.stamp))
     if len(dets) < 2:
         return Located(None, None, len(dets), f'{len(dets)} search view(s) show circles')
     try:
@@ -624,7 +637,7 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
     k = int(np.argmax([len(d) for d in dets]))
     return Located(np.asarray(ident.board_poses[0]), None, len(dets),
                    f'{ok} of {len(dets)} search views identified',
-                   np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres)
+                   np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres, stamps[k])
 
 
 def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=None):
@@ -751,8 +764,14 @@ def check_pose(model, p: Placement, T, targets: cp.Targets) -> Move | None:
         d = np.array([0.0, 0.0, p.centre[2] - c[2]])
         return Move('too_far', d, f'too far ({c[2] * 1e3:.0f} mm, focus to '
                                   f'{hi * 1e3:.0f} mm): ' + _direction_words(d))
-    g1 = aim_g1(model, c, max_abs_u=MAX_ABS_VOLTAGE)
-    if not np.all(np.isfinite(g1)) or np.abs(g1).max() > MAX_ABS_VOLTAGE:
+    if p.kind == 'circle_board':  # in reach where its views can be identified: as planned
+        from calibration_tools.dynamic_camera import anchor_voltages
+
+        reach = len(anchor_voltages(model, p.target, T, max_abs_u=MAX_ABS_VOLTAGE)) >= 2
+    else:
+        g1 = aim_g1(model, c, max_abs_u=MAX_ABS_VOLTAGE)
+        reach = bool(np.all(np.isfinite(g1))) and np.abs(g1).max() <= MAX_ABS_VOLTAGE
+    if not reach:
         d = p.centre - c
         return Move('out_of_reach', d, 'out of G1 reach: ' + _direction_words(d))
     off = c - p.centre
@@ -908,7 +927,14 @@ REPROJECTION_MAX_PX = 1.0
 #: The motion-blur gate: a view whose target edges spread over more than this many times
 #: those of the still check view taken after it (same target, same depth, laser off) is
 #: rejected: the target moved during the exposure (an optical blur is the same in both).
+#: The small boards only, seen whole at the check view's depth: the large circle board's
+#: raster views see parts of it up to ~0.2 m nearer or farther than the check view does
+#: (740 mm tilted by tens of degrees), and focus alone spreads their edges by up to this
+#: ratio (a drawn rig's side placement: 0.91-1.52 x over its 24 still views); there the
+#: motion gate and the stage's own fit of every circle judge.
 BLUR_RATIO_MAX = 1.5
+#: The targets the motion-blur gate applies to.
+BLUR_GATED = ('checkerboard', 'circle_grid')
 
 
 def reprojection_rms_px(model, p: Placement, pts) -> float:
@@ -967,7 +993,7 @@ def gate_view(model, p: Placement, image, still_spread: float):
     rms = reprojection_rms_px(model, p, pts)
     if rms > REPROJECTION_MAX_PX:
         return pts, 'reprojection_outlier', rms
-    if p.kind != 'sphere' and math.isfinite(still_spread) and still_spread > 0:
+    if p.kind in BLUR_GATED and math.isfinite(still_spread) and still_spread > 0:
         if edge_spread_px(image, pts) > BLUR_RATIO_MAX * still_spread:
             return pts, 'motion_blur', rms
     return pts, '', rms

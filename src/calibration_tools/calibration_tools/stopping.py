@@ -17,7 +17,12 @@ parameters, each placement's own pose taken out (Schur complement):
   placement's G2 voltage crosses the board, their distance from the sheet differentiated
   with respect to the sheet's parameters; each point's noise is the stripe centre's
   (:data:`STRIPE_NOISE_PX`), and all points of one board share its pose's error along its
-  normal (from its pattern's corners; :func:`_board_depth_sigma`).
+  normal (from its pattern's corners; :func:`_board_depth_sigma`);
+- ``dynamic_camera``: the circle centres in every view of the large board, the views
+  planned around the pose the scanner measured (:func:`operator_flow.views_for`), with
+  respect to l and d and what the stage estimates with them (G1's gains and pan zero, the
+  pinhole; the intrinsics stage's standard errors as the pinhole's prior), noise
+  :data:`FEATURE_NOISE_PX`.
 
 The targets follow from one budget, :data:`BUDGET_M` at the design working distance (scaled
 with the working depth, as the targets and views are): a parameter's target is the
@@ -27,11 +32,12 @@ stage's whole plan). The principal point and the focal lengths are the exception
 of the principal point is a turn of the camera, which the dynamic camera's mirror angles
 take up, so its target is the lens prior's (:data:`PRINCIPAL_POINT_TARGET_PX`); the focal
 lengths' is set by how far their error carries into the dynamic camera and the laser
-sheet (:data:`FOCAL_TARGET_REL`).
+sheet (:data:`FOCAL_TARGET_REL`). The dynamic camera states targets for l and d alone, each
+the budget over the RMS move of points at the working depth over G1's range that the
+stage's other parameters cannot reproduce (:func:`_dynamic_targets`).
 
-``dynamic_camera`` (one to five circle-board placements, each a whole raster of views) and
-``joint_correction`` (sphere positions chained through shared G1 grid nodes) need every
-placement of their plan: their standard errors come from the stage's own solution
+``joint_correction`` (sphere positions chained through shared G1 grid nodes) needs every
+placement of its plan: its standard errors come from the stage's own solution
 (``calibration/compute``), and :func:`assess` reports them as not estimable before it.
 """
 
@@ -76,8 +82,12 @@ MAX_PLACEMENTS = {'intrinsics': 30, 'dynamic_camera': 5, 'laser_plane': 8,
                   'laser_axis': 36, 'joint_correction': 9}
 #: Placements a stage takes before it may stop: what its solver needs, with one spare
 #: (intrinsics: 4 views; the laser plane: 2 boards; the laser axis: 3 planes of 2 boards,
-#: and :data:`ROW_BOARDS` on every plane of its plan).
-MIN_PLACEMENTS = {'intrinsics': 5, 'laser_plane': 3, 'laser_axis': 6}
+#: and :data:`ROW_BOARDS` on every plane of its plan). The dynamic camera takes its whole
+#: plan (the centre and the four sides): its prediction covers the paper model's
+#: parameters, while its solver also frees the physical model's G1 deviations wherever the
+#: views around the centre pin them, which spreads l's and d's errors wider than predicted
+#: (reference rig: l's standard error 0.18-0.23 mm from the solver, 0.14 mm predicted).
+MIN_PLACEMENTS = {'intrinsics': 5, 'dynamic_camera': 5, 'laser_plane': 3, 'laser_axis': 6}
 #: The laser axis's solver fits one plane per G2 voltage of its plan from at least this
 #: many boards, then the axis and G2's response (with its curvature) from those planes:
 #: the stage asks for every plane of its plan (they span G2's range, which the curvature
@@ -86,7 +96,8 @@ ROW_BOARDS = 2
 #: The stages whose standard errors are predicted here, each with what they are predicted
 #: from: the camera's projection (``camera``), one laser sheet (``sheet``) or the sheets of
 #: the G2 planes about the laser axis (``axis``). The others: see the module.
-PREDICTED = {'intrinsics': 'camera', 'laser_plane': 'sheet', 'laser_axis': 'axis'}
+PREDICTED = {'intrinsics': 'camera', 'dynamic_camera': 'dynamic', 'laser_plane': 'sheet',
+             'laser_axis': 'axis'}
 
 
 @dataclass
@@ -384,6 +395,148 @@ def _sheet_targets(model, params, regions, targets) -> np.ndarray:
     return _budget(targets) / np.maximum(rms, 1e-300)
 
 
+# ----------------------------------------------------------------------------- dynamic camera
+#: The dynamic camera's parameters: the two it states targets for (l, d: where the mirrors
+#: put the virtual camera, which nothing later re-estimates), then the ones it estimates
+#: with them (G1's gains, the pan zero, and the pinhole it refines, with the intrinsics
+#: stage's standard errors as their prior), whose errors are taken out of l's and d's.
+DYNAMIC_NAMES = ('l', 'd')
+_DYNAMIC_NUISANCE = ('g1_pan.k', 'g1_tilt.k', 'g1_pan.theta0', 'fx', 'fy', 'cx', 'cy')
+#: G1 voltages [V] over which the dynamic camera's targets are stated: the scanner's range
+#: (+-8 V, a 7 x 7 grid), where l and d move the virtual camera most at its corners.
+DYNAMIC_RANGE_V = 8.0
+
+
+def _dynamic_perturb(name):
+    import dataclasses
+
+    if name in ('l', 'd'):
+        return lambda m, h: dataclasses.replace(m, **{name: getattr(m, name) + h})
+    if name.startswith('g1_'):
+        mirror, attr = name.split('.')
+        return lambda m, h: dataclasses.replace(m, **{mirror: dataclasses.replace(
+            getattr(m, mirror), **{attr: getattr(getattr(m, mirror), attr) + h})})
+    return lambda m, h: dataclasses.replace(m, intrinsics=dataclasses.replace(
+        m.intrinsics, **{name: getattr(m.intrinsics, name) + h}))
+
+
+_DYNAMIC_STEP = {'l': 1e-6, 'd': 1e-6, 'g1_pan.k': 1e-8, 'g1_tilt.k': 1e-8,
+                 'g1_pan.theta0': 1e-7, 'fx': 1e-3, 'fy': 1e-3, 'cx': 1e-3, 'cy': 1e-3}
+
+
+def _dynamic_project(model, X, U, seen=None):
+    """Pixels of V0 points ``X`` (n, 3) in the views at G1 voltages ``U`` (m, 2): one array
+    (k, 2) per view, of the points ``seen[view]`` indexes (default: all), and their depths
+    in that view (k,)."""
+    import cv2
+
+    from reconstructor.model import v0_T_v
+
+    K, d = _camera(model)
+    V0_T_V = np.asarray(v0_T_v(model, U[:, 0], U[:, 1]))
+    out, depth = [], []
+    for j, T in enumerate(V0_T_V):
+        V_T_V0 = np.linalg.inv(T)
+        Xj = X if seen is None else X[seen[j]]
+        Xv = Xj @ V_T_V0[:3, :3].T + V_T_V0[:3, 3]
+        depth.append(Xv[:, 2])
+        out.append(cv2.projectPoints(Xv, np.zeros(3), np.zeros(3), K, d)[0].reshape(-1, 2)
+                   if len(Xv) else np.zeros((0, 2)))
+    return out, depth
+
+
+def _dynamic_views(model, p, T, targets) -> np.ndarray | None:
+    """The G1 voltages (m, 2) the stage's views of the circle board at ``T`` are taken at
+    (:func:`operator_flow.views_for`, as the scanner plans them)."""
+    from calibration_tools.operator_flow import views_for
+
+    try:
+        steps = views_for(model, p, T, targets)
+    except ValueError:
+        return None
+    return np.vstack([np.asarray(s.voltages, np.float64)[:, :2] for s in steps])
+
+
+def _dynamic_info(model, p, T, targets, noise_px) -> np.ndarray | None:
+    """Information on (:data:`DYNAMIC_NAMES`, :data:`_DYNAMIC_NUISANCE`) of one circle-board
+    placement at ``T``: its circles' centres in every view of it, the board's pose taken
+    out."""
+    from scipy.spatial.transform import Rotation
+
+    U = _dynamic_views(model, p, T, targets)
+    if U is None:
+        return None
+    board = p.target
+    X = board.points() @ T[:3, :3].T + T[:3, 3]
+    w, h = model.intrinsics.width, model.intrinsics.height
+    every, z = _dynamic_project(model, X, U)
+    seen = [np.flatnonzero((zj > 0) & (q[:, 0] >= 0) & (q[:, 0] < w) & (q[:, 1] >= 0)
+                           & (q[:, 1] < h)) for q, zj in zip(every, z, strict=True)]
+    if sum(len(s) for s in seen) < 6:
+        return None
+    px = np.vstack([q[s] for q, s in zip(every, seen, strict=True)])
+
+    def moved(m, Xm):
+        return (np.vstack(_dynamic_project(m, Xm, U, seen)[0]) - px).ravel()
+    cols = []
+    for name in (*DYNAMIC_NAMES, *_DYNAMIC_NUISANCE):
+        hstep = _DYNAMIC_STEP[name]
+        cols.append(moved(_dynamic_perturb(name)(model, hstep), X) / hstep)
+    c = T[:3, 3]
+    for j in range(6):  # the board's pose: turned about its centre, moved
+        e = np.zeros(3)
+        e[j % 3] = 1e-6
+        Xj = (X - c) @ Rotation.from_rotvec(e).as_matrix().T + c if j < 3 else X + e
+        cols.append(moved(model, Xj) / 1e-6)
+    J = np.column_stack(cols) / noise_px
+    return _schur(J.T @ J, len(DYNAMIC_NAMES) + len(_DYNAMIC_NUISANCE))
+
+
+def _dynamic_prior(model, prior_sigma) -> np.ndarray:
+    """The nuisance parameters' prior: the intrinsics stage's standard errors (``prior_sigma``
+    by name), else the lens prior's principal point."""
+    from calibration_tools.intrinsics import LensPrior
+
+    pp = LensPrior().principal_point_sigma_px
+    given = dict(prior_sigma or {})
+    k = len(DYNAMIC_NAMES) + len(_DYNAMIC_NUISANCE)
+    info = np.zeros((k, k))
+    for j, name in enumerate(_DYNAMIC_NUISANCE, len(DYNAMIC_NAMES)):
+        s = given.get(name, pp if name in ('cx', 'cy') else math.inf)
+        if math.isfinite(s) and s > 0:
+            info[j, j] = 1.0 / s ** 2
+    return info
+
+
+def _dynamic_targets(model, targets) -> np.ndarray:
+    """Budget over the RMS move, per unit of l and of d, of points at the working depth on
+    the image centre's ray over G1's range (:data:`DYNAMIC_RANGE_V`), less what the stage's
+    other parameters take up (the part of the move they cannot reproduce: their errors are
+    estimated with l's and d's, and what they absorb never reaches a point)."""
+    from reconstructor.model import v0_T_v
+
+    g = np.linspace(-DYNAMIC_RANGE_V, DYNAMIC_RANGE_V, 7)
+    up, ut = (a.ravel() for a in np.meshgrid(g, g))
+    depth = float(targets.depth)
+
+    def points(m):
+        i = m.intrinsics
+        ray = np.array([(0.5 * i.width - i.cx) / i.fx, (0.5 * i.height - i.cy) / i.fy, 1.0])
+        return (np.asarray(v0_T_v(m, up, ut)) @ np.append(ray * depth, 1.0))[:, :3].ravel()
+
+    base = points(model)
+    names = (*DYNAMIC_NAMES, *_DYNAMIC_NUISANCE)
+    J = np.column_stack([(points(_dynamic_perturb(n)(model, _DYNAMIC_STEP[n])) - base)
+                         / _DYNAMIC_STEP[n] for n in names])
+    out = []
+    for j in range(len(DYNAMIC_NAMES)):
+        others = np.delete(J, j, axis=1)
+        coef = np.linalg.lstsq(others, J[:, j], rcond=None)[0]
+        rms = math.sqrt(float(np.sum((J[:, j] - others @ coef) ** 2)) / len(up))
+        out.append(_budget(targets) / max(rms, 1e-300))
+    return np.array(out)
+
+
 # ----------------------------------------------------------------------------- assess
 def _describe(model, p) -> str:
     c = p.centre * 1e3
@@ -392,7 +545,7 @@ def _describe(model, p) -> str:
 
 
 def assess(stage: str, model, targets, kept, candidates, planned=(),
-           noise_px=None) -> Assessment:
+           noise_px=None, prior_sigma=None) -> Assessment:
     """The stage's standard errors after the placements ``kept`` and its advice.
 
     Parameters
@@ -410,6 +563,10 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         laser stages).
     noise_px : float, optional
         The features' noise the kept views show [px] (default :data:`FEATURE_NOISE_PX`).
+    prior_sigma : dict of str to float, optional
+        The dynamic camera: the standard errors [px] of the intrinsics it refines or holds,
+        as the intrinsics stage stored them (``dynamic_camera.intrinsics_standard_errors``;
+        default: the lens prior's principal point, focal lengths free).
     """
     noise = FEATURE_NOISE_PX if noise_px is None else float(noise_px)
     if stage not in PREDICTED:
@@ -418,7 +575,14 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
                           advice=(f'next: {_describe(model, candidates[0])} (this stage '
                                   'takes every placement of its plan)') if candidates else '')
     kind = PREDICTED[stage]
-    if kind == 'camera':
+    if kind == 'dynamic':
+        names, units = list(DYNAMIC_NAMES), ['m'] * len(DYNAMIC_NAMES)
+        target = _dynamic_targets(model, targets)
+        prior = _dynamic_prior(model, prior_sigma)
+
+        def info(p, T):
+            return _dynamic_info(model, p, T, targets, noise)
+    elif kind == 'camera':
         names, units = list(INTRINSICS_NAMES), list(_INTRINSICS_UNITS)
         target = _intrinsics_targets(model, targets)
         prior = _intrinsics_prior()
@@ -454,7 +618,8 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
                 pending[_row(p)] = pending.get(_row(p), 0) + got
             else:
                 total += got
-    sigma = _sigma(total) if not short else np.full(len(names), np.nan)
+    named = len(names)  # the dynamic camera's other parameters follow its named ones
+    sigma = _sigma(total)[:named] if not short else np.full(named, np.nan)
     out = Assessment(stage, names, units, sigma, target)
     best, best_ratio = None, math.inf
     # the laser axis: rows short of boards first (each row is one plane of the solver)
@@ -466,7 +631,7 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         if got is None:
             continue
         extra = got + pending.get(_row(p), 0) if _row(p) in short else got
-        r = float(np.max(np.nan_to_num(_sigma(total + extra) / target, nan=1e9)))
+        r = float(np.max(np.nan_to_num(_sigma(total + extra)[:named] / target, nan=1e9)))
         if r < best_ratio - 1e-12:
             best, best_ratio = k, r
     out.best, out.best_ratio = best, best_ratio
@@ -505,10 +670,16 @@ def _sigma(info: np.ndarray) -> np.ndarray:
     k = len(info)
     if k == 0:
         return np.zeros(0)
-    w = np.linalg.eigvalsh(0.5 * (info + info.T))
+    dg = np.diag(info)
+    if np.any(~(dg > 0)):
+        return np.full(k, np.nan)
+    # judged on the correlations (parameters of metres and of pixels side by side)
+    s = 1.0 / np.sqrt(dg)
+    c = 0.5 * (info + info.T) * np.outer(s, s)
+    w = np.linalg.eigvalsh(c)
     if w.min() <= 1e-12 * max(w.max(), 1e-300):
         return np.full(k, np.nan)
-    return np.sqrt(np.clip(np.diag(np.linalg.inv(info)), 0.0, None))
+    return s * np.sqrt(np.clip(np.diag(np.linalg.inv(c)), 0.0, None))
 
 
 # ----------------------------------------------------------------------------- coverage

@@ -111,8 +111,20 @@ def test_motion_gate_catches_a_moved_board_and_passes_a_still_one(bench):
     p = of.placements('laser_plane', plan('laser_plane', cal, quick=True))[0]
     T = _off(p, [-0.03, 0.004, 0.01], 0.05)
     _place(sim, p, T)
-    loc, move = of.search(model, p, targets, _looker(sim))
+    seen = []
+
+    def look(volts):
+        got = _looker(sim)(volts)
+        seen.extend(got)
+        return got
+    loc, move = of.search(model, p, targets, look)
     assert move is None, move.words
+    # the features come with the stamp of the image they were detected in (the progress
+    # topic's view_stamp), the view at the gate's voltages
+    src = [v for v in seen if v.stamp == loc.stamp
+           and np.allclose(v.voltages[:2], loc.check_voltages[:2])]
+    assert len(src) == 1
+    assert of.feature_shift_px(loc.features, of.features(p, src[0].image)) < 1e-9
     check = of.check_step(p, loc.check_voltages)
     still = execute_in_process(sim, [check])[0][0]
     assert of.feature_shift_px(loc.features, of.features(p, still.image)) < of.MOVED_PX
@@ -148,6 +160,44 @@ def test_view_gates_reject_motion_blur_and_reprojection_outliers(bench):
     bad[[0, 7, 20, 40, 60, 80]] += 5.0
     assert of.reprojection_rms_px(model, p, pts) < 0.3
     assert of.reprojection_rms_px(model, p, bad) > of.REPROJECTION_MAX_PX
+
+
+def test_the_circle_boards_views_are_not_judged_by_edge_blur(bench):
+    """The large circle board's raster views see parts of it at other depths than its
+    check view (focus spreads their edges): its views are kept on their circles, whatever
+    the check view's edge spread."""
+    _, cal, model, targets, sim = bench
+    p = of.placements('dynamic_camera', plan('dynamic_camera', cal, quick=True))[0]
+    _place(sim, p, p.V0_T_target)
+    step = of.views_for(model, p, p.V0_T_target, targets)[0]
+    views = execute_in_process(sim, [CaptureStep(0, None, step.voltages[:6], False)])[0]
+    seen = [v for v in views if of.features(p, v.image) is not None]
+    assert seen
+    pts, why, _ = of.gate_view(model, p, seen[0].image, 1e-3)
+    assert why == '' and pts is not None and len(pts) >= 4
+    assert 'circle_board' not in of.BLUR_GATED
+
+
+def test_a_circle_board_reaching_past_g1s_range_is_found_and_taken(bench):
+    """The large circle board with its centre beyond G1's reach but two large circles in
+    it (where its plan puts it on a rig of short reach) is searched on its part nearer the
+    axis, found, and its views are planned."""
+    from calibration_tools.dynamic_camera import anchor_voltages
+
+    _, cal, model, targets, sim = bench
+    p = of.placements('dynamic_camera', plan('dynamic_camera', cal, quick=True))[0]
+    T = p.V0_T_target.copy()
+    for x in np.arange(0.3, 0.9, 0.01):  # the first x whose centre is out of reach
+        T[0, 3] = x
+        if np.abs(aim_g1(model, T[:3, 3], max_abs_u=20.0)).max() > of.MAX_ABS_VOLTAGE:
+            break
+    assert len(anchor_voltages(model, p.target, T, max_abs_u=of.MAX_ABS_VOLTAGE)) >= 2
+    p.V0_T_target = T
+    _place(sim, p, T)
+    loc, move = of.search(model, p, targets, _looker(sim))
+    assert move is None, move.words
+    assert np.linalg.norm(loc.V0_T_target[:3, 3] - T[:3, 3]) < 5e-3
+    assert len(of.views_for(model, p, loc.V0_T_target, targets)[0].voltages) >= 3
 
 
 def test_placements_of_the_plans_and_their_instructions(bench):
