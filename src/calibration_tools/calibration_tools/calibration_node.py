@@ -506,6 +506,13 @@ class CalibrationNode(Node):
         max_moves = int(self.get_parameter('max_moves').value)
         kept, measured = [], {}
         order = list(range(len(places)))  # placements still to ask for, next first
+
+        def skip(p, why: str) -> None:
+            """Leave out placement ``p``, the next one first: the operator moved it
+            ``max_moves`` times without a view the gates keep."""
+            self.get_logger().warning(f'{stage} placement {p.index} skipped after {why}')
+            stats['skipped'] += 1
+            order.pop(0)
         progress = stopping.Progress(stage, model, most)
         assessment = self._assess(stage, model, targets, places, kept, order, progress)
         self._publish_progress(progress, stats, assessment)
@@ -559,10 +566,7 @@ class CalibrationNode(Node):
                 stats['refused'][why.reason] = stats['refused'].get(why.reason, 0) + 1
                 moves += 1
                 if moves > max_moves:
-                    self.get_logger().warning(f'{stage} placement {p.index} skipped after '
-                                              f'{max_moves} moves: {why.words}')
-                    stats['skipped'] += 1
-                    order.pop(0)
+                    skip(p, f'{max_moves} moves: {why.words}')
                     state, text, moves = 'place', '', 0
                     continue
                 state, text, move = 'move', why.words, why
@@ -591,10 +595,7 @@ class CalibrationNode(Node):
                     stats['rejected']['moved'] = stats['rejected'].get('moved', 0) + got
                 moves += 1
                 if moves > max_moves:  # a gate that rejects every retake: leave it out
-                    self.get_logger().warning(f'{stage} placement {p.index} skipped after '
-                                              f'{max_moves} retakes: {reason}')
-                    stats['skipped'] += 1
-                    order.pop(0)
+                    skip(p, f'{max_moves} retakes: {reason}')
                     state, text, moves = 'place', '', 0
                     continue
                 state, move = 'place', None

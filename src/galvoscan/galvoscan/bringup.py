@@ -100,10 +100,9 @@ def with_sim_starting_calibration(params_file, nodes, workdir) -> str | None:
     start = _write_design_values(rig, workdir / 'nominal_calibration.yaml')
     cal['initial_calibration'] = str(start)
     params['calibration'] = {'ros__parameters': cal}
-    out = workdir / 'params.yaml'
-    out.write_text(yaml.safe_dump(params, sort_keys=False))
+    out = _write_params(params, workdir, 'params.yaml')
     log.info('calibration starts from the design values of sim rig %s (%s)', rig, start)
-    return str(out)
+    return out
 
 
 def _write_design_values(rig: str, path: Path) -> Path:
@@ -167,7 +166,12 @@ def with_reconstructor_calibration(params_file, nodes, workdir) -> str | None:
         log.info('reconstructor uses the design values of sim rig %s: no calibration has been '
                  'made for it yet (make demo, or galvoscan calibrate all --sim, makes one)', rig)
     params['reconstructor'] = {'ros__parameters': recon}
-    out = Path(workdir) / 'params_reconstructor.yaml'
+    return _write_params(params, workdir, 'params_reconstructor.yaml')
+
+
+def _write_params(params: dict, workdir, name: str) -> str:
+    """Write a completed parameters file into ``workdir``; its path."""
+    out = Path(workdir) / name
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(yaml.safe_dump(params, sort_keys=False))
     return str(out)
@@ -230,10 +234,7 @@ def with_stripe_orientation(params_file, nodes, workdir) -> str | None:
     if wants_drv:
         drv['raster_g1_axis'] = 'tilt' if layout.across == 1 else 'pan'
         params['galvo_driver'] = {'ros__parameters': drv}
-    out = Path(workdir) / 'params_extractor.yaml'
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(yaml.safe_dump(params, sort_keys=False))
-    return str(out)
+    return _write_params(params, workdir, 'params_extractor.yaml')
 
 
 def prepare_params(params_file, nodes, workdir) -> str | None:
