@@ -24,6 +24,10 @@ parameters, each placement's own pose taken out (Schur complement):
   pinhole; the intrinsics stage's standard errors as the pinhole's prior), noise
   :data:`FEATURE_NOISE_PX`.
 
+The laser stages' prediction holds the camera fixed, as their solvers do: it is what more
+laser placements can still bring down. The camera's own error moves the triangulated sheet
+too (by more); the whole chain's uncertainty is the evaluation's predicted uncertainty.
+
 The targets follow from one budget, :data:`BUDGET_M` at the design working distance (scaled
 with the working depth, as the targets and views are): a parameter's target is the
 standard error that alone moves what it describes (a ray's pixel, the laser sheet) by the
