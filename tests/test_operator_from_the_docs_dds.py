@@ -75,7 +75,7 @@ class DocsOperator:
             QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.last_sequence, self.pose = -1, None
-        self.seen, self.errors, self.placed = [], [], 0
+        self.seen, self.errors, self.placed, self.retries = [], [], 0, 0
         self.moves = []
         self.running = True
         self.thread = threading.Thread(target=self.spin, daemon=True)
@@ -98,11 +98,20 @@ class DocsOperator:
         scene = {'format_version': 1, 'name': 'operator',
                  'objects': [board_object(msg.target, spec, self.pose[0],
                                           rotation_vector(self.pose[1]))]}
-        future = self.scene.call_async(SetScene.Request(scene_yaml=yaml.safe_dump(scene)))
-        future.add_done_callback(lambda f, p=msg.placement: self.after_scene(f, p))
+        self.put(yaml.safe_dump(scene), msg.placement, time.monotonic() + 30.0)
 
-    def after_scene(self, future, placement):
+    def put(self, text, placement, deadline):
+        future = self.scene.call_async(SetScene.Request(scene_yaml=text))
+        future.add_done_callback(lambda f: self.after_scene(f, text, placement, deadline))
+
+    def after_scene(self, future, text, placement, deadline):
         resp = future.result()
+        if not resp.success and 'during a scan' in resp.message and \
+                time.monotonic() < deadline:  # the simulator changes no scene mid-scan
+            self.retries += 1
+            time.sleep(0.02)
+            self.put(text, placement, deadline)
+            return
         if not resp.success:
             self.errors.append(resp.message)
             return

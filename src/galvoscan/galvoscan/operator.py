@@ -58,6 +58,10 @@ class Person:
 PERSON = Person()
 #: The zero-error operator: targets exactly where asked.
 EXACT = Person(0.0, 0.0, 0.0, 0.0, 0.0)
+#: How long a placement waits for a scan that still runs before the target is put [s]: the
+#: simulator changes no scene mid-scan, and the slowest search scans (81 views at 50 Hz on a
+#: loaded machine) end within it.
+SCAN_WAIT_S = 30.0
 #: The mistakes a person makes now and then: put it outside the region asked for; turn a
 #: board a quarter or half turn in its plane; nudge it during the capture.
 MISTAKES = ('outside_region', 'turned', 'moved_during_capture')
@@ -262,13 +266,20 @@ class SimulatedOperator:
     def _call(self, srv, name, req, resend=False):
         return self._services.call(srv, name, req, 60.0, resend)
 
-    def _set_scene(self, text):
+    def _set_scene(self, text, wait_s: float = SCAN_WAIT_S):
+        """Put the scene; while the simulator refuses because a scan runs, try again for up
+        to ``wait_s`` [s] (a person's hands wait for the scan too)."""
         from galvoscan_msgs.srv import SetScene
 
-        resp = self._call(SetScene, 'sim/set_scene', SetScene.Request(scene_yaml=text),
-                          resend=True)
-        if not resp.success:
-            raise RuntimeError(f'sim/set_scene: {resp.message}')
+        deadline = time.monotonic() + wait_s
+        while True:
+            resp = self._call(SetScene, 'sim/set_scene', SetScene.Request(scene_yaml=text),
+                              resend=True)
+            if resp.success:
+                return
+            if 'during a scan' not in resp.message or time.monotonic() > deadline:
+                raise RuntimeError(f'sim/set_scene: {resp.message}')
+            time.sleep(0.02)
 
     def _answer(self, action, placement):
         from galvoscan_msgs.srv import OperatorAction
@@ -358,7 +369,9 @@ class SimulatedOperator:
     def _hold(self, instr):
         """While the scanner captures: the hand's small motion, or a nudge (a mistake)."""
         instr0, draw = self._current
+        wait_s = 0.0  # the hand's small motion while a scan runs is not simulated
         if draw.mistake == 'moved_during_capture' and not self._nudged:
+            wait_s = 2.0  # a nudge the simulator refuses mid-scan lands when the scan ends
             self._nudged = True
             time.sleep(0.05)
             nudge = self.rng.normal(size=3)
@@ -375,7 +388,8 @@ class SimulatedOperator:
         spec_yaml = instr0['target_spec']
         import yaml
 
-        self._set_scene(scene_text(instr0['target'], yaml.safe_load(spec_yaml) or {}, draw.T))
+        self._set_scene(scene_text(instr0['target'], yaml.safe_load(spec_yaml) or {}, draw.T),
+                        wait_s=wait_s)
 
 
 def progress_text(msg) -> str:
