@@ -131,6 +131,10 @@ SPHERE_RADIUS = 0.01
 WORKING_DISTANCE = 0.65
 #: Largest |U| a plan commands [V] (the DAC's top code is just below +10 V).
 MAX_ABS_VOLTAGE = 9.9
+#: How precisely a person places a target by eye [m]: the half extents of the region an
+#: instruction asks for (a target within about 10 cm of where it was asked is found by the
+#: search). A plan keeps what it needs in reach anywhere within it.
+REGION_HALF_EXTENT = 0.06
 
 #: Big-board placements: centre offset (x, y) in V0 [m] at the design working distance
 #: (scaled with the working depth), and the board's rotation vector [rad]. Pose 0 is in
@@ -468,9 +472,8 @@ def circle_board_scene_yaml(V0_T_W, board=CIRCLE_BOARD) -> str:
 def _anchors_wherever_placed(model, board, T) -> int:
     """The fewest large circles of the board within G1 reach wherever a person puts it
     within the region asked for around ``T`` (each corner of the region, in x, y and depth,
-    :data:`operator_flow.REGION_HALF_EXTENT`)."""
+    :data:`REGION_HALF_EXTENT`)."""
     from calibration_tools.dynamic_camera import anchor_voltages
-    from calibration_tools.operator_flow import REGION_HALF_EXTENT
 
     fewest = board.n_circles
     for corner in np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T:
