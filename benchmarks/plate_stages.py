@@ -2,14 +2,16 @@
 the calibration, by its dynamic camera alone, and by the truth.
 
 Run: ``.venv/bin/python benchmarks/plate_stages.py --rig RIG.yaml --calibration CAL.yaml
-[--grid 21] [--pose 0]``
+[--grid 21] [--pose 0] [--extracted]``
 
 With a simulated rig and a calibration of it (e.g. ``galvoscan evaluate``'s
 ``calibration.yaml``), the evaluation's flat plate (``eval_scenes.plate``, pose ``--pose``, at
 the rig's working point) is crossed by the laser at a ``--grid`` x ``--grid`` lattice of points
 over 95 % of its side: G1 aimed at each point, G2 set so that the true laser sheet passes
 through it. The simulator's exact stripe pixels of each frame (no extraction error; the galvos
-scatter from frame to frame as on the rig) are triangulated at the commanded, DAC-quantised
+scatter from frame to frame as on the rig), or with ``--extracted`` the stripe extractor's
+centres in the rendered image (``stripe_extractor.extractor.extract``, configured for the
+calibration as the laser stages configure it), are triangulated at the commanded, DAC-quantised
 voltages by three models:
 
 - ``calibrated``: the calibration;
@@ -86,8 +88,13 @@ def _u2_through(model, p) -> float | None:
     return 0.5 * (lo + hi)
 
 
-def plate_stages(rig, calibrated, grid: int = 21, pose: int = 0) -> dict:
+def plate_stages(rig, calibrated, grid: int = 21, pose: int = 0,
+                 extracted: bool = False) -> dict:
     """The plate figures of the three models (see the module) [mm]."""
+    from calibration_tools.laser_plane import stripe_extractor_config
+    from stripe_extractor.extractor import extract
+
+    config = stripe_extractor_config(calibrated)
     truth = truth_model(rig, kind='physical')
     models = {'calibrated': calibrated,
               'dynamic_camera_only': with_camera_of(truth, calibrated), 'truth': truth}
@@ -105,17 +112,18 @@ def plate_stages(rig, calibrated, grid: int = 21, pose: int = 0) -> dict:
             if u2 is None:
                 continue
             q = rig.dac.quantize(np.array([u1[0], u1[1], 0.0, u2]))
-            stripe = sim.render(q).truth.stripe
-            if len(stripe) == 0:
+            frame = sim.render(q)
+            stripe = extract(frame.image, config) if extracted else frame.truth.stripe
+            if len(stripe.u) == 0:
                 continue
             views += 1
-            uv = np.column_stack([stripe.u, stripe.v])
+            uv = np.column_stack([stripe.u, stripe.v]).astype(np.float64)
             for k, m in models.items():
                 res = triangulate(m, uv, q[0], q[1], q[3])
                 pts[k].append(res.p_v0[res.valid])
     if views < 3:
         raise RuntimeError(f'the plate is crossed in {views} view(s) within reach')
-    out = {'views': views, 'grid': grid, 'pose': pose}
+    out = {'views': views, 'grid': grid, 'pose': pose, 'extracted': extracted}
     for k, m in models.items():
         P = np.vstack(pts[k])
         plane, _ = metrics.fit_plane(P)
@@ -163,13 +171,15 @@ def main(argv=None) -> int:
     p.add_argument('--calibration', required=True, help='calibration YAML of that rig')
     p.add_argument('--grid', type=int, default=21, help='points per side of the plate')
     p.add_argument('--pose', type=int, default=0, help='plate pose (eval_scenes.PLATE_POSES)')
+    p.add_argument('--extracted', action='store_true',
+                   help="the extractor's stripe centres in the rendered images")
     args = p.parse_args(argv)
     if args.grid < 2:
         p.error('--grid must be >= 2')
     with open(args.rig) as f:
         rig = rig_from_dict(yaml.safe_load(f), args.rig)
     cal = calibration_file.load(args.calibration)
-    out = plate_stages(rig, cal.model, args.grid, args.pose)
+    out = plate_stages(rig, cal.model, args.grid, args.pose, args.extracted)
     out['dynamic_camera'] = dynamic_camera_sigmas(cal, truth_model(rig, kind='physical'))
     for k in ('calibrated', 'dynamic_camera_only', 'truth'):
         print(f"{k}: plate {out[k]['plate_rms_mm']:.4f} mm, transfer-matrix error "
