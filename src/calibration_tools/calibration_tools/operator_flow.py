@@ -40,9 +40,8 @@ from calibration_tools import capture_plans as cp
 from calibration_tools.board_layout import Checkerboard, CircleBoard, CircleGrid
 from calibration_tools.stages import CaptureStep
 
-#: How precisely a person places a target by eye [m]: the half extents of the region asked
-#: for (a target within about 10 cm of where it was asked is found by the search).
-REGION_HALF_EXTENT = 0.06
+#: The half extents of the region asked for [m] (:data:`capture_plans.REGION_HALF_EXTENT`).
+REGION_HALF_EXTENT = cp.REGION_HALF_EXTENT
 #: How precisely a target is put on a visible laser line [m] (across the line).
 LASER_LINE_HALF_EXTENT = 0.01
 #: Accepted deviation of a target's tilt from the tilt asked for [rad] (a person's +-8 deg

@@ -76,6 +76,35 @@ def test_a_board_out_of_reach_is_replaced_and_reported_instead_of_failing():
                                    atol=1e-9)
 
 
+def test_circle_board_side_placements_stay_in_reach_wherever_a_person_puts_them():
+    """A narrow head (a drawn rig's +-12.5 deg GVS011-class head, 10 mm-pitch board) reaches
+    only the inner part of a side placement: the plan moves it in until its large circles
+    stay within G1 reach anywhere in the region asked for, so that the scanner accepts
+    every placement a person makes there; the reference rig keeps its full offsets."""
+    from calibration_tools import operator_flow as of
+    from galvoscan.operator import Person, draw_placement
+
+    rig = draw_rig(4)
+    assert 10.0 * rig['g1']['pan']['gain'] < np.radians(13.0)  # +-12.5 deg at 10 V
+    model = cp.current_model(nominal_calibration(rig))
+    plan = cp.dynamic_camera_steps(model, [5] * 5)
+    assert len(plan) == 5 and any('moved in' in line for line in plan.report)
+    rng, person = np.random.default_rng(0), Person(mistake_rate=0.0)
+    for p in of.placements('dynamic_camera', plan):
+        assert cp._anchors_wherever_placed(model, p.target, p.V0_T_target) >= 2
+        instr = of.instruction_fields(p, 'place', '')
+        refused = [of.check_pose(model, p, draw_placement(instr, rng, person).T,
+                                 plan.targets) for _ in range(12)]
+        assert refused == [None] * 12, (p.index, refused)
+    full = cp.dynamic_camera_steps(NOMINAL.model, [5] * 5)
+    assert not full.report
+    scale = cp.choose_targets(NOMINAL.model).depth / cp.WORKING_DISTANCE
+    for s in full:
+        off = np.array(cp.CIRCLE_BOARD_OFFSETS[s.pose_index]) * scale
+        got = yaml.safe_load(s.scene_yaml)['objects'][0]['pose']['translation']
+        np.testing.assert_allclose(got[:2], off, atol=1e-9)
+
+
 def test_a_stage_fails_only_when_the_rest_cannot_constrain_it_and_says_what():
     with pytest.raises(cp.PlanError, match=r'intrinsics: .*fx, fy, cx, cy.*3 checkerboard'):
         cp.intrinsics_steps(NOMINAL.model, 3)
