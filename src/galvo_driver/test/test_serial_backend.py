@@ -276,8 +276,27 @@ def reset_mid_scan(board, backend_on, caplog):
     assert be.status == STATUS_SETTLED
     be.start(volts[:15], 500.0)
     frames2 = collect(be)
-    assert [f.seq for f in frames2] == list(range(10, 25))
+    assert [f.seq for f in frames2] == list(range(10, 25)), be.fault
     assert_frames_truthful(frames2, volts[:15], seq_base=10)
+
+
+def test_safe_state_a_fault_asked_for_never_lands_in_the_next_scan(backend_on):
+    # The heartbeat thread commands the safe state a fault asks for. With a slow heartbeat
+    # it is still pending when the user re-arms and starts again at once; it must not stop
+    # that new scan. (A 5 s board watchdog, so the slow heartbeat does not trip it.)
+    with FirmwareEmulator('pty', seed=7, watchdog=5.0) as emulator:
+        be = backend_on(emulator, heartbeat_period=0.8)
+        emulator.reset(at_trigger=3)
+        be.start(scan_volts(20, seed=2), 250.0)
+        assert [f.seq for f in collect(be)] == list(range(4))
+        assert be.status == STATUS_FAULT
+        be.arm()
+        volts = scan_volts(300, seed=3)
+        be.start(volts, 250.0)  # 1.2 s: longer than one heartbeat period
+        frames = collect(be)
+        assert be.fault is None, be.fault
+        assert [f.seq for f in frames] == list(range(4, 304))
+        assert_frames_truthful(frames, volts, seq_base=4)
 
 
 def test_reset_while_idle_reconnects(board, backend_on, caplog):

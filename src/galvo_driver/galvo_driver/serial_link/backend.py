@@ -148,7 +148,7 @@ class SerialBackend(GalvoBackend):
         self._hb_thread: threading.Thread | None = None
         self._stop_evt = threading.Event()
         self._tx_lock = threading.Lock()
-        self._cmd_lock = threading.Lock()
+        self._cmd_lock = threading.RLock()
         self._cond = threading.Condition()  # guards everything the reader thread touches
         self._pending: dict[int, _Slot] = {}
         self._seq = 0
@@ -325,7 +325,9 @@ class SerialBackend(GalvoBackend):
             self._handshake()
             with self._cond:
                 self._fault = None
-        self._command(p.Safe())
+        with self._cmd_lock:  # this Safe serves a fault's deferred one too
+            self._need_safe = False
+            self._command(p.Safe())
 
     def start(self, voltages: np.ndarray, frame_rate: float, laser_on: bool = True) -> int:
         """Upload the scan (ACKed chunks, CRC-verified on the board) and start triggering.
@@ -376,6 +378,7 @@ class SerialBackend(GalvoBackend):
         if self._session_lost:
             log.warning('board was reset while idle; re-establishing the session')
             self._handshake()
+        self._serve_pending_safe()
         prev = self._scan
         if prev is not None and prev.board_busy:  # its last edge came a moment ago
             with self._cond:
@@ -814,18 +817,29 @@ class SerialBackend(GalvoBackend):
             self._set_fault(f'board fault: {what}')
             self._need_safe = True
 
+    def _serve_pending_safe(self) -> None:
+        """Command the safe state a fault asked for, if no one has since.
+
+        The check and the command hold the command lock, so a Safe asked for by an old
+        fault is sent before the next scan's upload or not at all, never in its middle."""
+        if not self._need_safe:
+            return
+        with self._cmd_lock:
+            if not self._need_safe:
+                return
+            self._need_safe = False
+            self._command(p.Safe())
+
     # -- heartbeat thread ---------------------------------------------------------------
     def _heartbeat(self) -> None:
         frame = p.encode_frame(0, p.Heartbeat())
         while not self._stop_evt.wait(self.heartbeat_period):
             if self._link_error is not None:
                 continue
-            if self._need_safe:
-                self._need_safe = False
-                try:
-                    self._command(p.Safe())
-                except BackendError as err:
-                    log.error('could not command the safe state after a fault: %s', err)
+            try:
+                self._serve_pending_safe()
+            except BackendError as err:
+                log.error('could not command the safe state after a fault: %s', err)
             try:
                 self._write(frame)
             except BackendError:
