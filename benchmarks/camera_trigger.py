@@ -340,10 +340,11 @@ class RigRun:
 
 def run_rig(n: int, fps: float, *, faults: Faults | None = None, seed: int = 0,
             drift_ppm: float = 0.0, camera_kw: dict | None = None, exposure: float = 0.001,
-            during=None, host_check: bool = True) -> RigRun:
+            during=None, host_check: bool = True, watchdog: float = 0.15) -> RigRun:
     """Scan ``n`` random rows at ``fps`` on the emulator with a synthetic camera, pairing
     frames and events with a :class:`TriggerPairer`; ``during(emulator, camera)`` runs once
-    the scan has started (mid-scan faults)."""
+    the scan has started (mid-scan faults). ``watchdog`` is the board's heartbeat timeout
+    [s] (the firmware's 0.15 s by default)."""
     faults = faults or Faults()
     rng = np.random.default_rng(seed)
     codes = rng.integers(1, 65536, (n, 4)).astype(np.uint16)
@@ -354,7 +355,8 @@ def run_rig(n: int, fps: float, *, faults: Faults | None = None, seed: int = 0,
         faults.on_trigger(emu, index)
         camera.trigger(index, t)
 
-    emu = FirmwareEmulator('pty', seed=seed, on_trigger=hook, clock_drift_ppm=drift_ppm)
+    emu = FirmwareEmulator('pty', seed=seed, on_trigger=hook, clock_drift_ppm=drift_ppm,
+                           watchdog=watchdog)
     camera.emulator = emu
     with emu:
         backend = TappedBackend(emu.port, exposure=exposure)

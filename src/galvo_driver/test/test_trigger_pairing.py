@@ -45,8 +45,17 @@ ct = importlib.util.module_from_spec(_spec)
 sys.modules[_spec.name] = ct
 _spec.loader.exec_module(ct)
 
+#: The emulator's watchdog [s]. The firmware's 0.15 s is shorter than the pauses a long test
+#: process has (a full garbage collection stops the host's heartbeat thread with the rest),
+#: which is not what these tests are about.
+WATCHDOG_S = 0.5
 N = 300        # triggers per emulator scan
 FPS = 200.0    # trigger rate of the emulator scans (5 ms: robust to a loaded machine)
+
+
+def run_rig(*args, **kw):
+    """The harness's emulator scan with the tests' watchdog."""
+    return ct.run_rig(*args, watchdog=WATCHDOG_S, **kw)
 
 
 def assert_sound(run) -> dict:
@@ -86,7 +95,7 @@ def assert_gaps(run) -> None:
 
 # ------------------------------------------------------------------ the emulator's faults
 def test_clean_scan_pairs_every_frame_with_its_trigger():
-    run = ct.run_rig(N, FPS, seed=1)
+    run = run_rig(N, FPS, seed=1)
     assert_sound(run)
     assert_gaps(run)
     # a trigger the loaded emulator fired late or in a burst may stay unpaired: its frame is
@@ -99,7 +108,7 @@ def test_clean_scan_pairs_every_frame_with_its_trigger():
 
 def test_lost_trigger_events_drop_their_frames():
     faults = ct.Faults(lost_events={60, 61, 150, 227})
-    run = ct.run_rig(N, FPS, faults=faults, seed=2, host_check=False)
+    run = run_rig(N, FPS, faults=faults, seed=2, host_check=False)
     assert_sound(run)
     for i in faults.lost_events:
         assert i not in paired_indices(run)
@@ -111,7 +120,7 @@ def test_lost_trigger_events_drop_their_frames():
 
 def test_lost_camera_frames_leave_their_triggers_unpaired():
     faults = ct.Faults(lost_frames={30, 31, 32, 150, 240})
-    run = ct.run_rig(N, FPS, faults=faults, seed=3, host_check=False)
+    run = run_rig(N, FPS, faults=faults, seed=3, host_check=False)
     assert_sound(run)
     assert_gaps(run)
     for i in faults.lost_frames:
@@ -125,7 +134,7 @@ def test_missed_camera_triggers_are_resolved_by_timing():
     """The camera did not expose (no frame id): sequence alone would tag every later frame
     with the previous trigger's voltages; the timing check finds the shift."""
     faults = ct.Faults(missed_triggers={100, 101, 200})
-    run = ct.run_rig(N, FPS, faults=faults, seed=4, host_check=False)
+    run = run_rig(N, FPS, faults=faults, seed=4, host_check=False)
     assert_sound(run)
     for i in faults.missed_triggers:
         assert i not in paired_indices(run)
@@ -136,7 +145,7 @@ def test_missed_camera_triggers_are_resolved_by_timing():
 
 def test_duplicated_events_are_counted_and_ignored():
     faults = ct.Faults(dup_events={100, 101, 222})
-    run = ct.run_rig(N, FPS, faults=faults, seed=5)
+    run = run_rig(N, FPS, faults=faults, seed=5)
     assert_sound(run)
     assert run.emulator.stats['duplicated_events'] == 3
     assert run.pairer.counters['duplicate_event'] == 3
@@ -148,7 +157,7 @@ def test_duplicated_events_are_counted_and_ignored():
 
 @pytest.mark.parametrize('drift_ppm', [200.0, -200.0])
 def test_board_clock_drift_is_tracked(drift_ppm):
-    run = ct.run_rig(N, FPS, seed=6, drift_ppm=drift_ppm, camera_kw={'drift_ppm': 0.0},
+    run = run_rig(N, FPS, seed=6, drift_ppm=drift_ppm, camera_kw={'drift_ppm': 0.0},
                      host_check=False)
     assert_sound(run)
     # the camera clock runs at the true rate: relative to the board it is -drift
@@ -163,7 +172,7 @@ def test_board_clock_drift_is_tracked(drift_ppm):
 def test_board_clock_step_restarts_the_fit(step_us):
     """-2000 us is a whole trigger period back: later triggers then match earlier frames
     in time, which must not be taken for missed camera triggers."""
-    run = ct.run_rig(N, FPS, seed=7,
+    run = run_rig(N, FPS, seed=7,
                      during=lambda emu, cam: emu.step_clock(step_us, at_trigger=150))
     assert_sound(run)
     assert run.emulator.stats['clock_steps'] == 1
@@ -174,7 +183,7 @@ def test_board_clock_step_restarts_the_fit(step_us):
 
 
 def test_board_reset_mid_scan_ends_the_pairing():
-    run = ct.run_rig(N, FPS, seed=8, during=lambda emu, cam: emu.reset(at_trigger=150))
+    run = run_rig(N, FPS, seed=8, during=lambda emu, cam: emu.reset(at_trigger=150))
     assert_sound(run)
     assert run.emulator.stats['resets'] == 1
     assert run.pairer.counters['board_resets'] == 1
@@ -201,7 +210,7 @@ def test_camera_restart_mid_scan_drops_its_frames():
         threads.append(threading.Thread(target=unplug_at_150, args=(emu, camera)))
         threads[0].start()
 
-    run = ct.run_rig(N, FPS, seed=9, during=during)
+    run = run_rig(N, FPS, seed=9, during=during)
     threads[0].join()
     res = run.check()
     assert res['mistagged'] == 0
