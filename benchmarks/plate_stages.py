@@ -88,6 +88,33 @@ def _u2_through(model, p) -> float | None:
     return 0.5 * (lo + hi)
 
 
+def plate_frames(rig, truth, grid: int = 21, pose: int = 0, seed: int = 1):
+    """The flat plate (pose ``pose``, at the rig's working point) crossed by the true laser
+    sheet at a ``grid`` x ``grid`` lattice over 95 % of its side: (voltages (4,), DAC-quantised,
+    simulator frame) for each lattice point within G1's and G2's reach."""
+    text, info = eval_scenes.plate(pose, eval_scenes.site_of(rig))
+    sim = Simulator(rig, load_scene_text(text, 'plate'), seed=seed)
+    V0_T_O = np.linalg.inv(sim.W_T_V0) @ info['W_T_O']
+    half = 0.5 * 0.95 * info['size'][0]
+    for x in np.linspace(-half, half, grid):
+        for y in np.linspace(-half, half, grid):
+            p = V0_T_O @ np.array([x, y, 0.0, 1.0])
+            u1 = aim_g1(truth, p[:3], max_abs_u=MAX_ABS_U)
+            u2 = _u2_through(truth, p) if np.all(np.isfinite(u1)) else None
+            if u2 is None:
+                continue
+            q = rig.dac.quantize(np.array([u1[0], u1[1], 0.0, u2]))
+            yield q, sim.render(q)
+
+
+def plate_rms_mm(points) -> float:
+    """RMS distance of points (n, 3) [m] from their least-squares plane [mm]."""
+    P = np.vstack(points)
+    plane, _ = metrics.fit_plane(P)
+    d = P @ plane[:3] + plane[3]
+    return float(np.sqrt(np.mean(d ** 2))) * 1e3
+
+
 def plate_stages(rig, calibrated, grid: int = 21, pose: int = 0,
                  extracted: bool = False) -> dict:
     """The plate figures of the three models (see the module) [mm]."""
@@ -98,37 +125,22 @@ def plate_stages(rig, calibrated, grid: int = 21, pose: int = 0,
     truth = truth_model(rig, kind='physical')
     models = {'calibrated': calibrated,
               'dynamic_camera_only': with_camera_of(truth, calibrated), 'truth': truth}
-    text, info = eval_scenes.plate(pose, eval_scenes.site_of(rig))
-    sim = Simulator(rig, load_scene_text(text, 'plate'), seed=1)
-    V0_T_O = np.linalg.inv(sim.W_T_V0) @ info['W_T_O']
-    half = 0.5 * 0.95 * info['size'][0]
     pts = {k: [] for k in models}
     views = 0
-    for x in np.linspace(-half, half, grid):
-        for y in np.linspace(-half, half, grid):
-            p = V0_T_O @ np.array([x, y, 0.0, 1.0])
-            u1 = aim_g1(truth, p[:3], max_abs_u=MAX_ABS_U)
-            u2 = _u2_through(truth, p) if np.all(np.isfinite(u1)) else None
-            if u2 is None:
-                continue
-            q = rig.dac.quantize(np.array([u1[0], u1[1], 0.0, u2]))
-            frame = sim.render(q)
-            stripe = extract(frame.image, config) if extracted else frame.truth.stripe
-            if len(stripe.u) == 0:
-                continue
-            views += 1
-            uv = np.column_stack([stripe.u, stripe.v]).astype(np.float64)
-            for k, m in models.items():
-                res = triangulate(m, uv, q[0], q[1], q[3])
-                pts[k].append(res.p_v0[res.valid])
+    for q, frame in plate_frames(rig, truth, grid, pose):
+        stripe = extract(frame.image, config) if extracted else frame.truth.stripe
+        if len(stripe.u) == 0:
+            continue
+        views += 1
+        uv = np.column_stack([stripe.u, stripe.v]).astype(np.float64)
+        for k, m in models.items():
+            res = triangulate(m, uv, q[0], q[1], q[3])
+            pts[k].append(res.p_v0[res.valid])
     if views < 3:
         raise RuntimeError(f'the plate is crossed in {views} view(s) within reach')
     out = {'views': views, 'grid': grid, 'pose': pose, 'extracted': extracted}
     for k, m in models.items():
-        P = np.vstack(pts[k])
-        plane, _ = metrics.fit_plane(P)
-        d = P @ plane[:3] + plane[3]
-        out[k] = {'plate_rms_mm': float(np.sqrt(np.mean(d ** 2))) * 1e3,
+        out[k] = {'plate_rms_mm': plate_rms_mm(pts[k]),
                   'transfer_matrix_error_mm': transfer_matrix_rmse_mm(m, rig)}
     out['ratio_calibrated_to_truth'] = (out['calibrated']['plate_rms_mm']
                                         / out['truth']['plate_rms_mm'])

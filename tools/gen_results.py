@@ -66,6 +66,12 @@ BENCHMARKS = {
                     'stripe centres normal to a stripe turned off the image rows, no speckle'),
     'stripe_tilt_speckle': (['benchmarks/stripe_tilt.py', '--speckle'], True,
                             "the same with the rig's laser speckle"),
+    'extractor_width': (['benchmarks/extractor_width.py'], True,
+                        "the flat plate's noise with the stripe filter at the stated width "
+                        "and at the stripe's own, the reference rig"),
+    'extractor_width_wide': (['benchmarks/extractor_width.py', '--seed', '6'], True,
+                             'the same on the family rig of seed 6 (a 1.6 mm laser sheet at '
+                             '975 mm: a stripe 2.5 times the stated width)'),
     'materials': (['benchmarks/materials.py'], False,
                   'stair, plate and outliers per material, countermeasures off and on'),
     'materials_graph': (['-m', 'galvoscan.cli', 'evaluate', '--materials', '--quick',
@@ -101,7 +107,7 @@ BENCHMARKS = {
 }
 ACCURACY = ('rig_family', 'operator_family', 'operator_stages', 'uncertainty_check',
             'calibration_seeds', 'joint_bundle', 'materials', 'materials_graph', 'stripe_tilt',
-            'stripe_tilt_speckle', 'twin_evaluate')
+            'stripe_tilt_speckle', 'extractor_width', 'extractor_width_wide', 'twin_evaluate')
 
 #: metrics.json keys shown on the accuracy page, with the paper's figure where it gives one
 DEMO_ROWS = (
@@ -451,6 +457,21 @@ def _stripe_tilt(r: dict) -> list[str]:
           a.get('rms_ratio_to_0_deg')) for k, a in angles.items()])
 
 
+def _extractor_width(r: dict) -> list[str]:
+    lines = [f"{r.get('frames')} frames of the flat plate on {r.get('rig')}; the stripe's FWHM "
+             f"measured at half maximum: {_fmt(r.get('measured_fwhm_px_median'))} px (median; "
+             f"{' to '.join(_fmt(x) for x in r.get('measured_fwhm_px_range') or [])} px over "
+             'the frames). Points triangulated by the true rig, so the plate RMS is the '
+             "extraction's (the exact row: the simulator's exact stripe pixels).", '']
+    return lines + _table(
+        ('extraction', 'line_width_px stated', 'width used (median) [px]',
+         'frames extracted again', 'points', 'plate RMS [mm]', 'time [ms/frame]'),
+        [(x.get('extraction'), x.get('line_width_px'), x.get('width_used_px_median'),
+          x.get('frames_extracted_again'), x.get('points'), x.get('plate_rms_mm'),
+          x.get('ms_per_frame'))
+         for x in r.get('rows') or []])
+
+
 def _operator_stages(r: dict) -> list[str]:
     """Each stage's placements and errors against the truth, person against exact."""
     person = {x['stage']: x for x in r.get('person') or []}
@@ -476,7 +497,8 @@ def _operator_stages(r: dict) -> list[str]:
 #: sections drawn as tables of their own; every other result is a ``figure | value`` table
 RENDERERS = {'rig_family': _rig_family, 'operator_family': _operator_family,
              'materials': _materials, 'stripe_tilt': _stripe_tilt,
-             'stripe_tilt_speckle': _stripe_tilt, 'operator_stages': _operator_stages}
+             'stripe_tilt_speckle': _stripe_tilt, 'operator_stages': _operator_stages,
+             'extractor_width': _extractor_width, 'extractor_width_wide': _extractor_width}
 
 
 def _flat(d: dict, prefix: str = '') -> dict:

@@ -8,6 +8,15 @@ first two derivatives at the scale ``config.sigma`` that both extractors
 - ``line_width_px`` is the expected stripe FWHM [px]; it sets the Gaussian derivative scale
   ``sigma = max(line_width_px / 2.3548, 1.0)`` (the matched filter for a Gaussian profile,
   floored at 1 px so that the sampled derivative kernels stay accurate).
+- ``adapt_line_width``: the stripe's width is a property of the build (the laser's sheet
+  thickness, the distance, the lens), not a constant: a matched filter four times too narrow
+  leaves the speckle of a wide stripe in its centres (the flat plate's RMS triples, see
+  ``benchmarks/extractor_width.py``). When the width measured in an image lies outside
+  ``line_width_px`` times [1/:data:`WIDTH_ADAPT_NARROWER`, :data:`WIDTH_ADAPT_WIDER`], the
+  image is extracted again at that width. The filter's own width reading decides
+  whether to measure (it costs nothing); the width is then measured at half maximum around
+  the centres found (:mod:`.width`), not through the filter, so one more pass is enough at
+  any width.
 - ``min_strength`` is stated in 8-bit DN (full scale 255) and scaled by the image's white
   level (:func:`white_level`): the same share of full scale at every bit depth, so a
   threshold chosen on an 8-bit camera keeps its meaning on a 10, 12 or 16-bit one.
@@ -15,6 +24,7 @@ first two derivatives at the scale ``config.sigma`` that both extractors
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -43,6 +53,21 @@ BIT_DEPTHS = (0, 8, 10, 12, 14, 16)
 #: The white level ``min_strength`` is stated against [DN].
 WHITE_LEVEL_8BIT = 255
 ROI_HALF_HEIGHT_RANGE_PX = (3, 200)
+#: ``adapt_line_width``: an image whose stripe is wider than ``line_width_px`` by more than
+#: this factor is extracted again at its own width [1]. A filter narrower than the stripe
+#: leaves its speckle in the centres, fast: on the family rig of seed 6
+#: (``benchmarks/extractor_width.py --seed 6``, an 11.8 px stripe) 10 px stated costs the
+#: flat plate's RMS about 10 %, 4.7 px nearly three times.
+WIDTH_ADAPT_WIDER = 1.25
+#: ``adapt_line_width``: an image whose stripe is narrower than ``line_width_px`` by more than
+#: this factor is extracted again at its own width [1]. A filter wider than the stripe
+#: averages more speckle (on the reference rig 10 px stated for a 4.4 px stripe gives the flat
+#: plate a lower RMS than 4.7 px, ``benchmarks/extractor_width.py``); it costs at edges and
+#: steps, which it blurs, and in a weak stripe's strength, so only a large excess is undone.
+WIDTH_ADAPT_NARROWER = 1.6
+#: ``adapt_line_width``: fewest columns whose median width is trusted [1] (a few specks or a
+#: stripe's end say little about its width).
+WIDTH_ADAPT_MIN_CENTRES = 20
 
 
 @dataclass(frozen=True)
@@ -77,6 +102,10 @@ class ExtractorConfig:
     bit_depth : int
         Bit depth of the image's codes [bit] (:data:`BIT_DEPTHS`), which sets its white
         level ``2**bit_depth - 1``; 0: read from the image (:func:`white_level`).
+    adapt_line_width : bool
+        Extract an image again at its stripe's measured width when that differs from
+        ``line_width_px`` by more than :data:`WIDTH_ADAPT_WIDER` (wider) or
+        :data:`WIDTH_ADAPT_NARROWER` (narrower); see the module.
     """
 
     method: str = 'steger'
@@ -88,8 +117,12 @@ class ExtractorConfig:
     ambiguity_ratio: float = 0.3
     max_offset_px: float = 0.0
     bit_depth: int = 0
+    adapt_line_width: bool = True
 
     def __post_init__(self):
+        if not isinstance(self.adapt_line_width, (bool, np.bool_)):
+            raise ValueError(f'adapt_line_width must be a bool, got {self.adapt_line_width!r}')
+        object.__setattr__(self, 'adapt_line_width', bool(self.adapt_line_width))
         if isinstance(self.bit_depth, bool) or self.bit_depth not in BIT_DEPTHS:
             raise ValueError(f'bit_depth must be one of {BIT_DEPTHS} bit, got {self.bit_depth!r}')
         object.__setattr__(self, 'bit_depth', int(self.bit_depth))
@@ -141,6 +174,28 @@ class ExtractorConfig:
     def kernel_radius(self) -> int:
         """Half length of the sampled Gaussian kernels [px]: ceil(3 sigma)."""
         return int(math.ceil(3.0 * self.sigma))
+
+    def at_width(self, width_px: float) -> ExtractorConfig:
+        """This configuration matched to a stripe ``width_px`` wide [px] (clipped to
+        :data:`LINE_WIDTH_RANGE_PX`), its window widened to hold it."""
+        lw = float(np.clip(width_px, *LINE_WIDTH_RANGE_PX))
+        # +-1.5 FWHM (+-3.5 sigma): the window's ends see background, so the width measured
+        # in it is not cut short
+        rh = min(max(self.roi_half_height, math.ceil(1.5 * lw)), ROI_HALF_HEIGHT_RANGE_PX[1])
+        return dataclasses.replace(self, line_width_px=lw, roi_half_height=rh)
+
+    def width_to_adapt(self, measured_px: float, columns: int) -> float | None:
+        """The width [px] to extract an image again at, given its stripe's width measured
+        over ``columns`` columns (:func:`.width.measure_fwhm`), or None: not adapting, too
+        few columns, or near enough to ``line_width_px``."""
+        if not self.adapt_line_width or columns < WIDTH_ADAPT_MIN_CENTRES:
+            return None
+        if not math.isfinite(measured_px) or measured_px <= 0:
+            return None
+        ratio = measured_px / self.line_width_px
+        if 1.0 / WIDTH_ADAPT_NARROWER <= ratio <= WIDTH_ADAPT_WIDER:
+            return None
+        return float(measured_px)
 
     def threshold_dn(self, white: int) -> float:
         """``min_strength`` in the DN of an image whose white level is ``white`` [DN]."""

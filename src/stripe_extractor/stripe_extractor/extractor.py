@@ -13,7 +13,8 @@ Conventions
   centre per column. ``'vertical'``: the stripe runs along the columns, at most one centre per
   row (the image is transposed internally; ``u``/``v`` are always image column/row).
 - ``line_width_px`` is the expected stripe FWHM [px]; it sets the Gaussian derivative scale
-  ``sigma`` (:attr:`.config.ExtractorConfig.sigma`).
+  ``sigma`` (:attr:`.config.ExtractorConfig.sigma`). With ``adapt_line_width`` an image whose
+  stripe is measured much wider or narrower is extracted again at its own width.
 - ``strength`` is the peak of the Gaussian-smoothed profile above the local background [DN];
   ``width`` is the FWHM-equivalent ``2.3548 * s`` of the stripe profile [px], ``s`` being its
   standard deviation as sampled by the pixels.
@@ -34,6 +35,7 @@ from .config import (
     ORIENTATIONS,
     ROI_HALF_HEIGHT_RANGE_PX,
     SUPPORTED_DTYPES,
+    WIDTH_ADAPT_MIN_CENTRES,
     ExtractorConfig,
     gaussian_kernels,
     stacked_kernels,
@@ -41,6 +43,7 @@ from .config import (
 )
 from .selection import COUNT_NAMES, MODE_CODES, kernel_expected, no_expectation
 from .steger import steger_columns
+from .width import measure_fwhm
 
 __all__ = ['FWHM_PER_SIGMA', 'LINE_WIDTH_RANGE_PX', 'METHODS', 'MIN_STRENGTH_RANGE_DN',
            'ORIENTATIONS', 'ROI_HALF_HEIGHT_RANGE_PX', 'SUPPORTED_DTYPES', 'ExtractorConfig',
@@ -68,7 +71,8 @@ class StripeResult:
         Peak selection counts (``config.peak_mode``; :data:`.selection.COUNT_NAMES`):
         columns with two peaks, the strongest kept, the other taken, the column dropped.
     config : ExtractorConfig
-        Parameters used; ``config.sigma`` is the derivative scale used [px].
+        Parameters used; ``config.sigma`` is the derivative scale used [px]
+        (``line_width_px`` is the stripe's measured width where it was adapted).
     image_shape : tuple of int
         (height, width) of the source image [px].
     white_level : int
@@ -216,6 +220,14 @@ def extract(image: np.ndarray, config: ExtractorConfig | None = None,
         img = np.ascontiguousarray(img.T)
     white = white_level(img, config.bit_depth)
     a, b, w, s, nsec, counts = extract_columns(img, config, expected_v, white)
+    # The filter's own width reading (free, but short for a stripe wider than its window)
+    # says whether to measure; the measurement at half maximum says at what width to redo.
+    if (config.adapt_line_width and len(a) >= WIDTH_ADAPT_MIN_CENTRES
+            and config.width_to_adapt(float(np.median(w)), len(a)) is not None):
+        width = config.width_to_adapt(*measure_fwhm(img, a, b))
+        if width is not None:  # not as wide as stated: match the filter to the stripe
+            config = config.at_width(width)
+            a, b, w, s, nsec, counts = extract_columns(img, config, expected_v, white)
     u, v = (b, a) if vertical else (a, b)
     return StripeResult(u=u, v=v, width=w, strength=s, rejected_secondary=int(nsec),
                         config=config, image_shape=shape, white_level=white,

@@ -90,6 +90,8 @@ from .config import (
     ORIENTATIONS,
     PEAK_MODES,
     ROI_HALF_HEIGHT_RANGE_PX,
+    WIDTH_ADAPT_NARROWER,
+    WIDTH_ADAPT_WIDER,
     ExtractorConfig,
     white_level,
 )
@@ -156,12 +158,14 @@ class StripeExtractorNode(Node):
         # written only by the extracting thread
         self._extract_counts = {'frames_extracted': 0, 'centers_published': 0,
                                 'rejected_secondary': 0, 'extraction_errors': 0,
-                                'publish_errors': 0}
+                                'publish_errors': 0, 'frames_width_adapted': 0}
         self._extract_counts.update({f'peaks_{k}': 0 for k in COUNT_NAMES})
         # the previous frame's centre row per column (peak_mode nearest), and the last
         # frame's saturated fraction and peak level
         self._previous_rows = None
         self._levels = (0.0, 0.0)
+        #: the last frame's filter width: line_width_px, or the stripe's where adapted [px]
+        self._width_used = float(self.get_parameter('line_width_px').value)
         #: bit_depth 0: the highest white level the frames have shown, by pixel size [DN]
         self._white_seen: dict[int, int] = {}
         self._extract_counts.update(hdr_merged=0, hdr_unpaired=0, hdr_from_short=0)
@@ -200,6 +204,15 @@ class StripeExtractorNode(Node):
             description='Expected stripe FWHM [px]; sets the Gaussian scale sigma',
             floating_point_range=[FloatingPointRange(
                 from_value=LINE_WIDTH_RANGE_PX[0], to_value=LINE_WIDTH_RANGE_PX[1])]))
+        self.declare_parameter('adapt_line_width', defaults.adapt_line_width,
+                               ParameterDescriptor(
+                                   type=ParameterType.PARAMETER_BOOL,
+                                   description='Extract a frame again at its stripe\'s '
+                                               'measured FWHM when that is over '
+                                               f'{WIDTH_ADAPT_WIDER}x line_width_px or under '
+                                               f'1/{WIDTH_ADAPT_NARROWER} of it (set '
+                                               'line_width_px to the width the diagnostics '
+                                               'report to save the second pass)'))
         self.declare_parameter('min_strength', defaults.min_strength, ParameterDescriptor(
             type=ParameterType.PARAMETER_DOUBLE,
             description='Weakest accepted smoothed peak above background [DN at 8 bits]: '
@@ -338,7 +351,8 @@ class StripeExtractorNode(Node):
     # ---- parameters -------------------------------------------------------------------
     def _config_from(self, changes: dict) -> ExtractorConfig:
         names = ('method', 'line_width_px', 'min_strength', 'roi_half_height', 'orientation',
-                 'peak_mode', 'ambiguity_ratio', 'max_offset_px', 'bit_depth')
+                 'peak_mode', 'ambiguity_ratio', 'max_offset_px', 'bit_depth',
+                 'adapt_line_width')
         values = {n: changes.get(n, self.get_parameter(n).value) for n in names}
         return ExtractorConfig(**values)
 
@@ -446,6 +460,9 @@ class StripeExtractorNode(Node):
             result = extract(img, config, expected)
             levels = frame_levels(img, result.white_level, config.orientation == 'vertical')
             self._levels = levels
+            self._width_used = result.config.line_width_px
+            if result.config is not config:
+                counts['frames_width_adapted'] += 1
         except Exception as exc:  # noqa: BLE001 - the node must survive any input
             counts['extraction_errors'] += 1
             self._skip_log_error(exc)
@@ -535,6 +552,8 @@ class StripeExtractorNode(Node):
         sat, peak = self._levels
         status.values.append(KeyValue(key='saturated_fraction_last', value=f'{sat:.6f}'))
         status.values.append(KeyValue(key='peak_level_last', value=f'{peak:.4f}'))
+        status.values.append(KeyValue(key='line_width_px_last',
+                                      value=f'{self._width_used:.3f}'))
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.status = [status]

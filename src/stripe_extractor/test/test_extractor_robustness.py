@@ -43,7 +43,8 @@ def test_no_stripe_gives_empty_result(method):
 
 
 def test_result_carries_parameters():
-    cfg = ExtractorConfig(line_width_px=3.0, min_strength=15.0, roi_half_height=9)
+    cfg = ExtractorConfig(line_width_px=3.0, min_strength=15.0, roi_half_height=9,
+                          adapt_line_width=False)
     res = extract(render(SHAPE, _spec(), rng=np.random.default_rng(1)), cfg)
     assert res.config is cfg
     assert res.sigma == pytest.approx(3.0 / FWHM_PER_SIGMA if 3.0 / FWHM_PER_SIGMA > 1 else 1)
@@ -57,11 +58,15 @@ def test_saturated_stripe(amplitude, sigma_px, width_px):
     spec = _spec(amplitude=amplitude, sigma_px=sigma_px)
     img = render(SHAPE, spec, noise_dn=4.0, rng=np.random.default_rng(2))
     assert np.count_nonzero(img == 255) > 3 * SHAPE[1]
-    res = extract(img, ExtractorConfig(line_width_px=width_px))
-    rms, cov, err = score(res.u, res.v, spec, SHAPE[1])
-    assert cov >= 0.995
-    assert rms <= 0.04 and np.abs(err).max() <= 0.15
-    assert np.median(res.strength) > 0.8 * (255 - 12)
+    # the clipped stripe is wider than its Gaussian: centred at the stated width and at
+    # the width it is measured at
+    for adapt in (False, True):
+        res = extract(img, ExtractorConfig(line_width_px=width_px, adapt_line_width=adapt))
+        rms, cov, err = score(res.u, res.v, spec, SHAPE[1])
+        assert cov >= 0.995
+        assert rms <= 0.04 and np.abs(err).max() <= 0.15
+        if not adapt:  # the filter as narrow as the top: its peak is the clip level
+            assert np.median(res.strength) > 0.8 * (255 - 12)
 
 
 def test_laser_speckle_on_the_stripe():
@@ -222,3 +227,43 @@ def test_config_validation_names_the_field(kwargs, field):
 def test_bad_images_raise_naming_image(bad):
     with pytest.raises(ValueError, match='image'):
         extract(bad)
+
+
+@pytest.mark.parametrize('method', METHODS)
+@pytest.mark.parametrize('sigma_px', [4.5, 8.0])
+def test_a_wide_stripe_is_extracted_at_its_own_width(method, sigma_px):
+    """A stripe two and four times wider than stated (FWHM 10.6 and 18.8 px against 4.7),
+    under speckle of contrast 0.5: the image is extracted again at the width it measures,
+    and the centres' error falls by more than half."""
+    spec = _spec(sigma_px=sigma_px, amplitude=150.0)
+    img = render(SHAPE, spec, noise_dn=2.0, rng=np.random.default_rng(5),
+                 speckle_contrast=0.5, speckle_grain_px=1.0)
+    fixed = extract(img, ExtractorConfig(method=method, adapt_line_width=False))
+    adapted = extract(img, ExtractorConfig(method=method))
+    assert adapted.config.line_width_px == pytest.approx(sigma_px * FWHM_PER_SIGMA, rel=0.1)
+    assert adapted.config.roi_half_height >= np.ceil(adapted.config.line_width_px)
+    rms_fixed, _, _ = score(fixed.u, fixed.v, spec, SHAPE[1])
+    rms_adapted, coverage, _ = score(adapted.u, adapted.v, spec, SHAPE[1])
+    assert coverage >= 0.85
+    assert rms_adapted < 0.5 * rms_fixed, (rms_adapted, rms_fixed)
+
+
+def test_a_stripe_near_the_stated_width_is_extracted_once():
+    """Within the adaptation band the stated configuration is the one used (one pass)."""
+    cfg = ExtractorConfig(line_width_px=4.0)  # the stripe is 4.7 px: within 1.25x
+    res = extract(render(SHAPE, _spec(), noise_dn=2.0, rng=np.random.default_rng(2)), cfg)
+    assert res.config is cfg
+
+
+def test_a_narrow_stripe_is_extracted_at_its_own_width():
+    spec = _spec(sigma_px=2.0)  # FWHM 4.7 px against the stated 10
+    img = render(SHAPE, spec, noise_dn=2.0, rng=np.random.default_rng(3))
+    res = extract(img, ExtractorConfig(line_width_px=10.0, roi_half_height=15))
+    assert res.config.line_width_px == pytest.approx(2.0 * FWHM_PER_SIGMA, rel=0.1)
+    rms, coverage, _ = score(res.u, res.v, spec, SHAPE[1])
+    assert coverage > 0.95 and rms < 0.1
+
+
+def test_adapt_line_width_must_be_a_bool():
+    with pytest.raises(ValueError, match='adapt_line_width'):
+        ExtractorConfig(adapt_line_width='yes')
