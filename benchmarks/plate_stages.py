@@ -49,8 +49,8 @@ from galvoscan.simulated_rig import truth_model
 from galvoscan_sim import Simulator, load_scene_text
 from galvoscan_sim.rig import rig_from_dict
 from reconstructor import calibration_file
-from reconstructor.model import laser_plane_v0, triangulate
-from reconstructor.planning import aim_g1
+from reconstructor.model import triangulate
+from reconstructor.planning import aim_g1, laser_through
 
 #: The physical model's deviations that belong to the camera and G1 (the dynamic camera
 #: stage estimates them; the G2 ones belong to the laser stages).
@@ -72,22 +72,6 @@ def with_camera_of(base, src):
                                g1_tilt=src.g1_tilt, l=src.l, d=src.d, physical=phys)
 
 
-def _u2_through(model, p) -> float | None:
-    """The G2 voltage whose laser sheet (``model``) passes through the V0 point ``p`` (4,)."""
-    lo, hi = -MAX_ABS_U, MAX_ABS_U
-    f_lo = laser_plane_v0(model, lo) @ p
-    if np.sign(f_lo) == np.sign(laser_plane_v0(model, hi) @ p):
-        return None
-    for _ in range(50):
-        mid = 0.5 * (lo + hi)
-        f_mid = laser_plane_v0(model, mid) @ p
-        if np.sign(f_mid) == np.sign(f_lo):
-            lo, f_lo = mid, f_mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi)
-
-
 def plate_frames(rig, truth, grid: int = 21, pose: int = 0, seed: int = 1):
     """The flat plate (pose ``pose``, at the rig's working point) crossed by the true laser
     sheet at a ``grid`` x ``grid`` lattice over 95 % of its side: (voltages (4,), DAC-quantised,
@@ -100,8 +84,11 @@ def plate_frames(rig, truth, grid: int = 21, pose: int = 0, seed: int = 1):
         for y in np.linspace(-half, half, grid):
             p = V0_T_O @ np.array([x, y, 0.0, 1.0])
             u1 = aim_g1(truth, p[:3], max_abs_u=MAX_ABS_U)
-            u2 = _u2_through(truth, p) if np.all(np.isfinite(u1)) else None
-            if u2 is None:
+            if not np.all(np.isfinite(u1)):
+                continue
+            try:
+                u2 = laser_through(truth, p[:3], max_abs_u=MAX_ABS_U)
+            except ValueError:
                 continue
             q = rig.dac.quantize(np.array([u1[0], u1[1], 0.0, u2]))
             yield q, sim.render(q)

@@ -39,16 +39,20 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.optimize import brentq
 
 from galvoscan import eval_scenes, metrics
 from galvoscan.progress import Progress
 from galvoscan_common.executor import ServiceClients
-from galvoscan_common.frame import VOLTAGE_LIMIT
 from galvoscan_common.runtime import private_domain
 from reconstructor.cloud import CLOUD_DTYPE, save_cloud, xyz
-from reconstructor.model import laser_plane_v0, v0_T_v
-from reconstructor.planning import aim_camera, stripe_layout, view_edge_rays, view_sweep
+from reconstructor.model import v0_T_v
+from reconstructor.planning import (
+    aim_camera,
+    laser_through,
+    stripe_layout,
+    view_edge_rays,
+    view_sweep,
+)
 
 #: The paper's working distances (Fig. 13): stand-off from the G1 exit mirror [mm].
 DISTANCES_MM = (100, 200, 350, 400, 650, 1000)
@@ -259,14 +263,7 @@ class Evaluation:
         out = np.zeros((len(points_V0), 4))
         out[:, 0], out[:, 1] = u1
         for i, point in enumerate(np.asarray(points_V0, dtype=np.float64)):
-            def f(u, point=point):
-                plane = laser_plane_v0(self.model, u)
-                return float(plane[:3] @ point + plane[3])
-
-            if f(-VOLTAGE_LIMIT) * f(VOLTAGE_LIMIT) > 0:
-                raise ValueError(f'the laser cannot reach {point.tolist()} within '
-                                 f'+-{VOLTAGE_LIMIT} V of G2 tilt')
-            out[i, 3] = brentq(f, -VOLTAGE_LIMIT, VOLTAGE_LIMIT, xtol=1e-12)
+            out[i, 3] = laser_through(self.model, point)
         return out
 
     def stair_at(self, position, frames):

@@ -152,7 +152,8 @@ def reconstruction_errors(model, rig, *, span: float = 8.0, n: int = 5,
         points together: the shape error, free of where V0 is), ``points``.
     """
     from galvoscan_sim import Simulator, load_scene_text
-    from reconstructor.model import laser_plane_v0, triangulate, v0_T_v
+    from reconstructor.model import triangulate, v0_T_v
+    from reconstructor.planning import laser_through
 
     wall = (f'format_version: 1\nname: score_wall\nobjects:\n  - type: plane\n'
             f'    name: wall\n    pose: {{translation: [0.0, 0.0, {float(depth)}]}}\n'
@@ -164,17 +165,11 @@ def reconstruction_errors(model, rig, *, span: float = 8.0, n: int = 5,
         for ut in grid:
             T = v0_T_v(model, up, ut)
             ray, o = T[:3, 2], T[:3, 3]
-            p = np.append(o + (depth - o[2]) / ray[2] * ray, 1.0)
-            lo, hi = -9.9, 9.9
-            f_lo = laser_plane_v0(model, lo) @ p
-            for _ in range(60):  # bisection: the plane through the view centre
-                mid = 0.5 * (lo + hi)
-                f_mid = laser_plane_v0(model, mid) @ p
-                if np.sign(f_mid) == np.sign(f_lo):
-                    lo, f_lo = mid, f_mid
-                else:
-                    hi = mid
-            q = rig.dac.quantize(np.array([up, ut, 0.0, 0.5 * (lo + hi)]))
+            try:  # the plane through the view centre
+                u2 = laser_through(model, o + (depth - o[2]) / ray[2] * ray, max_abs_u=9.9)
+            except ValueError:
+                continue  # no sheet reaches it: nothing to score there
+            q = rig.dac.quantize(np.array([up, ut, 0.0, u2]))
             st = sim.render(q).truth.stripe
             if len(st) == 0:
                 continue

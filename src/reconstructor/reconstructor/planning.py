@@ -162,22 +162,41 @@ def aim_camera(model: RigModel, target_v0) -> tuple[float, float]:
     return float(u[0]), float(u[1])
 
 
-def aim_laser(model: RigModel, u1_pan: float, u1_tilt: float, distance: float = 0.65) -> float:
-    """G2 tilt voltage whose laser plane meets the view's optical axis at ``distance`` [m]."""
-    if not distance > 0:
-        raise ValueError(f'distance: expected > 0 m, got {distance}')
-    T = v0_T_v(model, u1_pan, u1_tilt)
-    point = T[:3, 3] + distance * T[:3, 2]
+def laser_through(model: RigModel, point_v0, max_abs_u: float = VOLTAGE_LIMIT) -> float:
+    """G2 tilt voltage whose laser plane passes through a V0 point.
+
+    The one such solver of the project (plans, sweeps, evaluation, scores): the root of the
+    point's signed distance from the sheet over +-``max_abs_u`` [V].
+
+    Raises
+    ------
+    ValueError
+        No voltage within +-``max_abs_u`` puts the sheet through the point.
+    """
+    point = np.asarray(point_v0, dtype=np.float64)[:3]
 
     def f(u):
         plane = laser_plane_v0(model, u)
         return float(plane[:3] @ point + plane[3])
 
-    lo, hi = -VOLTAGE_LIMIT, VOLTAGE_LIMIT
+    lo, hi = -float(max_abs_u), float(max_abs_u)
     if f(lo) * f(hi) > 0:
-        raise ValueError(f'no G2 tilt voltage within +-{VOLTAGE_LIMIT} V puts the laser at '
-                         f'{distance} m on the optical axis for U1 = ({u1_pan}, {u1_tilt})')
+        raise ValueError(f'the laser cannot reach {np.round(point, 6).tolist()} within '
+                         f'+-{max_abs_u:g} V of G2 tilt')
     return float(brentq(f, lo, hi, xtol=1e-12))
+
+
+def aim_laser(model: RigModel, u1_pan: float, u1_tilt: float, distance: float = 0.65) -> float:
+    """G2 tilt voltage whose laser plane meets the view's optical axis at ``distance`` [m]."""
+    if not distance > 0:
+        raise ValueError(f'distance: expected > 0 m, got {distance}')
+    T = v0_T_v(model, u1_pan, u1_tilt)
+    try:
+        return laser_through(model, T[:3, 3] + distance * T[:3, 2])
+    except ValueError:
+        raise ValueError(f'no G2 tilt voltage within +-{VOLTAGE_LIMIT} V puts the laser at '
+                         f'{distance} m on the optical axis for U1 = ({u1_pan}, {u1_tilt})'
+                         ) from None
 
 
 def view_sweep(model: RigModel, u1_pan: float, u1_tilt: float, distance: float,
@@ -194,17 +213,12 @@ def view_sweep(model: RigModel, u1_pan: float, u1_tilt: float, distance: float,
     T = v0_T_v(model, u1_pan, u1_tilt)
     ends = []
     for ray in view_edge_rays(model, fraction):
-        point = T[:3, 3] + T[:3, :3] @ (ray * distance)
-
-        def f(u, point=point):
-            plane = laser_plane_v0(model, u)
-            return float(plane[:3] @ point + plane[3])
-
-        if f(-VOLTAGE_LIMIT) * f(VOLTAGE_LIMIT) > 0:
+        try:
+            ends.append(laser_through(model, T[:3, 3] + T[:3, :3] @ (ray * distance)))
+        except ValueError:
             raise ValueError(f'the laser cannot reach this view at {distance:g} m within '
                              f'+-{VOLTAGE_LIMIT} V of G2 tilt (U1 = ({u1_pan:.3g}, '
-                             f'{u1_tilt:.3g}) V)')
-        ends.append(brentq(f, -VOLTAGE_LIMIT, VOLTAGE_LIMIT, xtol=1e-12))
+                             f'{u1_tilt:.3g}) V)') from None
     u2 = np.linspace(ends[0], ends[1], frames) if frames > 1 else np.array([np.mean(ends)])
     out = np.zeros((frames, 4))
     out[:, 0], out[:, 1], out[:, 3] = u1_pan, u1_tilt, u2

@@ -4,8 +4,8 @@ No rclpy, no numba here. The extractors' own ``width`` is read through their fil
 window: a stripe much wider than the filter's window is measured short there. This measure
 averages the columns' profiles, aligned on their centres, and walks the mean from its top
 down to half its height above the background on both sides, so it holds for any width up to
-a quarter of the probe (:data:`PROBE_HALF_PX`). :func:`.extractor.extract` uses it to match the filter to the stripe
-(``ExtractorConfig.adapt_line_width``).
+a quarter of the probe (:data:`PROBE_HALF_PX`). :func:`.extractor.extract` uses it to match
+the filter to the stripe (``ExtractorConfig.adapt_line_width``).
 """
 
 from __future__ import annotations
