@@ -17,6 +17,8 @@ from the rig's hidden truth:
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.optimize import brentq, least_squares
 
@@ -173,7 +175,11 @@ def laser_through(model: RigModel, point_v0, max_abs_u: float = VOLTAGE_LIMIT) -
     ValueError
         No voltage within +-``max_abs_u`` puts the sheet through the point.
     """
-    point = np.asarray(point_v0, dtype=np.float64)[:3]
+    point = np.asarray(point_v0, dtype=np.float64).ravel()[:3]
+    if point.size != 3 or not np.all(np.isfinite(point)):
+        raise ValueError(f'point_v0: expected 3 finite coordinates [m], got {point_v0!r}')
+    if not (math.isfinite(max_abs_u) and max_abs_u > 0):
+        raise ValueError(f'max_abs_u: expected a positive voltage, got {max_abs_u!r}')
 
     def f(u):
         plane = laser_plane_v0(model, u)
