@@ -97,6 +97,13 @@ MIN_PLACEMENTS = {'intrinsics': 5, 'dynamic_camera': 5, 'laser_plane': 3, 'laser
 #: the stage asks for every plane of its plan (they span G2's range, which the curvature
 #: needs) before its standard errors count.
 ROW_BOARDS = 2
+#: A row's boards must also stand at each depth its plan places them at (near and far):
+#: boards at one depth pin where the plane crosses that depth, but leave its lean (its
+#: turn about the stripe) to the stripes' own few millimetres of depth, and across the
+#: rows that lean is what tells G2's response curvature from the axis's position. Boards
+#: a row's plan puts this far apart in depth, relative to their mean depth, are at two
+#: depths (the plans' near and far boards: 17 %).
+ROW_DEPTH_SPLIT = 0.05
 #: The stages whose standard errors are predicted here, each with what they are predicted
 #: from: the camera's projection (``camera``), one laser sheet (``sheet``) or the sheets of
 #: the G2 planes about the laser axis (``axis``). The others: see the module.
@@ -611,8 +618,9 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         def info(p, T):
             return _sheet_info(model, sp, p, T, targets)
 
-    rows = _rows(stage, planned or [*(q for q, _ in kept), *candidates])
-    short = {r for r in rows if sum(1 for q, _ in kept if _row(q) == r) < ROW_BOARDS}
+    rows = _row_needs(stage, planned or [*(q for q, _ in kept), *candidates],
+                      [q for q, _ in kept], candidates)
+    short = {r for r, (_, helps) in rows.items() if helps}
     total = prior.copy()
     pending: dict = {}  # a row's boards count once it has enough for its plane
     for p, T in kept:
@@ -620,15 +628,16 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         if got is not None:
             if _row(p) in short:
                 pending[_row(p)] = pending.get(_row(p), 0) + got
-            else:
+            elif _row(p) not in rows or rows[_row(p)][0]:  # a row too few for a plane: none
                 total += got
     named = len(names)  # the dynamic camera's other parameters follow its named ones
     sigma = _sigma(total)[:named] if not short else np.full(named, np.nan)
     out = Assessment(stage, names, units, sigma, target)
     best, best_ratio = None, math.inf
-    # the laser axis: rows short of boards first (each row is one plane of the solver)
-    pool = [k for k, p in enumerate(candidates) if _row(p) in short] or \
-        list(range(len(candidates)))
+    # the laser axis: what rows short of boards or of a depth still need first (each row
+    # is one plane of the solver)
+    pool = [k for k, p in enumerate(candidates) if _row(p) in short and rows[_row(p)][1](p)] \
+        or list(range(len(candidates)))
     for k in pool:
         p = candidates[k]
         got = info(p, p.V0_T_target)
@@ -667,6 +676,50 @@ def _rows(stage: str, places) -> set:
     if PREDICTED.get(stage) != 'axis':
         return set()
     return {_row(p) for p in places if _row(p) is not None}
+
+
+def _depths(places) -> dict:
+    """Each placement's depth within its row (0 near, 1 far; 0 for a row at one depth),
+    keyed by placement index (:data:`ROW_DEPTH_SPLIT`)."""
+    by_row: dict = {}
+    for p in places:
+        by_row.setdefault(_row(p), []).append(p)
+    out = {}
+    for row in by_row.values():
+        z = np.array([float(q.V0_T_target[2, 3]) for q in row])
+        two = z.max() - z.min() > ROW_DEPTH_SPLIT * max(float(z.mean()), 1e-9)
+        mid = 0.5 * (z.max() + z.min())
+        out.update({q.index: int(two and zq > mid) for q, zq in zip(row, z, strict=True)})
+    return out
+
+
+def _row_needs(stage: str, planned, kept, candidates) -> dict:
+    """The laser axis's rows (G2 planes of its plan) and what each still needs:
+    ``{row: (enough, helps)}``, ``enough`` when its kept boards fit a plane
+    (:data:`ROW_BOARDS`), ``helps`` a test of whether a candidate brings it what it lacks
+    and the candidates can still give (boards, or a depth of its plan: :data:`ROW_DEPTH_SPLIT`),
+    None when it lacks nothing they can give. Empty for the other stages."""
+    if PREDICTED.get(stage) != 'axis':
+        return {}
+    depth = _depths([*planned, *kept, *candidates])
+    out = {}
+    for r in _rows(stage, planned):
+        mine = [q for q in kept if _row(q) == r]
+        left = [q for q in candidates if _row(q) == r]
+        have = {depth[q.index] for q in mine}
+        wanted = {depth[q.index] for q in planned if _row(q) == r} - have
+        wanted &= {depth[q.index] for q in left}
+        enough = len(mine) >= ROW_BOARDS
+        if wanted:
+            def helps(q, wanted=wanted):
+                return depth[q.index] in wanted
+        elif not enough and left:
+            def helps(q):
+                return True
+        else:
+            helps = None
+        out[r] = (enough, helps)
+    return out
 
 
 def _sigma(info: np.ndarray) -> np.ndarray:

@@ -108,3 +108,43 @@ def test_dynamic_camera_prediction_carries_the_pinhole_prior_and_its_views():
     full = stopping.assess('dynamic_camera', MODEL, TARGETS,
                            [(places[1], places[1].V0_T_target)], [], places)
     assert fewer.sigma[0] > full.sigma[0]
+
+
+def _axis_rows(places):
+    rows: dict = {}
+    for p in places:
+        rows.setdefault(stopping._row(p), []).append(p)
+    near_far = {}
+    for r, row in rows.items():
+        z = [float(p.V0_T_target[2, 3]) for p in row]
+        near_far[r] = ([p for p, zp in zip(row, z, strict=True) if zp < np.mean(z)],
+                       [p for p, zp in zip(row, z, strict=True) if zp > np.mean(z)])
+    return near_far
+
+
+def test_laser_axis_rows_need_boards_at_both_depths_of_their_plan():
+    """Two boards of a row at one depth leave its plane's lean to the stripes' own depth:
+    the laser axis does not stop on them, and asks next for a board at the depth missing."""
+    places = _places('laser_axis')
+    rows = _axis_rows(places)
+    assert len(rows) >= 3 and all(len(n) >= 2 and len(f) >= 2 for n, f in rows.values())
+    near_only = [p for n, _ in rows.values() for p in n[:2]]
+    cands = [p for p in places if p not in near_only]
+    a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in near_only],
+                        cands, places, noise_px=0.04)
+    assert not a.targets_met and np.all(np.isnan(a.sigma))
+    far = {p.index for _, f in rows.values() for p in f}
+    assert cands[a.best].index in far, a.advice
+    # one board at each depth of every row: the rows count
+    both = [p for n, f in rows.values() for p in (n[0], f[0])]
+    a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in both],
+                        [p for p in places if p not in both], places, noise_px=0.04)
+    assert np.all(np.isfinite(a.sigma)), a.table()
+    # a row whose far boards were all left out (skipped) blocks nothing: its near boards
+    # count once they fit a plane
+    r0 = next(iter(rows))
+    kept = [p for p in both if stopping._row(p) != r0] + rows[r0][0][:2]
+    cands = [p for p in places if p not in kept and p not in rows[r0][1]]
+    a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in kept],
+                        cands, places, noise_px=0.04)
+    assert np.all(np.isfinite(a.sigma)), a.table()
