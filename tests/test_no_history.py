@@ -47,8 +47,12 @@ def history_hits(files, root: Path = ROOT) -> list[str]:
         except OSError as exc:
             hits.append(f'{path.relative_to(root)}: unreadable: {exc}')
             continue
-        for number, line in enumerate(text.splitlines(), 1):
-            if HISTORY.search(line):
+        lines = text.splitlines()
+        for number, line in enumerate(lines, 1):
+            # a phrase wrapped onto the next line (comment and quote marks dropped) counts too
+            after = lines[number].strip().lstrip('#*>"\'').strip() if number < len(lines) else ''
+            if HISTORY.search(line) or (HISTORY.search(f'{line.rstrip()} {after}')
+                                        and not HISTORY.search(after)):
                 hits.append(f'{path.relative_to(root)}:{number}: {line.strip()[:160]}')
     return hits
 
@@ -67,10 +71,13 @@ def test_the_search_finds_what_it_must_and_skips_what_it_may(tmp_path):
     (tmp_path / 'pkg').mkdir()
     (tmp_path / 'pkg' / 'mod.py').write_text(f'x = 1\n# {bad}\n')
     (tmp_path / 'guide.md').write_text('see Iss' + 'ue 20 for the range\n')
+    (tmp_path / 'pkg' / 'wrapped.py').write_text('# as measured in the fif' + 'th\n# sess'
+                                                 + 'ion, on the reference rig\n')
     (tmp_path / 'notes.txt').write_text(bad)                      # not a searched suffix
     for skipped in ('.venv/lib', 'node_modules/three', 'build/msgs', 'tests/data'):
         (tmp_path / skipped).mkdir(parents=True)
         (tmp_path / skipped / 'x.md').write_text(bad)
     (tmp_path / 'protocol.md').write_text('a board link lasts from one HELLO to the next\n')
     hits = history_hits(project_files(tmp_path), tmp_path)
-    assert hits == [f'guide.md:1: see Iss{"ue"} 20 for the range', f'pkg/mod.py:2: # {bad}']
+    assert hits == [f'guide.md:1: see Iss{"ue"} 20 for the range', f'pkg/mod.py:2: # {bad}',
+                    f'pkg/wrapped.py:1: # as measured in the fif{"th"}']

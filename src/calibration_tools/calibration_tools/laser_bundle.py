@@ -18,10 +18,6 @@ of the axis, two shifts of its point across it, the gain and the polynomial. The
 reported as the axis point nearest V0's origin (where along the axis it sits means nothing),
 as the staged fit reports it. Every view counts the same (its points weighted by one over the
 square root of their number): a view's error is mostly one shift of its whole line.
-
-On the reference rig (its exact camera, 8 seeds) the staged laser read 0.06-0.16 mm shape
-error over G1's +-8 V; this fit, with the cube of G2's response, 0.05-0.08 mm (fourteenth
-session; README "The laser's bundle adjustment").
 """
 
 from __future__ import annotations
@@ -273,11 +269,10 @@ def _clustered_covariance(J, r, groups, counts, JtJ) -> np.ndarray:
     :func:`calibration_tools.stages.clustered_covariance`); with too few boards for that,
     one mean square residual per view (``s2 inv(J.T J)``).
 
-    Against the error measured on the simulator: one sample per view (as
-    before) shrank the stated error by sqrt(3) with three times the lit frames while the
-    measured error stayed; one sample per board with the boards' mean square residuals
-    overstated it (the frames' own scatter counted as the board's): pooled 1.41 on the
-    reference rig. This sandwich assumes nothing about the errors within a board.
+    Taking each view as its own sample would shrink the stated error by sqrt(3) with three
+    times the lit frames while the true error stays; one sample per board with the boards'
+    mean square residuals would overstate it (the frames' own scatter counted as the
+    board's). This sandwich assumes nothing about the errors within a board.
     """
     from .stages import clustered_covariance
 
