@@ -639,6 +639,95 @@ def _locate_circle_board(model, p: Placement, views) -> Located:
                    np.array([U[k][0], U[k][1], 0.0, 0.0]), dets[k].centres, stamps[k])
 
 
+#: Sub-patterns the large circle board's edge probe (:func:`pin_board_lattice`) moves at
+#: most, each way along each of its axes: a person puts it within about 60 mm of where asked,
+#: two sub-patterns of the smallest board (7 x 5 mm).
+PIN_PERIODS = 3
+
+
+def _edge_reading(model, B, T, axis: int, side: float, view) -> tuple[str, int]:
+    """What one view aimed at the board's edge (``axis`` 0: x, 1: y; ``side`` +-1) under the
+    pose ``T`` shows: ``('edge', k)`` when the circles end inside the view, ``k`` whole
+    sub-patterns past where ``T`` puts the edge; ``('beyond', 0)`` when they reach the view's
+    far border (the board goes on); ``('none', 0)`` without circles (it ends sooner); ``('',
+    0)`` when unclear. Read on the board's plane through the model: its error shifts the
+    circles and the view alike, far less than a sub-pattern."""
+    from calibration_tools.circle_board import detect_circles
+    from calibration_tools.small_board import as_uint8_image
+
+    from .board_geometry import pixels_to_board
+
+    img = np.asarray(view.image)
+    d = detect_circles(as_uint8_image(img), dark_circles=True)
+    if len(d) == 0:
+        return 'none', 0
+    u = np.asarray(view.voltages, dtype=np.float64)
+    h, w = img.shape[:2]
+    border = np.array([[x, y] for x in np.linspace(0, w - 1, 9) for y in np.linspace(0, h - 1, 7)
+                       if x in (0, w - 1) or y in (0, h - 1)])
+    far = pixels_to_board(model, border, u[0], u[1], T)[:, axis] * side
+    xy = pixels_to_board(model, d.centres, u[0], u[1], T)
+    x = xy[np.isfinite(xy).all(axis=1), axis] * side
+    if len(x) < 3 or not np.isfinite(far).any():
+        return '', 0
+    if x.max() > np.nanmax(far) - 1.5 * B.pitch:
+        return 'beyond', 0
+    last = ((B.cols if axis == 0 else B.rows) - 1) / 2.0 * B.pitch
+    return 'edge', int(round((x.max() - last) / (B.sub_pattern * B.pitch)))
+
+
+def pin_board_lattice(model, p: Placement, T, look):
+    """The large circle board's pose with its lattice pinned by its edges: ``(V0_T_target,
+    note)``.
+
+    Its large circles fix the circles' labels only modulo the sub-pattern (a placement
+    farther than half a sub-pattern from where asked is read a whole number of sub-patterns
+    off, and the views planned around it miss the board). The board's edges fix them: one
+    view aimed where the pose puts the middle of an edge shows circles past it (the board
+    reaches further: the pose moves a sub-pattern out), none (it ends sooner: a sub-pattern
+    in) or the edge. Along each axis the edge on the side nearer G1's centre is probed first,
+    then the other; an axis whose edges no view shows keeps its pose (said in the note).
+
+    ``look`` takes laser-off frames at G1 voltages (as for :func:`search`).
+    """
+    from reconstructor.planning import aim_g1
+
+    B = p.target
+    period = B.sub_pattern * B.pitch
+    T = np.array(T, dtype=np.float64)
+    notes = []
+    for axis in (0, 1):
+        half = ((B.cols if axis == 0 else B.rows) - 1) / 2.0 * B.pitch
+        e = T[:3, axis]
+        sides = sorted((1.0, -1.0), key=lambda s: float(np.linalg.norm(
+            (T[:3, 3] + s * half * e)[:2])))
+        moved, pinned = 0, False
+        for side in sides:
+            for _ in range(2 * PIN_PERIODS + 1):
+                at = T[:3, 3] + side * half * e
+                g1 = aim_g1(model, at, max_abs_u=MAX_ABS_VOLTAGE)
+                if not np.all(np.isfinite(g1)) or np.abs(g1).max() > MAX_ABS_VOLTAGE:
+                    break
+                got = look(np.array([[g1[0], g1[1], 0.0, 0.0]]))
+                reading, k = _edge_reading(model, B, T, axis, side, got[0]) if got else ('', 0)
+                step = {'beyond': 1, 'none': -1, 'edge': k}.get(reading, 0)
+                if reading and abs(moved + side * step) <= PIN_PERIODS:
+                    T[:3, 3] += side * step * period * e
+                    moved += int(side * step)
+                    if reading == 'edge':
+                        pinned = True
+                        break
+                else:
+                    break
+            if pinned:
+                break
+        if moved:
+            notes.append(f'{"xy"[axis]} moved {moved:+d} sub-pattern(s) by its edge')
+        if not pinned:
+            notes.append(f'{"xy"[axis]} edge not seen')
+    return T, '; '.join(notes)
+
+
 def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=None):
     """Find a placed target: ``(Located, None)`` when it can be captured, else
     ``(Located or None, Move)`` saying what the operator must change.
@@ -668,6 +757,10 @@ def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=N
         if note is not None:
             note(volts, loc)
         if loc.V0_T_target is not None:
+            if p.kind == 'circle_board':
+                T, why = pin_board_lattice(model, p, loc.V0_T_target, look)
+                loc = dataclasses.replace(loc, V0_T_target=T,
+                                          note=loc.note + (f'; {why}' if why else ''))
             move = check_pose(model, p, loc.V0_T_target, targets)
             if move is None and p.kind == 'sphere' and look_lit is not None:
                 off = look(loc.check_voltages[None])
