@@ -754,13 +754,13 @@ def search(model, p: Placement, targets: cp.Targets, look, note=None, look_lit=N
         if not len(volts):
             return None, reach_move(model, p, centre, 'no view of the search within G1 reach')
         loc = locate(model, p, look(volts))
+        if loc.V0_T_target is not None and p.kind == 'circle_board':
+            T, why = pin_board_lattice(model, p, loc.V0_T_target, look)
+            loc = dataclasses.replace(loc, V0_T_target=T,
+                                      note=loc.note + (f'; {why}' if why else ''))
         if note is not None:
             note(volts, loc)
         if loc.V0_T_target is not None:
-            if p.kind == 'circle_board':
-                T, why = pin_board_lattice(model, p, loc.V0_T_target, look)
-                loc = dataclasses.replace(loc, V0_T_target=T,
-                                          note=loc.note + (f'; {why}' if why else ''))
             move = check_pose(model, p, loc.V0_T_target, targets)
             if move is None and p.kind == 'sphere' and look_lit is not None:
                 off = look(loc.check_voltages[None])
