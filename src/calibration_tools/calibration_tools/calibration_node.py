@@ -534,7 +534,7 @@ class CalibrationNode(Node):
                     stats['skipped'] += 1
                     order.pop(0)
                 elif kept:
-                    q, mine, got, n, _ = kept.pop()
+                    q, mine, got, n, _, _ = kept.pop()
                     for bag in mine:
                         shutil.rmtree(bag, ignore_errors=True)
                         bags.remove(bag)
@@ -577,12 +577,12 @@ class CalibrationNode(Node):
                 got, n = self._run_steps(stage, views, run_dir, t0, mine, after_step,
                                          first=counter)
                 counter += len(views)
-                shift, reason, seen, fits = 0.0, '', [], []
+                shift, reason, seen, fits, at = 0.0, '', [], [], None
                 if not p.by_robot:
                     after, still = self._check(p, loc.check_voltages, run_dir, counter)
                     shift = operator_flow.feature_shift_px(loc.features, after)
-                    reason, seen, fits = self._gate(model, p, mine, still, progress, stats,
-                                                    assessment)
+                    reason, seen, fits, at = self._gate(model, p, mine, still, progress,
+                                                        stats, assessment)
             except BaseException:
                 for bag in mine:
                     shutil.rmtree(bag, ignore_errors=True)
@@ -611,7 +611,7 @@ class CalibrationNode(Node):
                 continue
             bags += mine
             frames, wanted = frames + got, wanted + n
-            kept.append((p, mine, got, n, T))
+            kept.append((p, mine, got, n, T, at))
             if T is not None:
                 measured[p.index] = T
             progress.keep(p.index, seen, [v.voltages for v in views], fits)
@@ -652,7 +652,7 @@ class CalibrationNode(Node):
             from calibration_tools.dynamic_camera import intrinsics_standard_errors
 
             return stopping.assess(stage, model, targets,
-                                   [(q, T) for q, _, _, _, T in kept if T is not None],
+                                   [(q, T, at) for q, _, _, _, T, at in kept if T is not None],
                                    [places[k] for k in order], places,
                                    noise_px=progress.feature_noise_px(),
                                    prior_sigma=intrinsics_standard_errors(self.calibration))
@@ -664,12 +664,12 @@ class CalibrationNode(Node):
         """The reprojection and motion-blur gates on the placement's laser-off views (read
         back from ``bags``); each view is published on calibration/progress. Returns (the
         first rejection's reason or '', the kept views' features, their boards' reprojection
-        RMS [px])."""
-        seen, reason, fits = [], '', []
+        RMS [px], the G1 voltages (n, 2) of the views that showed the target)."""
+        seen, reason, fits, at = [], '', [], []
         try:
             views = [v for v in stage_runner.views_from_bags(bags) if not v.laser_on]
         except ValueError:
-            return '', seen, fits
+            return '', seen, fits, None
         for v in views:
             pts, why, rms = operator_flow.gate_view(model, p, v.image, still)
             if not why and math.isfinite(rms):
@@ -681,9 +681,10 @@ class CalibrationNode(Node):
                 reason = reason or why
             elif pts is not None:
                 seen.append(pts)
+                at.append(np.asarray(v.voltages, dtype=np.float64)[:2])
             self._publish_progress(progress, stats, assessment,
                                    (pts, not why, why, v.stamp))
-        return reason, seen, fits
+        return reason, seen, fits, np.array(at).reshape(-1, 2)
 
     def _check(self, p, voltages, run_dir, counter):
         """The motion gate's view of the target after its views: its features, and how far

@@ -468,13 +468,17 @@ def _dynamic_views(model, p, T, targets) -> np.ndarray | None:
     return np.vstack([np.asarray(s.voltages, np.float64)[:, :2] for s in steps])
 
 
-def _dynamic_info(model, p, T, targets, noise_px) -> np.ndarray | None:
+def _dynamic_info(model, p, T, targets, noise_px, seen=None) -> np.ndarray | None:
     """Information on (:data:`DYNAMIC_NAMES`, :data:`_DYNAMIC_NUISANCE`) of one circle-board
-    placement at ``T``: its circles' centres in every view of it, the board's pose taken
-    out."""
+    placement at ``T``: its circles' centres in every view of it (``seen``: the G1 voltages
+    (m, 2) of the views that showed it; default: the views planned around ``T``), the
+    board's pose taken out."""
     from scipy.spatial.transform import Rotation
 
-    U = _dynamic_views(model, p, T, targets)
+    U = _dynamic_views(model, p, T, targets) if seen is None else \
+        np.asarray(seen, dtype=np.float64).reshape(-1, 2)
+    if U is not None and not len(U):
+        return None
     if U is None:
         return None
     board = p.target
@@ -565,8 +569,10 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
     model : RigModel
         The current model (aims, projection, the laser sheet).
     targets : capture_plans.Targets
-    kept : sequence of (Placement, ndarray (4, 4))
-        Placements kept so far, each at the pose the scanner measured.
+    kept : sequence of (Placement, ndarray (4, 4)[, ndarray (m, 2) or None])
+        Placements kept so far, each at the pose the scanner measured, and optionally the G1
+        voltages of its views that showed the target (the dynamic camera: a view that missed
+        the board brings nothing; default: every view planned around the pose).
     candidates : sequence of Placement
         Placements still to be asked for (at the poses asked for).
     planned : sequence of Placement
@@ -591,18 +597,18 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         target = _dynamic_targets(model, targets)
         prior = _dynamic_prior(model, prior_sigma)
 
-        def info(p, T):
-            return _dynamic_info(model, p, T, targets, noise)
+        def info(p, T, seen=None):
+            return _dynamic_info(model, p, T, targets, noise, seen)
     elif kind == 'camera':
         names, units = list(INTRINSICS_NAMES), list(_INTRINSICS_UNITS)
         target = _intrinsics_targets(model, targets)
         prior = _intrinsics_prior()
 
-        def info(p, T):
+        def info(p, T, seen=None):
             return _intrinsics_info(model, p.target, T, noise)
     else:
         region = []
-        for p in planned or [*(q for q, _ in kept), *candidates]:
+        for p in planned or [*(k[0] for k in kept), *candidates]:
             u2 = _lit_voltage(p)
             pts = None if u2 is None else _stripe_points(model, p.target, p.V0_T_target, u2)
             if pts is not None:
@@ -615,16 +621,17 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         target = _sheet_targets(model, sp, region, targets)
         prior = np.zeros((len(sp), len(sp)))
 
-        def info(p, T):
+        def info(p, T, seen=None):
             return _sheet_info(model, sp, p, T, targets)
 
-    rows = _row_needs(stage, planned or [*(q for q, _ in kept), *candidates],
-                      [q for q, _ in kept], candidates)
+    rows = _row_needs(stage, planned or [*(k[0] for k in kept), *candidates],
+                      [k[0] for k in kept], candidates)
     short = {r for r, (_, helps) in rows.items() if helps}
     total = prior.copy()
     pending: dict = {}  # a row's boards count once it has enough for its plane
-    for p, T in kept:
-        got = info(p, np.asarray(T, dtype=np.float64))
+    kept = [(k[0], k[1], k[2] if len(k) > 2 else None) for k in kept]
+    for p, T, seen in kept:
+        got = info(p, np.asarray(T, dtype=np.float64), seen)
         if got is not None:
             if _row(p) in short:
                 pending[_row(p)] = pending.get(_row(p), 0) + got

@@ -148,3 +148,30 @@ def test_laser_axis_rows_need_boards_at_both_depths_of_their_plan():
     a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in kept],
                         cands, places, noise_px=0.04)
     assert np.all(np.isfinite(a.sigma)), a.table()
+
+
+def test_dynamic_camera_counts_only_the_views_that_showed_the_board():
+    """Views that missed the board (a pose misread, a board moved off them) bring nothing:
+    given the views that showed it, the prediction is that of those views alone."""
+    from calibration_tools.operator_flow import views_for
+
+    places = _places('dynamic_camera')
+    kept = [(p, p.V0_T_target) for p in places]
+    planned = [np.vstack([s.voltages[:, :2] for s in views_for(MODEL, p, p.V0_T_target,
+                                                               TARGETS)]) for p in places]
+    every = stopping.assess('dynamic_camera', MODEL, TARGETS, kept, [], places)
+    said = stopping.assess('dynamic_camera', MODEL, TARGETS,
+                           [(p, T, U) for (p, T), U in zip(kept, planned, strict=True)], [],
+                           places)
+    assert np.allclose(said.sigma, every.sigma)
+    # the side placements' views off their board's far half: l and d are known less well
+    part = [(p, T, U if k == 0 else U[: len(U) // 3])
+            for k, ((p, T), U) in enumerate(zip(kept, planned, strict=True))]
+    fewer = stopping.assess('dynamic_camera', MODEL, TARGETS, part, [], places)
+    assert np.all(fewer.sigma > every.sigma * 1.02), (fewer.sigma, every.sigma)
+    # a placement none of whose views showed it is no placement
+    none = stopping.assess('dynamic_camera', MODEL, TARGETS,
+                           [*kept[:-1], (kept[-1][0], kept[-1][1], np.zeros((0, 2)))], [],
+                           places)
+    fewer_one = stopping.assess('dynamic_camera', MODEL, TARGETS, kept[:-1], [], places)
+    assert np.allclose(none.sigma, fewer_one.sigma, equal_nan=True)
