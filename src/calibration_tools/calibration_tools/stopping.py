@@ -18,8 +18,8 @@ parameters, each placement's own pose taken out (Schur complement):
   with respect to the sheet's parameters; each point's noise is the stripe centre's
   (:data:`STRIPE_NOISE_PX`), and all points of one board share its pose's error along its
   normal (from its pattern's corners; :func:`_board_depth_sigma`);
-- ``dynamic_camera``: the circle centres in every view of the large board, the views
-  planned around the pose the scanner measured (:func:`operator_flow.views_for`), with
+- ``dynamic_camera``: the circle centres in every view of the large board that showed it
+  (a candidate's: the views planned around its pose, :func:`operator_flow.views_for`), with
   respect to l and d and what the stage estimates with them (G1's gains and pan zero, the
   pinhole; the intrinsics stage's standard errors as the pinhole's prior), noise
   :data:`FEATURE_NOISE_PX`.
