@@ -646,12 +646,14 @@ PIN_PERIODS = 3
 
 
 def _edge_reading(model, B, T, axis: int, side: float, view) -> tuple[str, int]:
-    """What one view aimed at the board's edge (``axis`` 0: x, 1: y; ``side`` +-1) under the
-    pose ``T`` shows: ``('edge', k)`` when the circles end inside the view, ``k`` whole
-    sub-patterns past where ``T`` puts the edge; ``('beyond', 0)`` when they reach the view's
-    far border (the board goes on); ``('none', 0)`` without circles (it ends sooner); ``('',
-    0)`` when unclear. Read on the board's plane through the model: its error shifts the
-    circles and the view alike, far less than a sub-pattern."""
+    """What one view aimed between the board's last circles along an edge and the lattice
+    sites past them (``axis`` 0: x, 1: y; ``side`` +-1), as the pose ``T`` puts them, shows:
+    ``('edge', k)`` when the circles end inside the view (the next site would be whole in it
+    and holds none), ``k`` whole sub-patterns past where ``T`` puts the edge; ``('beyond',
+    0)`` when circles stand past the last ones (the board goes on); ``('none', 0)`` without
+    circles (it ends sooner); ``('', 0)`` when unclear. Read on the board's plane through the
+    model: its error moves the circles and the view's border alike, by far less than a
+    pitch."""
     from calibration_tools.circle_board import detect_circles
     from calibration_tools.small_board import as_uint8_image
 
@@ -668,12 +670,15 @@ def _edge_reading(model, B, T, axis: int, side: float, view) -> tuple[str, int]:
     far = pixels_to_board(model, border, u[0], u[1], T)[:, axis] * side
     xy = pixels_to_board(model, d.centres, u[0], u[1], T)
     x = xy[np.isfinite(xy).all(axis=1), axis] * side
-    if len(x) < 3 or not np.isfinite(far).any():
+    if not len(x) or not np.isfinite(far).any():
         return '', 0
-    if x.max() > np.nanmax(far) - 1.5 * B.pitch:
-        return 'beyond', 0
     last = ((B.cols if axis == 0 else B.rows) - 1) / 2.0 * B.pitch
-    return 'edge', int(round((x.max() - last) / (B.sub_pattern * B.pitch)))
+    top = float(x.max())
+    if top > last + 0.5 * B.pitch:
+        return 'beyond', 0
+    if top + B.pitch + B.large_diameter < float(np.nanmax(far)):
+        return 'edge', int(round((top - last) / (B.sub_pattern * B.pitch)))
+    return '', 0
 
 
 def pin_board_lattice(model, p: Placement, T, look):
@@ -683,10 +688,11 @@ def pin_board_lattice(model, p: Placement, T, look):
     Its large circles fix the circles' labels only modulo the sub-pattern (a placement
     farther than half a sub-pattern from where asked is read a whole number of sub-patterns
     off, and the views planned around it miss the board). The board's edges fix them: one
-    view aimed where the pose puts the middle of an edge shows circles past it (the board
-    reaches further: the pose moves a sub-pattern out), none (it ends sooner: a sub-pattern
-    in) or the edge. Along each axis the edge on the side nearer G1's centre is probed first,
-    then the other; an axis whose edges no view shows keeps its pose (said in the note).
+    view aimed half a pitch past the middle of an edge, as the pose puts it, shows circles
+    past it (the board reaches further: the pose moves a sub-pattern out), none (it ends
+    sooner: a sub-pattern in) or the edge. Along each axis the edge on the side nearer G1's
+    centre is probed first, then the other; an axis whose edges no view shows keeps its pose
+    (said in the note).
 
     ``look`` takes laser-off frames at G1 voltages (as for :func:`search`).
     """
@@ -704,7 +710,7 @@ def pin_board_lattice(model, p: Placement, T, look):
         moved, pinned = 0, False
         for side in sides:
             for _ in range(2 * PIN_PERIODS + 1):
-                at = T[:3, 3] + side * half * e
+                at = T[:3, 3] + side * (half + 0.5 * B.pitch) * e
                 g1 = aim_g1(model, at, max_abs_u=MAX_ABS_VOLTAGE)
                 if not np.all(np.isfinite(g1)) or np.abs(g1).max() > MAX_ABS_VOLTAGE:
                     break

@@ -272,19 +272,22 @@ def test_beside_the_camera_the_laser_line_is_crossed_along_x():
     assert move.move[0] < -0.01 and move.move[1] == 0.0 and 'left (-x)' in move.words
 
 
-@pytest.mark.parametrize('offset', [(0.10, -0.09), (-0.16, 0.12)])
+@pytest.mark.parametrize('offset', [(0.10, -0.09), (-0.16, 0.12), (0.0, 0.0), (0.05, 0.03)])
 def test_a_circle_board_placed_past_half_a_sub_pattern_is_pinned_by_its_edges(bench, offset):
     """The large circles fix the circle board's labels only modulo the sub-pattern (140 mm
     on this rig): a board put 100-200 mm from where asked reads whole sub-patterns off until
-    its edges are probed; then its pose is its own and its planned views all land on it."""
+    its edges are probed; then its pose is its own and its planned views all land on it. One
+    put where asked, or within half a sub-pattern, is left where it was read."""
     _, cal, model, targets, sim = bench
     p = of.placements('dynamic_camera', plan('dynamic_camera', cal, quick=True))[0]
-    T = _off(p, [offset[0], offset[1], 0.0], math.radians(5.0))
+    T = _off(p, [offset[0], offset[1], 0.0], math.radians(5.0 if any(offset) else 0.0))
     _place(sim, p, T)
     loc, move = of.search(model, p, targets, _looker(sim))
     assert move is None, move.words
     assert np.linalg.norm(loc.V0_T_target[:3, 3] - T[:3, 3]) < 5e-3, loc.note
-    assert 'moved' in loc.note, loc.note
+    far = max(abs(o) for o in offset) > 0.5 * p.target.sub_pattern * p.target.pitch
+    assert ('moved' in loc.note) == far, loc.note
+    assert 'not seen' not in loc.note, loc.note
     steps = of.views_for(model, p, loc.V0_T_target, targets)
     views = execute_in_process(sim, steps)[0]
     from calibration_tools.circle_board import detect_circles
