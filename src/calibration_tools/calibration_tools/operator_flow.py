@@ -654,10 +654,9 @@ def _edge_reading(model, B, T, axis: int, side: float, view) -> tuple[str, int]:
     circles (it ends sooner); ``('', 0)`` when unclear. Read on the board's plane through the
     model: its error moves the circles and the view's border alike, by far less than a
     pitch."""
+    from calibration_tools.board_geometry import pixels_to_board
     from calibration_tools.circle_board import detect_circles
     from calibration_tools.small_board import as_uint8_image
-
-    from .board_geometry import pixels_to_board
 
     img = np.asarray(view.image)
     d = detect_circles(as_uint8_image(img), dark_circles=True)

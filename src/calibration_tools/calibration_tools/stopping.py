@@ -477,9 +477,7 @@ def _dynamic_info(model, p, T, targets, noise_px, seen=None) -> np.ndarray | Non
 
     U = _dynamic_views(model, p, T, targets) if seen is None else \
         np.asarray(seen, dtype=np.float64).reshape(-1, 2)
-    if U is not None and not len(U):
-        return None
-    if U is None:
+    if U is None or not len(U):
         return None
     board = p.target
     X = board.points() @ T[:3, :3].T + T[:3, 3]
@@ -586,6 +584,7 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         default: the lens prior's principal point, focal lengths free).
     """
     noise = FEATURE_NOISE_PX if noise_px is None else float(noise_px)
+    kept = [(k[0], k[1], k[2] if len(k) > 2 else None) for k in kept]
     if stage not in PREDICTED:
         return Assessment(stage, [], [], np.zeros(0), np.zeros(0),
                           best=0 if candidates else None,
@@ -608,7 +607,7 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
             return _intrinsics_info(model, p.target, T, noise)
     else:
         region = []
-        for p in planned or [*(k[0] for k in kept), *candidates]:
+        for p in planned or [*(q for q, _, _ in kept), *candidates]:
             u2 = _lit_voltage(p)
             pts = None if u2 is None else _stripe_points(model, p.target, p.V0_T_target, u2)
             if pts is not None:
@@ -624,12 +623,11 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
         def info(p, T, seen=None):
             return _sheet_info(model, sp, p, T, targets)
 
-    rows = _row_needs(stage, planned or [*(k[0] for k in kept), *candidates],
-                      [k[0] for k in kept], candidates)
+    rows = _row_needs(stage, planned or [*(q for q, _, _ in kept), *candidates],
+                      [q for q, _, _ in kept], candidates)
     short = {r for r, (_, helps) in rows.items() if helps}
     total = prior.copy()
     pending: dict = {}  # a row's boards count once it has enough for its plane
-    kept = [(k[0], k[1], k[2] if len(k) > 2 else None) for k in kept]
     for p, T, seen in kept:
         got = info(p, np.asarray(T, dtype=np.float64), seen)
         if got is not None:
