@@ -111,6 +111,9 @@ class Draw:
     tilt_rad: float
     mistake: str = ''
     notes: list = field(default_factory=list)
+    #: the mistake was forced (tests); ``again``: it is a forced nudge made once more
+    forced: bool = False
+    again: bool = False
 
 
 def draw_placement(instr: dict, rng: np.random.Generator, person: Person = PERSON) -> Draw:
@@ -187,6 +190,8 @@ class SimulatedOperator:
         self._pending = None
         self._current = None  # (instr, Draw) being captured
         self._nudged = False
+        self._nudge_at = None  # (stage, placement) of a forced nudge not yet seen caught
+        self._nudge_owed = False
         self.seed = seed
 
     # -- lifecycle --------------------------------------------------------------------
@@ -327,27 +332,53 @@ class SimulatedOperator:
                      f'{instr["direction"] or instr["text"]}; moved by '
                      f'{np.round((move + jitter) * 1e3, 1).tolist()} mm')
         else:  # asked to place it, or told it was not found: place it (again)
+            self._nudge_owed |= self._forced_nudge_missed(msg)
             draw = draw_placement(instr, self.rng, self.person)
             if self.forced and state == 'place':
                 draw = self._force(instr, draw, self.forced.pop(0))
+            if self._nudge_owed and not draw.mistake:
+                draw.mistake, draw.forced, draw.again = 'moved_during_capture', True, True
+                self._nudge_owed = False
             self._current = (instr, draw)
             self._nudged = False
             st = self.stats['placements']
             st[msg.stage] = st.get(msg.stage, 0) + 1
-            if draw.mistake:
+            if draw.mistake and not draw.again:
                 self.stats['mistakes'][draw.mistake] = \
                     self.stats['mistakes'].get(draw.mistake, 0) + 1
             self.log(f'simulated operator: {msg.stage} placement {msg.placement}: '
                      f'{instr["target"]} placed {np.round(draw.error_m * 1e3, 1).tolist()} mm '
                      f'from the centre asked for, tilted {math.degrees(draw.tilt_rad):+.1f} '
-                     f'deg' + (f'; mistake: {draw.mistake}' if draw.mistake else ''))
+                     f'deg' + (f'; mistake: {draw.mistake}' if draw.mistake else '')
+                     + (' (again)' if draw.again else ''))
         self._set_scene(scene_text(instr['target'], spec, draw.T))
         self._answer('placed', msg.placement)
+
+    def _forced_nudge_missed(self, msg) -> bool:
+        """Whether a forced nudge has to be made again before a new placement is drawn.
+
+        A nudge lands when the operator hears the capture begin, and the scanner's last look
+        at the target may already be taken by then (a one-view capture on a loaded machine):
+        a nudge after the capture moved nothing the scanner kept. A forced nudge is there to
+        be caught, so one that was not (the next instruction is not its placement's retake
+        for motion), or one never made because its placement was drawn again before its
+        capture, is forced on a later placement."""
+        if self._nudge_at is not None:
+            at, self._nudge_at = self._nudge_at, None
+            if msg.state == 'place' and (msg.stage, msg.placement) == at and \
+                    'moved during' in msg.text:
+                return False
+            self.log(f'simulated operator: {at[0]} placement {at[1]}: the nudge came after '
+                     'the capture\'s last look; it is made again on a later placement')
+            return True
+        cur = None if self._current is None else self._current[1]
+        return cur is not None and cur.forced and cur.mistake == 'moved_during_capture'
 
     def _force(self, instr, draw, mistake):
         forced = draw_placement(instr, np.random.default_rng(len(self.forced) + 17),
                                 self.person)
         forced.mistake = mistake if mistake != 'exact' else ''
+        forced.forced = bool(forced.mistake)
         if mistake == 'exact':
             forced.T = draw.T.copy()
             forced.T[:3, 3] = np.asarray(instr['centre'], dtype=np.float64)
@@ -358,12 +389,13 @@ class SimulatedOperator:
             T = np.eye(4)
             T[:3, :3] = _rot([tilt, 0.0, 0.0]) @ _quat_matrix(instr['orientation'])
             T[:3, 3] = np.asarray(instr['centre'], dtype=np.float64) + np.asarray(off)
-            return Draw(T, np.asarray(off, dtype=np.float64), float(tilt), 'forced offset')
+            return Draw(T, np.asarray(off, dtype=np.float64), float(tilt), 'forced offset',
+                        forced=True)
         if mistake == 'outside_region':
             ext = np.asarray(instr['extents'], dtype=np.float64)
             draw.T[:3, 3] = np.asarray(instr['centre']) + np.array([4.0 * ext[0], 0, 0])
             draw.error_m = draw.T[:3, 3] - np.asarray(instr['centre'])
-        draw.mistake = mistake
+        draw.mistake, draw.forced = mistake, True
         return draw
 
     def _hold(self, instr):
@@ -373,7 +405,8 @@ class SimulatedOperator:
         if draw.mistake == 'moved_during_capture' and not self._nudged:
             wait_s = 2.0  # a nudge the simulator refuses mid-scan lands when the scan ends
             self._nudged = True
-            time.sleep(0.05)
+            if draw.forced:
+                self._nudge_at = (instr['stage'], instr['placement'])
             nudge = self.rng.normal(size=3)
             nudge = nudge / np.linalg.norm(nudge) * 0.004
             draw.T[:3, 3] += nudge
