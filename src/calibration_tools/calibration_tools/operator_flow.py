@@ -71,6 +71,19 @@ MIN_DEPTH_EXTENT = 0.01
 MAX_ABS_VOLTAGE = cp.MAX_ABS_VOLTAGE
 
 
+#: A row's boards must also stand at both ends of its plan along the stripe: each plane is
+#: fitted from its own boards first, and its turn about the depth axis is pinned by how far
+#: apart along the stripe they stand: a plan's neighbours leave it looser than its two ends,
+#: and at G2's end rows that turn shows as a twist of the surface's far corners. A planned
+#: board within this fraction of its row's extent from an end stands at that end.
+ROW_END_FRACTION = 0.1
+#: A person puts a board within about 60 mm along the laser line, which on its own would
+#: often bring a row's two ends a third of its extent together: a board at an end that
+#: stands more than this fraction of its row's extent in from where it was asked is asked
+#: to move out (standing out beyond the end helps).
+ROW_END_SLACK = 0.2
+
+
 # ----------------------------------------------------------------------------- requests
 @dataclass
 class Placement:
@@ -105,6 +118,10 @@ class Placement:
         The V0 axis across the laser line (1: y, the laser below or above the camera; 0: x,
         beside it; ``reconstructor.planning.stripe_layout``): an ``on_laser_line`` target's
         tight tolerance.
+    row_end : tuple or None
+        A laser-axis board at an end of its row along the stripe: the V0 unit vector
+        towards the row's middle and how far [m] in from its position it may stand
+        (:data:`ROW_END_SLACK`).
     """
 
     stage: str
@@ -121,6 +138,7 @@ class Placement:
     #: depths [m] the target is in focus between (None: not limited)
     focus: tuple | None = None
     across: int = 1
+    row_end: tuple | None = None
 
     @property
     def centre(self) -> np.ndarray:
@@ -307,6 +325,56 @@ def placements(stage: str, steps, by_robot: bool = False, across: int = 1) -> li
             out.append(Placement(stage, len(out), kind, target, T, views, lit, gap,
                                  max_offset=SPHERE_MAX_OFFSET if kind == 'sphere'
                                  else math.inf, focus=focus, across=across))
+    if stage == 'laser_axis':
+        for k, (end, inward, span) in row_ends(out).items():
+            if end is not None:
+                out[k].row_end = (inward, ROW_END_SLACK * span)
+    return out
+
+
+def lit_voltage(p: Placement) -> float | None:
+    """The G2 voltage [V] a placement's laser views light it at (their median; None for a
+    placement without lit views)."""
+    rows = [float(r[3]) for v, lit, _ in p.views if lit for r in v]
+    return float(np.median(rows)) if rows else None
+
+
+def row_key(p: Placement) -> float | None:
+    """The laser axis's row (one plane of its solver) a placement belongs to: its lit G2
+    voltage, rounded; None for the other stages' placements."""
+    if p.stage != 'laser_axis':
+        return None
+    u = lit_voltage(p)
+    return None if u is None else round(u, 3)
+
+
+def row_ends(places) -> dict:
+    """Each laser-axis placement's end of its row along the stripe, keyed by placement
+    index: ``(end, inward, span)`` with ``end`` 0 or 1 for the two ends (None between them,
+    or for a row whose boards overlap along it), ``inward`` the V0 unit vector from
+    its position towards the row's middle along the stripe and ``span`` [m] the row's
+    extent along it (:data:`ROW_END_FRACTION`). The stripe runs along V0 x, or y for a
+    laser beside the camera (:attr:`Placement.across`). Empty for the other stages."""
+    by_row: dict = {}
+    for p in places:
+        if row_key(p) is not None:
+            by_row.setdefault(row_key(p), {})[p.index] = p
+    out = {}
+    for row in by_row.values():
+        along = 1 - next(iter(row.values())).across
+        t = np.array([q.V0_T_target[along, 3] for q in row.values()], dtype=np.float64)
+        mid, span = 0.5 * (t.max() + t.min()), float(np.ptp(t))
+        spread = span > min(q.outline()[along] for q in row.values())
+        for k, tq in zip(row, t, strict=True):
+            end = None
+            if spread and tq <= t.min() + ROW_END_FRACTION * span:
+                end = 0
+            elif spread and tq >= t.max() - ROW_END_FRACTION * span:
+                end = 1
+            inward = np.zeros(3)
+            if end is not None:
+                inward[along] = np.sign(mid - tq)
+            out[k] = (end, inward, span)
     return out
 
 
@@ -832,7 +900,8 @@ def stripe_on_sphere(model, p: Placement, T, off_image, lit_image) -> Move | Non
 @dataclass
 class Move:
     """What the operator must change: ``reason`` (not_found, out_of_reach, too_near,
-    too_far, too_tilted, off_laser_line), the displacement [m] in V0 and the words."""
+    too_far, off_centre, off_row_end, too_tilted, off_laser_line), the displacement [m] in
+    V0 and the words."""
 
     reason: str
     move: np.ndarray
@@ -877,6 +946,14 @@ def check_pose(model, p: Placement, T, targets: cp.Targets) -> Move | None:
         return Move('off_centre', d, f'{np.linalg.norm(off[:2]) * 1e3:.0f} mm from the '
                     f'position asked for (within {p.max_offset * 1e3:.0f} mm): '
                     + _direction_words(d))
+    if p.row_end is not None:
+        inward, slack = p.row_end
+        short = float(off @ inward)
+        if short > slack:
+            d = -short * inward
+            return Move('off_row_end', d, f'{short * 1e3:.0f} mm in from the end of the '
+                        f'laser line asked for (within {slack * 1e3:.0f} mm): '
+                        + _direction_words(d))
     if p.kind != 'sphere':
         n = -T[:3, 2]
         want = -p.V0_T_target[:3, 2]

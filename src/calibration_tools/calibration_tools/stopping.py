@@ -373,8 +373,9 @@ def _sheet_params(kind: str, model, centre):
 
 
 def _lit_voltage(p) -> float | None:
-    rows = [float(r[3]) for v, lit, _ in p.views if lit for r in v]
-    return float(np.median(rows)) if rows else None
+    from calibration_tools.operator_flow import lit_voltage
+
+    return lit_voltage(p)
 
 
 def _sheet_info(model, params, p, T, targets) -> np.ndarray | None:
@@ -670,10 +671,9 @@ def assess(stage: str, model, targets, kept, candidates, planned=(),
 
 def _row(p):
     """The G2 voltage a laser-axis board is lit at (its plane), rounded; None otherwise."""
-    if PREDICTED.get(p.stage) != 'axis':
-        return None
-    u = _lit_voltage(p)
-    return None if u is None else round(u, 3)
+    from calibration_tools.operator_flow import row_key
+
+    return row_key(p)
 
 
 def _rows(stage: str, places) -> set:
@@ -701,23 +701,36 @@ def _depths(places) -> dict:
 def _row_needs(stage: str, planned, kept, candidates) -> dict:
     """The laser axis's rows (G2 planes of its plan) and what each still needs:
     ``{row: (enough, helps)}``, ``enough`` when its kept boards fit a plane
-    (:data:`ROW_BOARDS`), ``helps`` a test of whether a candidate brings it what it lacks
-    and the candidates can still give (boards, or a depth of its plan: :data:`ROW_DEPTH_SPLIT`),
+    (:data:`ROW_BOARDS`), ``helps`` a test of whether a candidate brings it the most of
+    what it lacks and the candidates can still give (boards, a depth of its plan:
+    :data:`ROW_DEPTH_SPLIT`, an end of its plan along the stripe:
+    :data:`~calibration_tools.operator_flow.ROW_END_FRACTION`),
     None when it lacks nothing they can give. Empty for the other stages."""
     if PREDICTED.get(stage) != 'axis':
         return {}
-    depth = _depths([*planned, *kept, *candidates])
+    every = [*planned, *kept, *candidates]
+    from calibration_tools.operator_flow import row_ends
+
+    ends = {k: e[0] for k, e in row_ends(every).items()}
+    labels = (_depths(every), ends)
     out = {}
     for r in _rows(stage, planned):
         mine = [q for q in kept if _row(q) == r]
         left = [q for q in candidates if _row(q) == r]
-        have = {depth[q.index] for q in mine}
-        wanted = {depth[q.index] for q in planned if _row(q) == r} - have
-        wanted &= {depth[q.index] for q in left}
+        wanted = []
+        for label in labels:
+            have = {label[q.index] for q in mine} | {None}
+            want = {label[q.index] for q in planned if _row(q) == r} - have
+            wanted.append(want & {label[q.index] for q in left})
         enough = len(mine) >= ROW_BOARDS
-        if wanted:
-            def helps(q, wanted=wanted):
-                return depth[q.index] in wanted
+        if any(wanted):
+            def brings(q, wanted=wanted):
+                return sum(label[q.index] in w for label, w in zip(labels, wanted,
+                                                                   strict=True))
+            most = max(brings(q) for q in left)
+
+            def helps(q, brings=brings, most=most):
+                return brings(q) == most
         elif not enough and left:
             def helps(q):
                 return True

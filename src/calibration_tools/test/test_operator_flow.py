@@ -88,6 +88,35 @@ def test_circle_grid_off_the_laser_line_is_told_which_way(bench):
     assert move.move[1] < -0.02 and 'up (-y)' in move.words
 
 
+def test_a_laser_axis_board_in_from_its_rows_end_is_told_to_move_out(bench):
+    """The laser axis asks for boards at the two ends of each row along the stripe: one
+    found 45 mm in from its end (towards the row's middle) is told to move out by as much,
+    along the line; one 45 mm beyond its end, or between the ends, is taken as it is."""
+    _, cal, model, targets, sim = bench
+    places = of.placements('laser_axis', plan('laser_axis', cal))
+    ends = [p for p in places if p.row_end is not None]
+    between = [p for p in places if p.row_end is None]
+    assert ends and between
+    p = ends[0]
+    inward, slack = p.row_end
+    assert abs(np.linalg.norm(inward) - 1.0) < 1e-9 and abs(inward[0]) > 0.9  # along x
+    assert 0.02 < slack < 0.045
+    for shift, told in ((0.045, True), (-0.045, False)):
+        _place(sim, p, _off(p, shift * inward, 0.0))
+        loc, move = of.search(model, p, targets, _looker(sim))
+        assert loc is not None
+        if told:
+            assert move is not None and move.reason == 'off_row_end', move
+            assert move.move @ inward == pytest.approx(-0.045, abs=3e-3)
+            assert abs(move.move[1]) < 3e-3 and 'mm in from the end' in move.words
+        else:
+            assert move is None, move.words
+    q = between[0]
+    _place(sim, q, _off(q, [0.045, 0.0, 0.0], 0.0))
+    loc, move = of.search(model, q, targets, _looker(sim))
+    assert loc is not None and move is None, move.words
+
+
 def test_target_out_of_reach_gets_the_direction_to_move_it(bench):
     """A board put beyond G1's reach (its edge still seen from the outermost views) is
     reported out of reach, with the way back: towards -x."""

@@ -122,6 +122,17 @@ def _axis_rows(places):
     return near_far
 
 
+def _along(p):
+    """Where a laser-axis board of the reference plan stands along its stripe (V0 x)."""
+    return float(p.V0_T_target[0, 3])
+
+
+def _ends_pair(near, far):
+    """A near and a far board of one row at its two ends along the stripe."""
+    return min(((n, f) for n in near for f in far), key=lambda nf: -abs(_along(nf[0])
+                                                                        - _along(nf[1])))
+
+
 def test_laser_axis_rows_need_boards_at_both_depths_of_their_plan():
     """Two boards of a row at one depth leave its plane's lean to the stripes' own depth:
     the laser axis does not stop on them, and asks next for a board at the depth missing."""
@@ -135,8 +146,8 @@ def test_laser_axis_rows_need_boards_at_both_depths_of_their_plan():
     assert not a.targets_met and np.all(np.isnan(a.sigma))
     far = {p.index for _, f in rows.values() for p in f}
     assert cands[a.best].index in far, a.advice
-    # one board at each depth of every row: the rows count
-    both = [p for n, f in rows.values() for p in (n[0], f[0])]
+    # one board at each depth of every row, at the two ends of the row: the rows count
+    both = [p for n, f in rows.values() for p in _ends_pair(n, f)]
     a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in both],
                         [p for p in places if p not in both], places, noise_px=0.04)
     assert np.all(np.isfinite(a.sigma)), a.table()
@@ -175,3 +186,46 @@ def test_dynamic_camera_counts_only_the_views_that_showed_the_board():
                            places)
     fewer_one = stopping.assess('dynamic_camera', MODEL, TARGETS, kept[:-1], [], places)
     assert np.allclose(none.sigma, fewer_one.sigma, equal_nan=True)
+
+
+def test_laser_axis_rows_need_boards_at_both_ends_along_the_stripe():
+    """A near and a far board standing side by side pin the plane's lean but leave its turn
+    about the depth axis loose: the row does not count, and the advice asks for the board
+    at the far end of the row, at the depth it lacks when it lacks one."""
+    places = _places('laser_axis')
+    rows = _axis_rows(places)
+    span = {r: max(map(_along, n + f)) - min(map(_along, n + f)) for r, (n, f) in rows.items()}
+    assert min(span.values()) > 0.15
+    # every row: its near board at one end, its far board beside it (a third of the span)
+    close = []
+    for n, f in rows.values():
+        a = min(n, key=_along)
+        b = min(f, key=lambda q, a=a: abs(_along(q) - _along(a)))
+        assert abs(_along(b) - _along(a)) < 0.4 * span[stopping._row(a)]
+        close += [a, b]
+    cands = [p for p in places if p not in close]
+    a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in close],
+                        cands, places, noise_px=0.04)
+    assert not a.targets_met and np.all(np.isnan(a.sigma)), a.table()
+    nxt = cands[a.best]
+    mine = [p for p in close if stopping._row(p) == stopping._row(nxt)]
+    assert min(abs(_along(nxt) - _along(p)) for p in mine) > 0.6 * span[stopping._row(nxt)]
+    # the third board at the far end completes its row: it lacks nothing more
+    row_of = stopping._row(nxt)
+    kept = [p for p in close if stopping._row(p) == row_of]
+    before = stopping._row_needs('laser_axis', places, kept, [nxt])
+    after = stopping._row_needs('laser_axis', places, kept + [nxt], [])
+    assert before[row_of][1] is not None and after[row_of] == (True, None)
+    # with only a near board of a row kept, the one its row asks for next is the far board
+    # at the other end (one placement brings both)
+    n, f = next(iter(rows.values()))
+    first = min(n, key=_along)
+    cands = [p for p in places if p is not first]
+    helps = stopping._row_needs('laser_axis', places, [first], cands)[stopping._row(first)][1]
+    asked = [p for p in cands if stopping._row(p) == stopping._row(first) and helps(p)]
+    assert asked == [max(f, key=_along)]
+    # rows at both ends and both depths count
+    both = [p for n, f in rows.values() for p in _ends_pair(n, f)]
+    a = stopping.assess('laser_axis', MODEL, TARGETS, [(p, p.V0_T_target) for p in both],
+                        [p for p in places if p not in both], places, noise_px=0.04)
+    assert np.all(np.isfinite(a.sigma)), a.table()
