@@ -325,7 +325,9 @@ def placements(stage: str, steps, by_robot: bool = False, across: int = 1) -> li
             out.append(Placement(stage, len(out), kind, target, T, views, lit, gap,
                                  max_offset=SPHERE_MAX_OFFSET if kind == 'sphere'
                                  else math.inf, focus=focus, across=across))
-    if stage == 'laser_axis':
+    from calibration_tools.registry import stage as stage_entry
+
+    if stage_entry(stage).rows:
         for k, (end, inward, span) in row_ends(out).items():
             if end is not None:
                 out[k].row_end = (inward, ROW_END_SLACK * span)
@@ -340,9 +342,12 @@ def lit_voltage(p: Placement) -> float | None:
 
 
 def row_key(p: Placement) -> float | None:
-    """The laser axis's row (one plane of its solver) a placement belongs to: its lit G2
-    voltage, rounded; None for the other stages' placements."""
-    if p.stage != 'laser_axis':
+    """The row (one plane of its stage's solver) a placement belongs to: its lit G2
+    voltage, rounded; None for the placements of stages without rows
+    (:attr:`calibration_tools.registry.Stage.rows`)."""
+    from calibration_tools.registry import REGISTRY
+
+    if not getattr(REGISTRY.get(p.stage), 'rows', False):
         return None
     u = lit_voltage(p)
     return None if u is None else round(u, 3)

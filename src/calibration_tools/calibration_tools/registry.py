@@ -63,6 +63,9 @@ class Stage:
     pose_topic_input : str
         The one of ``inputs`` (robot flange poses) that the calibration node may instead
         record from the robot's pose topic, one pose per capture; '' for none.
+    rows : bool
+        Its solver fits one laser plane per G2 voltage from the boards lit there, so its
+        boards come in rows (:func:`calibration_tools.operator_flow.row_key`).
     """
 
     name: str
@@ -72,6 +75,7 @@ class Stage:
     inputs: MappingProxyType = field(default_factory=lambda: MappingProxyType({}))
     targets: Callable = field(default=lambda targets, model: {})
     pose_topic_input: str = ''
+    rows: bool = False
 
 
 # ----------------------------------------------------------------------------- solvers
@@ -223,7 +227,7 @@ REGISTRY: MappingProxyType = MappingProxyType({s.name: s for s in (
           lambda model, quick: cp.laser_plane_steps(model, 1 if quick else 2),
           _laser_stage(_laser_plane_solver), targets=_laser_board),
     Stage('laser_axis', cp.laser_axis_steps, _laser_stage(_laser_axis_solver),
-          targets=_laser_board),
+          targets=_laser_board, rows=True),
     Stage('joint_correction', _plan_joint_correction,
           _run_joint_correction,
           targets=lambda t, m: {'sphere_radius': t.sphere_radius}),
