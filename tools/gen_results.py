@@ -66,6 +66,9 @@ BENCHMARKS = {
                     'stripe centres normal to a stripe turned off the image rows, no speckle'),
     'stripe_tilt_speckle': (['benchmarks/stripe_tilt.py', '--speckle'], True,
                             "the same with the rig's laser speckle"),
+    'laser_axis_lit_frames': (['benchmarks/laser_axis_lit_frames.py', '--rigs', '2'], True,
+                              "the laser axis from four lit frames per board against two: "
+                              "the galvos' per-frame jitter left in its shape error"),
     'extractor_width': (['benchmarks/extractor_width.py'], True,
                         "the flat plate's noise with the stripe filter at the stated width "
                         "and at the stripe's own, the reference rig"),
@@ -107,7 +110,8 @@ BENCHMARKS = {
 }
 ACCURACY = ('rig_family', 'operator_family', 'operator_stages', 'uncertainty_check',
             'calibration_seeds', 'joint_bundle', 'materials', 'materials_graph', 'stripe_tilt',
-            'stripe_tilt_speckle', 'extractor_width', 'extractor_width_wide', 'twin_evaluate')
+            'stripe_tilt_speckle', 'extractor_width', 'extractor_width_wide', 'twin_evaluate',
+            'laser_axis_lit_frames')
 
 #: metrics.json keys shown on the accuracy page, with the paper's figure where it gives one
 DEMO_ROWS = (

@@ -41,8 +41,9 @@ dynamic_camera            740 mm circle board at 650 mm, centred  136 views     
 laser_plane               small circle grids on the U2 = 0 laser   8 boards,    4 boards,
                           plane, near and far (4 per scene)        16 frames    8 frames
 laser_axis                rows of boards on the planes of 9 G2     36 boards,   6 boards,
-                          voltages over +-4 V, lit at +-0.05 V     18 planes,   3 planes,
-                          (rows 2 V apart share a scene)           108 frames   12 frames
+                          voltages over +-4 V, lit at 4 voltages   36 planes,   3 planes,
+                          within +-0.05 V (rows 2 V apart share    180 frames   12 frames
+                          a scene)
 joint_correction          10 mm sphere at 9 positions along x,     ~120-170     9 frames
                           G1 on a 0.1 V grid around each           frames,      (3 x 3)
                           (chained through shared nodes)           9 steps      1 step
@@ -693,6 +694,13 @@ def _place_laser_board(model, t: Targets, pi, x, depth, tilt_y, roll, others, la
     return None, first
 
 
+#: The laser axis's lit frames of a board: at its row's voltage plus each of these [V]. Every
+#: lit frame is one draw of the galvos' per-frame jitter, which moves its whole stripe off
+#: the sheet at once, by far more than its points scatter about each other: a board's
+#: stripes average it down, and four frames cost a few milliseconds. They keep within the
+#: +-0.05 V the boards are placed for, so that the stripe stays on them.
+LASER_AXIS_LIT_OFFSETS = (-0.05, -0.05 / 3, 0.05 / 3, 0.05)
+
 def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shift=0.0,
                     mirror_x: bool = False, pose_index: int = 0, seed: int = 0,
                     label: str = 'laser', targets: Targets | None = None,
@@ -897,7 +905,7 @@ def laser_axis_steps(model, quick: bool, *, targets: Targets | None = None) -> P
                               'outer rows are out of G1 reach under the model')
         steps = []
         for k, rows in enumerate(row_sets):
-            steps += laser_row_steps(model, rows, offsets=(-0.05, 0.05),
+            steps += laser_row_steps(model, rows, offsets=LASER_AXIS_LIT_OFFSETS,
                                      mirror_x=bool(k), pose_index=k, seed=10 + k,
                                      label='laser axis', targets=t, report=report)
     boards = _boards(steps)

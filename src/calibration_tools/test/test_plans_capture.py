@@ -155,7 +155,7 @@ def test_laser_boards_lie_on_the_models_planes_and_are_aimed_at(plans):
     _laser_checks(NOMINAL.model, plans[('laser_plane', True)], [0.0], [0.0])
     three = [-2.0, 0.0, 2.0]
     _laser_checks(NOMINAL.model, plans[('laser_axis', True)], three, three)
-    full = [round(c + o, 6) for c in range(-4, 5) for o in (-0.05, 0.05)]
+    full = [round(c + o, 6) for c in range(-4, 5) for o in cp.LASER_AXIS_LIT_OFFSETS]
     _laser_checks(NOMINAL.model, plans[('laser_axis', False)], range(-4, 5), full)
     # the physical model's full plan: rows evenly over the G2 voltages the scans need, as
     # far as boards on their planes are in G1 reach
@@ -163,7 +163,7 @@ def test_laser_boards_lie_on_the_models_planes_and_are_aimed_at(plans):
     a, b, _ = cp._axis_rows(phys, cp.choose_targets(phys))
     rows = [round(u, 6) for u in a + b]
     assert len(rows) == cp.LASER_AXIS_ROW_COUNT and min(rows) < -4.0
-    full = [round(c + o, 6) for c in rows for o in (-0.05, 0.05)]
+    full = [round(c + o, 6) for c in rows for o in cp.LASER_AXIS_LIT_OFFSETS]
     _laser_checks(phys, cp.laser_axis_steps(phys, False), rows, full)
 
 
