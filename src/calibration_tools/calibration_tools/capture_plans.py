@@ -701,6 +701,7 @@ def _place_laser_board(model, t: Targets, pi, x, depth, tilt_y, roll, others, la
 #: +-0.05 V the boards are placed for, so that the stripe stays on them.
 LASER_AXIS_LIT_OFFSETS = (-0.05, -0.05 / 3, 0.05 / 3, 0.05)
 
+
 def laser_row_steps(model, rows, *, offsets=(0.0,), boards=LASER_ROW, depth_shift=0.0,
                     mirror_x: bool = False, pose_index: int = 0, seed: int = 0,
                     label: str = 'laser', targets: Targets | None = None,

@@ -119,9 +119,9 @@ class Placement:
         beside it; ``reconstructor.planning.stripe_layout``): an ``on_laser_line`` target's
         tight tolerance.
     row_end : tuple or None
-        A laser-axis board at an end of its row along the stripe: the V0 unit vector
-        towards the row's middle and how far [m] in from its position it may stand
-        (:data:`ROW_END_SLACK`).
+        A laser-axis board at an end of its row along the stripe: which end (0 or 1), the
+        V0 unit vector towards the row's middle and how far [m] in from its position it may
+        stand (:data:`ROW_END_SLACK`); None between the ends (:func:`row_ends`).
     """
 
     stage: str
@@ -325,12 +325,9 @@ def placements(stage: str, steps, by_robot: bool = False, across: int = 1) -> li
             out.append(Placement(stage, len(out), kind, target, T, views, lit, gap,
                                  max_offset=SPHERE_MAX_OFFSET if kind == 'sphere'
                                  else math.inf, focus=focus, across=across))
-    from calibration_tools.registry import stage as stage_entry
-
-    if stage_entry(stage).rows:
-        for k, (end, inward, span) in row_ends(out).items():
-            if end is not None:
-                out[k].row_end = (inward, ROW_END_SLACK * span)
+    for k, (end, inward, span) in row_ends(out).items():
+        if end is not None:
+            out[k].row_end = (end, inward, ROW_END_SLACK * span)
     return out
 
 
@@ -362,8 +359,9 @@ def row_ends(places) -> dict:
     laser beside the camera (:attr:`Placement.across`). Empty for the other stages."""
     by_row: dict = {}
     for p in places:
-        if row_key(p) is not None:
-            by_row.setdefault(row_key(p), {})[p.index] = p
+        key = row_key(p)
+        if key is not None:
+            by_row.setdefault(key, {})[p.index] = p
     out = {}
     for row in by_row.values():
         along = 1 - next(iter(row.values())).across
@@ -952,7 +950,7 @@ def check_pose(model, p: Placement, T, targets: cp.Targets) -> Move | None:
                     f'position asked for (within {p.max_offset * 1e3:.0f} mm): '
                     + _direction_words(d))
     if p.row_end is not None:
-        inward, slack = p.row_end
+        _, inward, slack = p.row_end
         short = float(off @ inward)
         if short > slack:
             d = -short * inward

@@ -709,9 +709,7 @@ def _row_needs(stage: str, planned, kept, candidates) -> dict:
     if PREDICTED.get(stage) != 'axis':
         return {}
     every = [*planned, *kept, *candidates]
-    from calibration_tools.operator_flow import row_ends
-
-    ends = {k: e[0] for k, e in row_ends(every).items()}
+    ends = {q.index: None if q.row_end is None else q.row_end[0] for q in every}
     labels = (_depths(every), ends)
     out = {}
     for r in _rows(stage, planned):

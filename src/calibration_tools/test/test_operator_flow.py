@@ -98,7 +98,7 @@ def test_a_laser_axis_board_in_from_its_rows_end_is_told_to_move_out(bench):
     between = [p for p in places if p.row_end is None]
     assert ends and between
     p = ends[0]
-    inward, slack = p.row_end
+    _, inward, slack = p.row_end
     assert abs(np.linalg.norm(inward) - 1.0) < 1e-9 and abs(inward[0]) > 0.9  # along x
     assert 0.02 < slack < 0.045
     for shift, told in ((0.045, True), (-0.045, False)):
