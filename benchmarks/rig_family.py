@@ -36,7 +36,13 @@ exactly where asked). Per rig it prints both stair and plate errors and their ra
 holds ``rigs``, ``completed`` (rigs where both runs completed), ``stair_ratio_max``,
 ``plate_ratio_max``, ``placements_max`` (most placements one stage took, retakes
 included), ``placements_within_limit`` (every stage took at most
-:data:`PLACEMENT_FACTOR` x its kept placements plus :data:`PLACEMENT_SLACK`) and the rows.
+:data:`PLACEMENT_FACTOR` x its kept placements plus :data:`PLACEMENT_SLACK`),
+``calibration_sigma_ratio_max`` and the rows. Each row also carries both runs' predicted
+calibration uncertainty (the calibration's own covariance over G1's range) and their
+measured calibration error against the truth: the stair and plate errors of one run are one
+draw of the calibration's random error, so their ratio scatters from run to run by about as
+much as the two measured errors differ, while the predicted ratio says whether the
+operator's placements left the calibration less determined.
 """
 
 from __future__ import annotations
@@ -527,6 +533,15 @@ def operator_row(person: dict, exact: dict) -> dict:
             'plate_mm': person.get('plate_rmse_mm'), 'plate_exact_mm': exact.get('plate_rmse_mm'),
             'stair_ratio': _ratio(person.get('stair_rmse_mm'), exact.get('stair_rmse_mm')),
             'plate_ratio': _ratio(person.get('plate_rmse_mm'), exact.get('plate_rmse_mm')),
+            # what each calibration predicts of itself (its covariance over G1's range) and
+            # the error it has against the truth: one run's error is one draw of that spread
+            'calibration_sigma_mm': person.get('predicted_calibration_uncertainty_mm'),
+            'calibration_sigma_exact_mm': exact.get('predicted_calibration_uncertainty_mm'),
+            'calibration_sigma_ratio': _ratio(
+                person.get('predicted_calibration_uncertainty_mm'),
+                exact.get('predicted_calibration_uncertainty_mm')),
+            'calibration_error_mm': person.get('measured_systematic_error_mm'),
+            'calibration_error_exact_mm': exact.get('measured_systematic_error_mm'),
             'placements': placed, 'placements_within_limit': limit_ok,
             'views_rejected': op.get('views_rejected'), 'mistakes': op.get('mistakes_whole_run'),
             'wall_s': person.get('wall_s', 0.0) + exact.get('wall_s', 0.0),
@@ -579,6 +594,7 @@ def operator_family(args, t0: float) -> int:
     summary = {'rigs': len(rows), 'completed': len(done),
                'stair_ratio_max': worst('stair_ratio'), 'plate_ratio_max': worst('plate_ratio'),
                'ratio_limit': OPERATOR_RATIO_LIMIT,
+               'calibration_sigma_ratio_max': worst('calibration_sigma_ratio'),
                'placements_max': max((n for r in rows for n in r['placements'].values()),
                                      default=None),
                'placements_within_limit': all(r['placements_within_limit'] for r in done),

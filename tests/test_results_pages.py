@@ -88,11 +88,15 @@ def test_the_families_are_drawn_as_tables_per_rig(tmp_path, monkeypatch):
                   'failures': [{'distance': None, 'stage': 'laser_axis', 'message': 'x'}]}]}
     operator = {
         'rigs': 2, 'completed': 2, 'stair_ratio_max': 1.31, 'plate_ratio_max': 1.22,
-        'ratio_limit': 1.25, 'placements_max': 22, 'placements_within_limit': True,
+        'ratio_limit': 1.25, 'placements_max': 22, 'calibration_sigma_ratio_max': 0.954,
+        'placements_within_limit': True,
         'placement_limit': '2 x kept + 2 per stage', 'quick': False, 'distances': 'none',
         'rows': [{'seed': 0, 'rig': 'reference', 'completed': True, 'stair_mm': 0.0249,
                   'stair_exact_mm': 0.019, 'stair_ratio': 1.31, 'plate_mm': 0.08,
                   'plate_exact_mm': 0.0656, 'plate_ratio': 1.22,
+                  'calibration_sigma_mm': 0.062, 'calibration_sigma_exact_mm': 0.065,
+                  'calibration_sigma_ratio': 0.954, 'calibration_error_mm': 0.069,
+                  'calibration_error_exact_mm': 0.029,
                   'placements': {'intrinsics': 12, 'laser_axis': 22}},
                  {'seed': 1, 'rig': 'seed 1', 'completed': True, 'stair_mm': 0.03,
                   'stair_exact_mm': 0.03, 'stair_ratio': 1.0, 'plate_mm': 0.05,
@@ -117,6 +121,9 @@ def test_the_families_are_drawn_as_tables_per_rig(tmp_path, monkeypatch):
     assert ['seed 1', '0.03', '0.03', '1', '0.05', '0.05', '1', 'yes'] in rows
     assert ['rig', 'intrinsics', 'laser_axis'] in rows and ['reference', '12', '22'] in rows
     assert 'largest ratio 1.31 (stair) and 1.22 (plate) against the limit 1.25' in section
+    assert ['reference', '0.062', '0.065', '0.954', '0.069', '0.029'] in rows
+    assert ['seed 1', '–', '–', '–', '–', '–'] in rows
+    assert 'largest ratio of predicted calibration uncertainties 0.954' in section
 
     # a run without per-rig rows (an older benchmark) says so instead of drawing an empty table
     del family['rows']

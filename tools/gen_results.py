@@ -416,6 +416,19 @@ def _operator_family(r: dict) -> list[str]:
                                           for k in ('stair_ratio', 'plate_ratio')))
            if x.get('completed') else _failure(x)))
          for x in rows]) + ['']
+    if any(x.get('calibration_sigma_mm') is not None for x in rows):
+        lines += ["Each calibration's predicted uncertainty (its own covariance over G1's "
+                  'range, 1 sigma) and its measured error against the truth [mm]: one run\'s '
+                  'stair and plate errors are one draw of that spread, so where the two '
+                  'measured errors differ by more than the predictions do, the ratios above '
+                  'are chance:', '']
+        lines += _table(
+            ('rig', 'predicted', 'predicted, zero-error', 'predicted ratio', 'measured',
+             'measured, zero-error'),
+            [(str(x.get('rig')), x.get('calibration_sigma_mm'),
+              x.get('calibration_sigma_exact_mm'), x.get('calibration_sigma_ratio'),
+              x.get('calibration_error_mm'), x.get('calibration_error_exact_mm'))
+             for x in rows]) + ['']
     stages = list(dict.fromkeys(s for x in rows for s in (x.get('placements') or {})))
     if stages:
         lines += ["Placements each stage took under the operator (retakes included):", '']
@@ -425,12 +438,15 @@ def _operator_family(r: dict) -> list[str]:
     lines += [f"Summary: {r.get('rigs')} rigs, {r.get('completed')} completed both ways; "
               f"largest ratio {_fmt(r.get('stair_ratio_max'))} (stair) and "
               f"{_fmt(r.get('plate_ratio_max'))} (plate) against the limit {_fmt(limit)}; "
+              + (f"largest ratio of predicted calibration uncertainties "
+                 f"{_fmt(r.get('calibration_sigma_ratio_max'))}; "
+                 if r.get('calibration_sigma_ratio_max') is not None else '') +
               f"most placements one stage took {_fmt(r.get('placements_max'))}, every stage "
               f"within {r.get('placement_limit')}: "
               f"{_yes(r.get('placements_within_limit'))}.", '']
     rest = _figures(r, skip={'rows', 'rigs', 'completed', 'stair_ratio_max', 'plate_ratio_max',
                              'ratio_limit', 'placements_max', 'placements_within_limit',
-                             'placement_limit'})
+                             'placement_limit', 'calibration_sigma_ratio_max'})
     return lines + (['Every other figure of the run:', ''] + rest if rest else [])
 
 
