@@ -1,7 +1,8 @@
 """Drawn rigs of the family, each calibrated and evaluated through the graph.
 
 Run: ``.venv/bin/python benchmarks/rig_family.py [--rigs 20] [--seed-start 0] [--quick]
-[--out DIR] [--timeout S] [--jobs N] [--resume] [--operator [--reference-rig]]
+[--out DIR] [--timeout S] [--jobs N] [--resume]
+[--operator [--reference-rig] [--repeats N]]
 [--distances MM,..|none]``
 
 A full-plan rig takes 6 to 10 minutes on two cores: ``--jobs 2`` evaluates two rigs at once
@@ -37,7 +38,11 @@ holds ``rigs``, ``completed`` (rigs where both runs completed), ``stair_ratio_ma
 ``plate_ratio_max``, ``placements_max`` (most placements one stage took, retakes
 included), ``placements_within_limit`` (every stage took at most
 :data:`PLACEMENT_FACTOR` x its kept placements plus :data:`PLACEMENT_SLACK`),
-``calibration_sigma_ratio_max`` and the rows. Each row also carries both runs' predicted
+``calibration_sigma_ratio_max`` and the rows. With ``--repeats N`` each rig runs N times
+each way (the same rig and seed; the graph's timing, and with it which frames every random
+draw falls on, differs from run to run), the ratios are of the mean errors, and
+``stair_ratio_single_max`` and ``plate_ratio_single_max`` give the worst ratio of one
+operator run to one zero-error run. Each row also carries both runs' predicted
 calibration uncertainty (the calibration's own covariance over G1's range) and their
 measured calibration error against the truth: the stair and plate errors of one run are one
 draw of the calibration's random error, so their ratio scatters from run to run by about as
@@ -443,6 +448,9 @@ def main(argv=None) -> int:
                         'zero-error operator, compared (see the module)')
     p.add_argument('--reference-rig', action='store_true',
                    help='with --operator: the reference rig first, then the drawn rigs')
+    p.add_argument('--repeats', type=int, default=1,
+                   help='with --operator: runs of each rig each way, compared by their mean '
+                        'errors (default 1)')
     p.add_argument('--distances', default=None, metavar='MM[,MM..]|none',
                    help="evaluate's --distances (default: the paper's six)")
     p.add_argument('--jobs', type=int, default=1,
@@ -456,9 +464,10 @@ def main(argv=None) -> int:
                         'that did not pass)')
     args = p.parse_args(argv)
     if args.rigs < (0 if args.operator and args.reference_rig else 1) \
-            or args.seed_start < 0 or args.timeout <= 0 or not 1 <= args.jobs <= 16:
+            or args.seed_start < 0 or args.timeout <= 0 or not 1 <= args.jobs <= 16 \
+            or not 1 <= args.repeats <= 10:
         p.error('--rigs must be >= 1 (>= 0 with --operator --reference-rig), --seed-start '
-                '>= 0, --timeout > 0 and --jobs in 1..16')
+                '>= 0, --timeout > 0, --jobs in 1..16 and --repeats in 1..10')
     t0 = time.monotonic()
     previous = {sig: signal.signal(sig, stop_run) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
@@ -519,68 +528,111 @@ def _ratio(a, b):
     return a / b if _finite(a) and _finite(b) and b > 0 else None
 
 
-def operator_row(person: dict, exact: dict) -> dict:
-    """One rig's operator run against its zero-error run."""
+def _mean(values):
+    vals = [v for v in values if _finite(v)]
+    return float(np.mean(vals)) if vals and len(vals) == len(values) else None
+
+
+def operator_row(persons, exacts) -> dict:
+    """One rig's operator runs against its zero-error runs (one of each, or ``--repeats``
+    of each: the errors are their means, each run's kept beside them)."""
+    persons = [persons] if isinstance(persons, dict) else list(persons)
+    exacts = [exacts] if isinstance(exacts, dict) else list(exacts)
     placed, limit_ok = {}, True
-    op = person.get('operator') or {}
-    for stage, n in (op.get('placements') or {}).items():
-        kept = (op.get('placements_kept') or {}).get(stage, 0)
-        placed[stage] = n
-        limit_ok = limit_ok and n <= PLACEMENT_FACTOR * kept + PLACEMENT_SLACK
-    return {'seed': person['seed'], 'rig': person.get('rig', f"seed {person['seed']}"),
-            'completed': bool(person['completed'] and exact['completed']),
-            'stair_mm': person.get('stair_rmse_mm'), 'stair_exact_mm': exact.get('stair_rmse_mm'),
-            'plate_mm': person.get('plate_rmse_mm'), 'plate_exact_mm': exact.get('plate_rmse_mm'),
-            'stair_ratio': _ratio(person.get('stair_rmse_mm'), exact.get('stair_rmse_mm')),
-            'plate_ratio': _ratio(person.get('plate_rmse_mm'), exact.get('plate_rmse_mm')),
-            # what each calibration predicts of itself (its covariance over G1's range) and
-            # the error it has against the truth: one run's error is one draw of that spread
-            'calibration_sigma_mm': person.get('predicted_calibration_uncertainty_mm'),
-            'calibration_sigma_exact_mm': exact.get('predicted_calibration_uncertainty_mm'),
-            'calibration_sigma_ratio': _ratio(
-                person.get('predicted_calibration_uncertainty_mm'),
-                exact.get('predicted_calibration_uncertainty_mm')),
-            'calibration_error_mm': person.get('measured_systematic_error_mm'),
-            'calibration_error_exact_mm': exact.get('measured_systematic_error_mm'),
-            'placements': placed, 'placements_within_limit': limit_ok,
-            'views_rejected': op.get('views_rejected'), 'mistakes': op.get('mistakes_whole_run'),
-            'wall_s': person.get('wall_s', 0.0) + exact.get('wall_s', 0.0),
-            'failures': person['failures'] + exact['failures']}
+    for person in persons:
+        op = person.get('operator') or {}
+        for stage, n in (op.get('placements') or {}).items():
+            kept = (op.get('placements_kept') or {}).get(stage, 0)
+            placed[stage] = max(placed.get(stage, 0), n)
+            limit_ok = limit_ok and n <= PLACEMENT_FACTOR * kept + PLACEMENT_SLACK
+
+    def both(key):
+        a, b = [r.get(key) for r in persons], [r.get(key) for r in exacts]
+        return _mean(a), _mean(b), a, b
+
+    stair, stair_x, stair_runs, stair_x_runs = both('stair_rmse_mm')
+    plate, plate_x, plate_runs, plate_x_runs = both('plate_rmse_mm')
+    sigma, sigma_x, _, _ = both('predicted_calibration_uncertainty_mm')
+    error, error_x, _, _ = both('measured_systematic_error_mm')
+    first = persons[0]
+    row = {'seed': first['seed'], 'rig': first.get('rig', f"seed {first['seed']}"),
+           'completed': all(r['completed'] for r in persons + exacts),
+           'runs': len(persons),
+           'stair_mm': stair, 'stair_exact_mm': stair_x, 'plate_mm': plate,
+           'plate_exact_mm': plate_x, 'stair_ratio': _ratio(stair, stair_x),
+           'plate_ratio': _ratio(plate, plate_x),
+           # what each calibration predicts of itself (its covariance over G1's range) and
+           # the error it has against the truth: one run's error is one draw of that spread
+           'calibration_sigma_mm': sigma, 'calibration_sigma_exact_mm': sigma_x,
+           'calibration_sigma_ratio': _ratio(sigma, sigma_x),
+           'calibration_error_mm': error, 'calibration_error_exact_mm': error_x,
+           'placements': placed, 'placements_within_limit': limit_ok,
+           'views_rejected': (first.get('operator') or {}).get('views_rejected'),
+           'mistakes': (first.get('operator') or {}).get('mistakes_whole_run'),
+           'wall_s': sum(r.get('wall_s', 0.0) for r in persons + exacts),
+           'failures': [f for r in persons + exacts for f in r['failures']]}
+    if len(persons) > 1:
+        row.update(stair_runs_mm=stair_runs, stair_exact_runs_mm=stair_x_runs,
+                   plate_runs_mm=plate_runs, plate_exact_runs_mm=plate_x_runs,
+                   # the worst ratio any one operator run makes with any one zero-error run
+                   stair_ratio_single_max=_worst_pair(stair_runs, stair_x_runs),
+                   plate_ratio_single_max=_worst_pair(plate_runs, plate_x_runs))
+    return row
+
+
+def _worst_pair(a, b):
+    vals = [_ratio(x, y) for x in a for y in b]
+    return max(vals) if vals and None not in vals else None
 
 
 def operator_family(args, t0: float) -> int:
-    """``--operator``: every rig through the simulated operator and the zero-error one."""
+    """``--operator``: every rig through the simulated operator and the zero-error one,
+    ``--repeats`` times each."""
     extra = ['--distances', args.distances] if args.distances else []
     runs = ([(None, 'reference')] if args.reference_rig else []) + [
         (s, None) for s in range(args.seed_start, args.seed_start + args.rigs)]
+    n = args.repeats
     specs = []
     for seed, name in runs:
         folder = Path(args.out) / (name or f'seed_{seed:03d}')
         for sub, more in (('operator', []), ('exact_operator', ['--exact-operator'])):
-            specs.append(dict(seed=0 if seed is None else seed, folder=folder / sub,
-                              quick=args.quick, timeout=args.timeout, model=args.model,
-                              extra=extra + more, rig_name=name, resume=args.resume))
+            for r in range(n):  # a repeat is the same rig and seed again: the graph's timing
+                specs.append(dict(seed=0 if seed is None else seed,  # draws anew
+                                  folder=folder / (sub if r == 0 else f'{sub}_{r + 1}'),
+                                  quick=args.quick, timeout=args.timeout, model=args.model,
+                                  extra=extra + more, rig_name=name, resume=args.resume))
     finished = {}
     rows = [None] * len(runs)
 
     def report(k, one):
         finished[k] = one
-        i = k // 2
-        if not (2 * i in finished and 2 * i + 1 in finished):
+        i = k // (2 * n)
+        mine = range(2 * n * i, 2 * n * (i + 1))
+        if not all(j in finished for j in mine):
             return
-        row = rows[i] = operator_row(finished[2 * i], finished[2 * i + 1])
-        if finished[2 * i].get('stopped') or finished[2 * i + 1].get('stopped'):
+        persons = [finished[j] for j in mine[:n]]
+        exacts = [finished[j] for j in mine[n:]]
+        row = rows[i] = operator_row(persons, exacts)
+        if any(finished[j].get('stopped') for j in mine):
             row['stopped'] = True
             return
+        each = ''
+        if n > 1:
+            each = (f" (runs: stair {'/'.join(_f(v) for v in row['stair_runs_mm'])} against "
+                    f"{'/'.join(_f(v) for v in row['stair_exact_runs_mm'])}, plate "
+                    f"{'/'.join(_f(v) for v in row['plate_runs_mm'])} against "
+                    f"{'/'.join(_f(v) for v in row['plate_exact_runs_mm'])})")
         print(f"[{i + 1}/{len(runs)}] {row['rig']}: " + (
             f"stair {_f(row['stair_mm'])} mm (zero-error operator {_f(row['stair_exact_mm'])}, "
             f"ratio {_f(row['stair_ratio'])}), plate {_f(row['plate_mm'])} mm "
-            f"({_f(row['plate_exact_mm'])}, ratio {_f(row['plate_ratio'])}); placements "
+            f"({_f(row['plate_exact_mm'])}, ratio {_f(row['plate_ratio'])}){each}; "
+            f"predicted calibration uncertainty {_f(row['calibration_sigma_mm'])} mm "
+            f"({_f(row['calibration_sigma_exact_mm'])}); placements "
             f"{row['placements']}; {row['wall_s']:.0f} s" if row['completed'] else
             'not completed: ' + _short('; '.join(f"{f.get('stage')}: {f.get('message')}"
                                                  for f in row['failures']))), flush=True)
         if not args.keep_bags:
-            for j in (2 * i, 2 * i + 1):
+            for j in mine:
                 drop_bags(specs[j]['folder'])
 
     run_many(specs, args.jobs, report)
@@ -588,10 +640,10 @@ def operator_family(args, t0: float) -> int:
     done = [r for r in rows if r['completed']]
 
     def worst(key):
-        vals = [r[key] for r in done if r[key] is not None]
+        vals = [r[key] for r in done if r.get(key) is not None]
         return max(vals) if vals else None
 
-    summary = {'rigs': len(rows), 'completed': len(done),
+    summary = {'rigs': len(rows), 'completed': len(done), 'repeats': n,
                'stair_ratio_max': worst('stair_ratio'), 'plate_ratio_max': worst('plate_ratio'),
                'ratio_limit': OPERATOR_RATIO_LIMIT,
                'calibration_sigma_ratio_max': worst('calibration_sigma_ratio'),
@@ -603,6 +655,9 @@ def operator_family(args, t0: float) -> int:
                'resumed': sum(bool(r.get('resumed')) for r in finished.values()),
                'rigs_asked': len(runs), 'stopped': _STOP.is_set(),
                'wall_s': time.monotonic() - t0, 'rows': rows}
+    if n > 1:
+        summary.update(stair_ratio_single_max=worst('stair_ratio_single_max'),
+                       plate_ratio_single_max=worst('plate_ratio_single_max'))
     (Path(args.out) / 'operator_rigs.json').write_text(json.dumps(rows, indent=1,
                                                                   default=float))
     print(json.dumps(summary, default=float))

@@ -124,6 +124,14 @@ def test_the_families_are_drawn_as_tables_per_rig(tmp_path, monkeypatch):
     assert ['reference', '0.062', '0.065', '0.954', '0.069', '0.029'] in rows
     assert ['seed 1', '–', '–', '–', '–', '–'] in rows
     assert 'largest ratio of predicted calibration uncertainties 0.954' in section
+    assert 'mean of' not in section and 'one zero-error run' not in section
+
+    # repeated runs: the table holds means, and the worst single pairing is said beside them
+    operator.update(repeats=3, stair_ratio_single_max=1.6, plate_ratio_single_max=1.4)
+    gen.render({'demo': None, 'benchmarks': {'operator_family': _entry(operator)}})
+    section = _section((tmp_path / 'accuracy.md').read_text(), 'operator_family')
+    assert 'each the mean of 3 runs' in section
+    assert 'one operator run to one zero-error run 1.6 (stair) and 1.4 (plate)' in section
 
     # a run without per-rig rows (an older benchmark) says so instead of drawing an empty table
     del family['rows']

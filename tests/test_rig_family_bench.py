@@ -161,3 +161,50 @@ def test_a_stopped_run_summarises_the_rigs_finished(tmp_path, monkeypatch):
     assert started == [0, 1]                      # seeds 2 and 3 never started
     assert summary['stopped'] and summary['rigs_asked'] == 4
     assert summary['rigs'] == 1 and summary['completed'] == 1 and summary['passed'] == 1
+
+
+def test_operator_repeats_compare_each_rigs_mean_errors_and_keep_every_run(tmp_path,
+                                                                         monkeypatch):
+    """--repeats 2: each rig runs twice each way, in folders of their own (the first where
+    a single run keeps it, so a longer run resumes a shorter one); the ratios are of the
+    means, and the worst single pairing is kept beside them."""
+    import contextlib
+    import io
+    import json
+
+    stair = {('operator', 0): 0.03, ('operator', 1): 0.01,
+             ('exact_operator', 0): 0.02, ('exact_operator', 1): 0.02}
+    folders = []
+
+    def evaluate(seed, folder, quick, timeout, model, extra, rig_name, domain):
+        folders.append(folder.relative_to(tmp_path).as_posix())
+        sub = folder.name.split('_2')[0]
+        value = stair[(sub, int(folder.name.endswith('_2')))]
+        return {'seed': seed, 'rig': rig_name or f'seed {seed}', 'completed': True,
+                'failures': [], 'stair_rmse_mm': value, 'plate_rmse_mm': 2 * value,
+                'predicted_calibration_uncertainty_mm': 0.05,
+                'measured_systematic_error_mm': value,
+                'operator': {'placements': {'intrinsics': 6 * len(folders)},
+                             'placements_kept': {'intrinsics': 4}}}
+
+    monkeypatch.setattr(bench, '_evaluate_rig', evaluate)
+    monkeypatch.setattr(bench, 'source_tree', lambda: None)
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        assert bench.main(['--operator', '--rigs', '1', '--repeats', '2', '--distances',
+                           'none', '--out', str(tmp_path)]) == 0
+    assert sorted(folders) == ['seed_000/exact_operator', 'seed_000/exact_operator_2',
+                               'seed_000/operator', 'seed_000/operator_2']
+    summary = json.loads(buf.getvalue().strip().splitlines()[-1])
+    row = summary['rows'][0]
+    assert summary['repeats'] == 2 and row['runs'] == 2 and summary['completed'] == 1
+    assert abs(row['stair_mm'] - 0.02) < 1e-12 and abs(row['stair_ratio'] - 1.0) < 1e-12
+    assert sorted(row['stair_runs_mm']) == [0.01, 0.03]
+    assert abs(summary['stair_ratio_single_max'] - 1.5) < 1e-12
+    assert abs(summary['plate_ratio_max'] - 1.0) < 1e-12
+    assert row['placements']['intrinsics'] == 6 * folders.index('seed_000/operator_2') + 6
+    assert not row['placements_within_limit']     # the second run's 12 > 2 x 4 + 2
+    import pytest
+
+    with pytest.raises(SystemExit):             # an absurd request is refused
+        bench.main(['--operator', '--rigs', '1', '--repeats', '0'])

@@ -99,8 +99,8 @@ BENCHMARKS = {
                    'drawn rigs calibrated and evaluated through the graph, at their own '
                    'working distance'),
     'operator_family': (['benchmarks/rig_family.py', '--operator', '--reference-rig', '--rigs',
-                         '10', '--distances', 'none', '--out', 'out/operator_family', '--jobs',
-                         '2', '--resume'], False,
+                         '10', '--repeats', '2', '--distances', 'none', '--out',
+                         'out/operator_family', '--jobs', '2', '--resume'], False,
                         'the reference rig and drawn rigs calibrated through the simulated '
                         'operator, against the zero-error operator'),
     'joint_bundle': (['benchmarks/joint_bundle.py'], False,
@@ -405,8 +405,12 @@ def _operator_family(r: dict) -> list[str]:
     """Per rig the operator against the zero-error operator, placements per stage, summary."""
     rows = r.get('rows') or []
     limit = r.get('ratio_limit')
+    repeats = r.get('repeats') or 1
+    each = (f', each the mean of {repeats} runs (the same rig and seed, the graph\'s timing '
+            'drawn anew)' if repeats > 1 else '')
     lines = [f'Per rig: stair and plate errors [mm] calibrated through the simulated operator '
-             f'and through the zero-error operator, and their ratios (limit {_fmt(limit)}):', '']
+             f'and through the zero-error operator{each}, and their ratios (limit '
+             f'{_fmt(limit)}):', '']
     lines += _table(
         ('rig', 'stair', 'stair, zero-error', 'stair ratio', 'plate', 'plate, zero-error',
          'plate ratio', f'within {_fmt(limit)}'),
@@ -440,13 +444,17 @@ def _operator_family(r: dict) -> list[str]:
               f"{_fmt(r.get('plate_ratio_max'))} (plate) against the limit {_fmt(limit)}; "
               + (f"largest ratio of predicted calibration uncertainties "
                  f"{_fmt(r.get('calibration_sigma_ratio_max'))}; "
-                 if r.get('calibration_sigma_ratio_max') is not None else '') +
-              f"most placements one stage took {_fmt(r.get('placements_max'))}, every stage "
+                 if r.get('calibration_sigma_ratio_max') is not None else '')
+              + (f"the worst ratio of one operator run to one zero-error run "
+                 f"{_fmt(r.get('stair_ratio_single_max'))} (stair) and "
+                 f"{_fmt(r.get('plate_ratio_single_max'))} (plate); " if repeats > 1 else '')
+              + f"most placements one stage took {_fmt(r.get('placements_max'))}, every stage "
               f"within {r.get('placement_limit')}: "
               f"{_yes(r.get('placements_within_limit'))}.", '']
     rest = _figures(r, skip={'rows', 'rigs', 'completed', 'stair_ratio_max', 'plate_ratio_max',
                              'ratio_limit', 'placements_max', 'placements_within_limit',
-                             'placement_limit', 'calibration_sigma_ratio_max'})
+                             'placement_limit', 'calibration_sigma_ratio_max', 'repeats',
+                             'stair_ratio_single_max', 'plate_ratio_single_max'})
     return lines + (['Every other figure of the run:', ''] + rest if rest else [])
 
 
