@@ -39,8 +39,9 @@ holds ``rigs``, ``completed`` (rigs where both runs completed), ``stair_ratio_ma
 included), ``placements_within_limit`` (every stage took at most
 :data:`PLACEMENT_FACTOR` x its kept placements plus :data:`PLACEMENT_SLACK`),
 ``calibration_sigma_ratio_max`` and the rows. With ``--repeats N`` each rig runs N times
-each way (the same rig and seed; the graph's timing, and with it which frames every random
-draw falls on, differs from run to run), the ratios are of the mean errors, and
+each way: the same rig, with the simulator's noise and the operator's errors drawn from
+another ``evaluate --seed`` each time (:data:`REPEAT_SEED_STEP`; a run with the same seed
+repeats its calibration exactly). The ratios are then of the mean errors, and
 ``stair_ratio_single_max`` and ``plate_ratio_single_max`` give the worst ratio of one
 operator run to one zero-error run. Each row also carries both runs' predicted
 calibration uncertainty (the calibration's own covariance over G1's range) and their
@@ -87,6 +88,9 @@ PLACEMENT_FACTOR = 2.0
 PLACEMENT_SLACK = 2
 #: The operator's stair and plate errors may be this many times the zero-error operator's.
 OPERATOR_RATIO_LIMIT = 1.25
+#: ``--repeats``: repeat r of a rig evaluates it with ``evaluate --seed`` = its seed + r x
+#: this (a run is repeatable: the same rig and seed give the same calibration, draw for draw).
+REPEAT_SEED_STEP = 100_000
 FIGURES = (  # (metrics key, short name, absolute value)
     ('stair_step_error_rmse_mm', 'stair_rmse_mm', False),
     ('plate_flatness_rmse_mm', 'plate_rmse_mm', False),
@@ -137,9 +141,11 @@ def source_tree() -> str | None:
 
 def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
             model: str = 'physical', extra=(), rig_name: str | None = None,
-            resume: bool = False, domain: int | None = None) -> dict:
+            resume: bool = False, domain: int | None = None,
+            sim_seed: int | None = None) -> dict:
     """Draw rig ``seed`` (or use the shipped rig ``rig_name``) and evaluate it with the extra
-    ``evaluate`` arguments; never raises (a failure is recorded).
+    ``evaluate`` arguments; never raises (a failure is recorded). ``evaluate --seed`` (the
+    simulator's noise and the simulated operator's errors) is ``sim_seed``, default ``seed``.
 
     The row is kept in ``folder/row.json`` with what it was measured with (the source tree,
     the plans, the model and the arguments). With ``resume``, a completed row measured with
@@ -148,10 +154,13 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
     draws a private one when None)."""
     key = {'src': source_tree(), 'quick': bool(quick), 'model': model, 'extra': list(extra),
            'rig': rig_name, 'seed': seed}
+    if sim_seed is not None:
+        key['sim_seed'] = sim_seed
     cached = _read_json(folder / 'row.json') if resume and key['src'] else None
     if cached and cached.get('key') == key and cached.get('row', {}).get('completed'):
         return {**cached['row'], 'resumed': True}
-    row = _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain)
+    row = _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain,
+                        sim_seed)
     try:
         (folder / 'row.json').write_text(json.dumps({'key': key, 'row': row}, indent=1,
                                                     default=float))
@@ -160,9 +169,12 @@ def run_rig(seed: int, folder: Path, quick: bool, timeout: float,
     return row
 
 
-def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain) -> dict:
+def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain,
+                  sim_seed=None) -> dict:
     t0 = time.monotonic()
     row = {'seed': seed, 'completed': False, 'failures': []}
+    if sim_seed is not None:
+        row['sim_seed'] = sim_seed
     if _STOP.is_set():
         return _stopped(row, t0)
     try:
@@ -185,7 +197,8 @@ def _evaluate_rig(seed, folder, quick, timeout, model, extra, rig_name, domain) 
         return row
     out = folder / 'evaluation'
     argv = [sys.executable, '-m', 'galvoscan.cli', 'evaluate', '--rig', str(rig_path),
-            '--out', str(out), '--seed', str(seed), '--model', model, '--no-paper-method'] \
+            '--out', str(out), '--seed', str(seed if sim_seed is None else sim_seed),
+            '--model', model, '--no-paper-method'] \
         + (['--quick'] if quick else []) + list(extra)
     env = os.environ.copy()
     if domain is not None:
@@ -596,11 +609,13 @@ def operator_family(args, t0: float) -> int:
     for seed, name in runs:
         folder = Path(args.out) / (name or f'seed_{seed:03d}')
         for sub, more in (('operator', []), ('exact_operator', ['--exact-operator'])):
-            for r in range(n):  # a repeat is the same rig and seed again: the graph's timing
-                specs.append(dict(seed=0 if seed is None else seed,  # draws anew
+            for r in range(n):  # a repeat: the same rig, another simulator and operator seed
+                rig_seed = 0 if seed is None else seed
+                specs.append(dict(seed=rig_seed,
                                   folder=folder / (sub if r == 0 else f'{sub}_{r + 1}'),
                                   quick=args.quick, timeout=args.timeout, model=args.model,
-                                  extra=extra + more, rig_name=name, resume=args.resume))
+                                  extra=extra + more, rig_name=name, resume=args.resume,
+                                  sim_seed=rig_seed + REPEAT_SEED_STEP * r if r else None))
     finished = {}
     rows = [None] * len(runs)
 

@@ -77,7 +77,7 @@ def test_rigs_run_in_parallel_in_their_own_domains_and_a_stopped_run_resumes(tmp
     calls, active, seen = [], set(), []
     lock = threading.Lock()
 
-    def evaluate(seed, folder, quick, timeout, model, extra, rig_name, domain):
+    def evaluate(seed, folder, quick, timeout, model, extra, rig_name, domain, sim_seed):
         with lock:
             assert domain not in active, 'two graphs at once in one domain'
             active.add(domain)
@@ -174,10 +174,11 @@ def test_operator_repeats_compare_each_rigs_mean_errors_and_keep_every_run(tmp_p
 
     stair = {('operator', 0): 0.03, ('operator', 1): 0.01,
              ('exact_operator', 0): 0.02, ('exact_operator', 1): 0.02}
-    folders = []
+    folders, sim_seeds = [], {}
 
-    def evaluate(seed, folder, quick, timeout, model, extra, rig_name, domain):
+    def evaluate(seed, folder, quick, timeout, model, extra, rig_name, domain, sim_seed):
         folders.append(folder.relative_to(tmp_path).as_posix())
+        sim_seeds[folders[-1]] = sim_seed
         sub = folder.name.split('_2')[0]
         value = stair[(sub, int(folder.name.endswith('_2')))]
         return {'seed': seed, 'rig': rig_name or f'seed {seed}', 'completed': True,
@@ -195,6 +196,10 @@ def test_operator_repeats_compare_each_rigs_mean_errors_and_keep_every_run(tmp_p
                            'none', '--out', str(tmp_path)]) == 0
     assert sorted(folders) == ['seed_000/exact_operator', 'seed_000/exact_operator_2',
                                'seed_000/operator', 'seed_000/operator_2']
+    # the first runs are a single run's (so they resume); a repeat draws from another seed
+    assert sim_seeds == {'seed_000/operator': None, 'seed_000/exact_operator': None,
+                         'seed_000/operator_2': bench.REPEAT_SEED_STEP,
+                         'seed_000/exact_operator_2': bench.REPEAT_SEED_STEP}
     summary = json.loads(buf.getvalue().strip().splitlines()[-1])
     row = summary['rows'][0]
     assert summary['repeats'] == 2 and row['runs'] == 2 and summary['completed'] == 1
