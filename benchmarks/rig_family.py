@@ -549,8 +549,7 @@ def _mean(values):
 def operator_row(persons, exacts) -> dict:
     """One rig's operator runs against its zero-error runs (one of each, or ``--repeats``
     of each: the errors are their means, each run's kept beside them)."""
-    persons = [persons] if isinstance(persons, dict) else list(persons)
-    exacts = [exacts] if isinstance(exacts, dict) else list(exacts)
+    persons, exacts = list(persons), list(exacts)
     placed, limit_ok = {}, True
     for person in persons:
         op = person.get('operator') or {}

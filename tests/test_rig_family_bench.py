@@ -58,14 +58,15 @@ def test_operator_row_compares_the_operator_with_the_zero_error_one():
              'plate_rmse_mm': 0.1, 'wall_s': 8.0,
              'predicted_calibration_uncertainty_mm': 0.05,
              'measured_systematic_error_mm': 0.03}
-    row = bench.operator_row(person, exact)
+    row = bench.operator_row([person], [exact])
     assert row['completed'] and row['wall_s'] == 18.0
     assert abs(row['stair_ratio'] - 1.2) < 1e-12 and abs(row['plate_ratio'] - 1.2) < 1e-12
     assert row['placements'] == {'intrinsics': 9, 'laser_axis': 20}
     assert abs(row['calibration_sigma_ratio'] - 1.2) < 1e-12
     assert (row['calibration_error_mm'], row['calibration_error_exact_mm']) == (0.07, 0.03)
     assert not row['placements_within_limit']  # 20 > 2 x 6 + 2
-    failed = bench.operator_row(person, {**exact, 'completed': False, 'stair_rmse_mm': None})
+    failed = bench.operator_row([person], [{**exact, 'completed': False,
+                                            'stair_rmse_mm': None}])
     assert not failed['completed'] and failed['stair_ratio'] is None
 
 
