@@ -406,8 +406,9 @@ def _operator_family(r: dict) -> list[str]:
     rows = r.get('rows') or []
     limit = r.get('ratio_limit')
     repeats = r.get('repeats') or 1
-    each = (f', each the mean of {repeats} runs (the same rig and seed, the graph\'s timing '
-            'drawn anew)' if repeats > 1 else '')
+    each = (f', each the mean of {repeats} runs (the same drawn rig, the simulator\'s noise '
+            'and the operator\'s errors drawn from another seed each run)' if repeats > 1
+            else '')
     lines = [f'Per rig: stair and plate errors [mm] calibrated through the simulated operator '
              f'and through the zero-error operator{each}, and their ratios (limit '
              f'{_fmt(limit)}):', '']
