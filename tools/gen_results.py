@@ -99,7 +99,7 @@ BENCHMARKS = {
                    'drawn rigs calibrated and evaluated through the graph, at their own '
                    'working distance'),
     'operator_family': (['benchmarks/rig_family.py', '--operator', '--reference-rig', '--rigs',
-                         '10', '--repeats', '2', '--distances', 'none', '--out',
+                         '10', '--repeats', '3', '--distances', 'none', '--out',
                          'out/operator_family', '--jobs', '2', '--resume'], False,
                         'the reference rig and drawn rigs calibrated through the simulated '
                         'operator, against the zero-error operator'),
