@@ -43,7 +43,11 @@ each way: the same rig, with the simulator's noise and the operator's errors dra
 another ``evaluate --seed`` each time (:data:`REPEAT_SEED_STEP`; a run with the same seed
 repeats its calibration exactly). The ratios are then of the mean errors, and
 ``stair_ratio_single_max`` and ``plate_ratio_single_max`` give the worst ratio of one
-operator run to one zero-error run. Each row also carries both runs' predicted
+operator run to one zero-error run. The runs' own scatter says how far that settles
+the limit (:func:`ratio_statistics`): each rig's ratio gets a 90 % interval and a verdict
+(``within``, ``beyond`` or ``undecided``), and the summary gives the family's geometric-mean
+ratio with its interval, ``stair_beyond_limit`` and ``stair_undecided`` (and the plate's).
+Each row also carries both runs' predicted
 calibration uncertainty (the calibration's own covariance over G1's range) and their
 measured calibration error against the truth: the stair and plate errors of one run are one
 draw of the calibration's random error, so their ratio scatters from run to run by about as
@@ -91,6 +95,9 @@ OPERATOR_RATIO_LIMIT = 1.25
 #: ``--repeats``: repeat r of a rig evaluates it with ``evaluate --seed`` = its seed + r x
 #: this (a run is repeatable: the same rig and seed give the same calibration, draw for draw).
 REPEAT_SEED_STEP = 100_000
+#: ``--repeats``: the two-sided confidence of each ratio's interval (0.90: its upper end is
+#: a 95 % one-sided bound, the side the limit is about).
+RATIO_CONFIDENCE = 0.90
 FIGURES = (  # (metrics key, short name, absolute value)
     ('stair_step_error_rmse_mm', 'stair_rmse_mm', False),
     ('plate_flatness_rmse_mm', 'plate_rmse_mm', False),
@@ -592,6 +599,59 @@ def operator_row(persons, exacts) -> dict:
     return row
 
 
+def ratio_statistics(rows, name: str, limit: float = OPERATOR_RATIO_LIMIT,
+                     confidence: float = RATIO_CONFIDENCE) -> dict:
+    """How far ``--repeats`` pins down the ``name`` (``stair`` or ``plate``) ratios.
+
+    One run's error is one draw: the spread between the runs of one rig and one way (the
+    log of each run's error about their mean, pooled over every rig and both ways) is the
+    error of a single run. From it, each completed row gets ``{name}_ratio_interval``
+    (``confidence``, two-sided, Student's t on the pooled degrees of freedom: the ratio of
+    two means of n draws) and ``{name}_verdict``: ``within`` the limit (the interval ends
+    at or below it), ``beyond`` it (the interval starts above it) or ``undecided``. The
+    family's ratio is the geometric mean over the rigs, with its interval from their
+    scatter (t on rigs - 1 degrees of freedom).
+
+    Returns the summary's fields (an empty dict with fewer than two runs a way).
+    """
+    from scipy.stats import t as student
+
+    done = [r for r in rows if r.get('completed')]
+    ss, dof = 0.0, 0
+    for r in done:
+        for key in (f'{name}_runs_mm', f'{name}_exact_runs_mm'):
+            v = [x for x in r.get(key) or [] if _finite(x) and x > 0]
+            if len(v) > 1:
+                lv = np.log(v)
+                ss, dof = ss + float(np.sum((lv - lv.mean()) ** 2)), dof + len(v) - 1
+    if dof == 0:
+        return {}
+    spread = math.sqrt(ss / dof)
+    q = float(student.ppf(0.5 + confidence / 2, dof))
+    verdicts = {}
+    for r in done:
+        n_a, n_b = len(r[f'{name}_runs_mm']), len(r[f'{name}_exact_runs_mm'])
+        ratio = r.get(f'{name}_ratio')
+        if ratio is None:
+            continue
+        half = q * spread * math.sqrt(1 / n_a + 1 / n_b)
+        lo, hi = ratio * math.exp(-half), ratio * math.exp(half)
+        r[f'{name}_ratio_interval'] = [lo, hi]
+        r[f'{name}_verdict'] = verdicts[r['rig']] = (
+            'within' if hi <= limit else 'beyond' if lo > limit else 'undecided')
+    logs = np.log([r[f'{name}_ratio'] for r in done if r.get(f'{name}_ratio')])
+    family = float(np.exp(logs.mean()))
+    interval = None
+    if len(logs) > 1:
+        half = float(student.ppf(0.5 + confidence / 2, len(logs) - 1)
+                     * logs.std(ddof=1) / math.sqrt(len(logs)))
+        interval = [family * math.exp(-half), family * math.exp(half)]
+    return {f'{name}_run_spread': spread, f'{name}_run_spread_dof': dof,
+            f'{name}_ratio_family': family, f'{name}_ratio_family_interval': interval,
+            f'{name}_beyond_limit': [k for k, v in verdicts.items() if v == 'beyond'],
+            f'{name}_undecided': [k for k, v in verdicts.items() if v == 'undecided']}
+
+
 def _worst_pair(a, b):
     vals = [_ratio(x, y) for x in a for y in b]
     return max(vals) if vals and None not in vals else None
@@ -671,7 +731,19 @@ def operator_family(args, t0: float) -> int:
                'wall_s': time.monotonic() - t0, 'rows': rows}
     if n > 1:
         summary.update(stair_ratio_single_max=worst('stair_ratio_single_max'),
-                       plate_ratio_single_max=worst('plate_ratio_single_max'))
+                       plate_ratio_single_max=worst('plate_ratio_single_max'),
+                       ratio_confidence=RATIO_CONFIDENCE,
+                       **ratio_statistics(rows, 'stair'), **ratio_statistics(rows, 'plate'))
+    for name in ('stair', 'plate') if n > 1 else ():
+        if summary.get(f'{name}_run_spread') is None:
+            continue
+        fam = summary[f'{name}_ratio_family_interval'] or [None, None]
+        print(f"{name}: one run scatters by {100 * summary[f'{name}_run_spread']:.0f} % "
+              f"(log sd, {summary[f'{name}_run_spread_dof']} degrees of freedom); the "
+              f"family's ratio {_f(summary[f'{name}_ratio_family'])} "
+              f"({RATIO_CONFIDENCE:.0%}: {_f(fam[0])} to {_f(fam[1])}); beyond "
+              f"{OPERATOR_RATIO_LIMIT:g}: {summary[f'{name}_beyond_limit'] or 'none'}; "
+              f"undecided by {n} runs: {summary[f'{name}_undecided'] or 'none'}", flush=True)
     (Path(args.out) / 'operator_rigs.json').write_text(json.dumps(rows, indent=1,
                                                                   default=float))
     print(json.dumps(summary, default=float))

@@ -132,6 +132,25 @@ def test_the_families_are_drawn_as_tables_per_rig(tmp_path, monkeypatch):
     section = _section((tmp_path / 'accuracy.md').read_text(), 'operator_family')
     assert 'each the mean of 3 runs' in section
     assert 'one operator run to one zero-error run 1.6 (stair) and 1.4 (plate)' in section
+    assert 'How far' not in section             # no scatter recorded: nothing claimed of it
+
+    # with the runs' scatter: each ratio's interval and verdict, and the family's ratio
+    operator.update(ratio_confidence=0.9, stair_run_spread=0.21, stair_run_spread_dof=22,
+                    plate_run_spread=0.1, plate_run_spread_dof=22, stair_ratio_family=0.92,
+                    stair_ratio_family_interval=[0.82, 1.04], plate_ratio_family=0.97,
+                    plate_ratio_family_interval=[0.92, 1.01], stair_beyond_limit=[],
+                    stair_undecided=['reference'], plate_beyond_limit=['reference'],
+                    plate_undecided=[])
+    operator['rows'][0].update(stair_ratio_interval=[0.9, 1.9], stair_verdict='undecided',
+                               plate_ratio_interval=[1.26, 1.5], plate_verdict='beyond')
+    gen.render({'demo': None, 'benchmarks': {'operator_family': _entry(operator)}})
+    section = _section((tmp_path / 'accuracy.md').read_text(), 'operator_family')
+    assert 'scatters between draws by 21 % (stair) and 10 % (plate)' in section
+    assert ['reference', '0.9 to 1.9', 'undecided', '1.26 to 1.5', 'beyond'] in _rows(section)
+    assert ['seed 1', '–', '–', '–', '–'] in _rows(section)
+    assert 'stair 0.92 (90 %: 0.82 to 1.04)' in section
+    assert 'Beyond the limit: stair none, plate reference' in section
+    assert 'stair_run_spread' not in section    # said in words, not again as a raw figure
 
     # a run without per-rig rows (an older benchmark) says so instead of drawing an empty table
     del family['rows']

@@ -1,6 +1,7 @@
 """The family benchmark deletes a passed rig's recorded bags and keeps everything else."""
 
 import importlib.util
+import math
 from pathlib import Path
 
 _spec = importlib.util.spec_from_file_location(
@@ -207,6 +208,10 @@ def test_operator_repeats_compare_each_rigs_mean_errors_and_keep_every_run(tmp_p
     assert abs(row['stair_mm'] - 0.02) < 1e-12 and abs(row['stair_ratio'] - 1.0) < 1e-12
     assert sorted(row['stair_runs_mm']) == [0.01, 0.03]
     assert abs(summary['stair_ratio_single_max'] - 1.5) < 1e-12
+    # the operator's runs scatter (0.03, 0.01), the zero-error ones do not: log sd on 2 dof
+    assert summary['stair_run_spread_dof'] == 2
+    assert abs(summary['stair_run_spread'] - abs(math.log(3)) / 2) < 1e-12
+    assert row['stair_verdict'] == 'undecided' and summary['stair_undecided'] == ['seed 0']
     assert abs(summary['plate_ratio_max'] - 1.0) < 1e-12
     assert row['placements']['intrinsics'] == 6 * folders.index('seed_000/operator_2') + 6
     assert not row['placements_within_limit']     # the second run's 12 > 2 x 4 + 2
@@ -214,3 +219,34 @@ def test_operator_repeats_compare_each_rigs_mean_errors_and_keep_every_run(tmp_p
 
     with pytest.raises(SystemExit):             # an absurd request is refused
         bench.main(['--operator', '--rigs', '1', '--repeats', '0'])
+
+
+def test_ratio_statistics_say_which_rigs_their_runs_settle():
+    """Each rig's ratio gets an interval from the runs' pooled scatter: above the limit
+    only where the whole interval is, within it only where the whole interval is, and
+    undecided where the runs cannot tell; one run a way gives no statistics."""
+    from scipy.stats import t as student
+
+    d = 0.2                      # every side's two runs lie exp(+-d/2) about their mean
+
+    def row(rig, ratio, completed=True):
+        runs = [0.02 * math.exp(-d / 2), 0.02 * math.exp(d / 2)]
+        return {'rig': rig, 'completed': completed, 'stair_ratio': ratio,
+                'stair_runs_mm': runs, 'stair_exact_runs_mm': runs}
+
+    rows = [row('worse', 2.0), row('alike', 1.0), row('better', 0.8),
+            row('failed', 9.0, completed=False)]
+    s = bench.ratio_statistics(rows, 'stair', limit=1.25, confidence=0.90)
+    spread = d / math.sqrt(2)    # 6 sides x 2 runs x (d/2)^2 on 6 degrees of freedom
+    assert s['stair_run_spread_dof'] == 6
+    assert abs(s['stair_run_spread'] - spread) < 1e-12
+    half = student.ppf(0.95, 6) * spread * math.sqrt(1 / 2 + 1 / 2)
+    assert abs(rows[0]['stair_ratio_interval'][0] - 2.0 * math.exp(-half)) < 1e-12
+    assert [r.get('stair_verdict') for r in rows] == ['beyond', 'undecided', 'within', None]
+    assert s['stair_beyond_limit'] == ['worse'] and s['stair_undecided'] == ['alike']
+    assert abs(s['stair_ratio_family'] - 1.6 ** (1 / 3)) < 1e-12
+    lo, hi = s['stair_ratio_family_interval']
+    assert lo < s['stair_ratio_family'] < hi
+    single = [{'rig': 'one', 'completed': True, 'stair_ratio': 1.0,
+               'stair_runs_mm': [0.02], 'stair_exact_runs_mm': [0.02]}]
+    assert bench.ratio_statistics(single, 'stair') == {}

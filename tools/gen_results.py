@@ -421,6 +421,7 @@ def _operator_family(r: dict) -> list[str]:
                                           for k in ('stair_ratio', 'plate_ratio')))
            if x.get('completed') else _failure(x)))
          for x in rows]) + ['']
+    lines += _ratio_intervals(r, rows, limit)
     if any(x.get('calibration_sigma_mm') is not None for x in rows):
         lines += ["Each calibration's predicted uncertainty (its own covariance over G1's "
                   'range, 1 sigma) and its measured error against the truth [mm]: one run\'s '
@@ -455,8 +456,47 @@ def _operator_family(r: dict) -> list[str]:
     rest = _figures(r, skip={'rows', 'rigs', 'completed', 'stair_ratio_max', 'plate_ratio_max',
                              'ratio_limit', 'placements_max', 'placements_within_limit',
                              'placement_limit', 'calibration_sigma_ratio_max', 'repeats',
-                             'stair_ratio_single_max', 'plate_ratio_single_max'})
+                             'stair_ratio_single_max', 'plate_ratio_single_max',
+                             'ratio_confidence',
+                             *(f'{n}_{k}' for n in ('stair', 'plate')
+                               for k in ('run_spread', 'run_spread_dof', 'ratio_family',
+                                         'ratio_family_interval', 'beyond_limit',
+                                         'undecided'))})
     return lines + (['Every other figure of the run:', ''] + rest if rest else [])
+
+
+def _interval(v) -> str:
+    return f'{_fmt(v[0])} to {_fmt(v[1])}' if v else '–'
+
+
+def _ratio_intervals(r: dict, rows: list, limit) -> list[str]:
+    """With repeats: what the runs' own scatter settles about each ratio and the family's."""
+    if r.get('stair_run_spread') is None:
+        return []
+    conf = f"{100 * (r.get('ratio_confidence') or 0):.0f} %"
+    lines = [f"How far {r.get('repeats')} runs settle each ratio: one run's error scatters "
+             f"between draws by {100 * r['stair_run_spread']:.0f} % (stair) and "
+             f"{100 * (r.get('plate_run_spread') or 0):.0f} % (plate), the log's standard "
+             f"deviation pooled over every rig and both ways "
+             f"({r.get('stair_run_spread_dof')} degrees of freedom). Each ratio's {conf} "
+             f"interval follows from it; a rig is within {_fmt(limit)} or beyond it only "
+             'where the whole interval is:', '']
+    lines += _table(
+        ('rig', f'stair ratio, {conf}', 'stair', f'plate ratio, {conf}', 'plate'),
+        [(str(x.get('rig')), _interval(x.get('stair_ratio_interval')),
+          x.get('stair_verdict') or '–', _interval(x.get('plate_ratio_interval')),
+          x.get('plate_verdict') or '–') for x in rows if x.get('completed')]) + ['']
+    lines += [f"The family's ratio (the geometric mean over its rigs, the interval from their "
+              f"scatter): stair {_fmt(r.get('stair_ratio_family'))} ({conf}: "
+              f"{_interval(r.get('stair_ratio_family_interval'))}), plate "
+              f"{_fmt(r.get('plate_ratio_family'))} ({conf}: "
+              f"{_interval(r.get('plate_ratio_family_interval'))}). Beyond the limit: stair "
+              f"{', '.join(r.get('stair_beyond_limit') or []) or 'none'}, plate "
+              f"{', '.join(r.get('plate_beyond_limit') or []) or 'none'}; undecided by "
+              f"{r.get('repeats')} runs: stair "
+              f"{', '.join(r.get('stair_undecided') or []) or 'none'}, plate "
+              f"{', '.join(r.get('plate_undecided') or []) or 'none'}.", '']
+    return lines
 
 
 def _materials(r: dict) -> list[str]:
