@@ -627,7 +627,11 @@ def ratio_statistics(rows, name: str, limit: float = OPERATOR_RATIO_LIMIT,
     if dof == 0:
         return {}
     spread = math.sqrt(ss / dof)
-    q = float(student.ppf(0.5 + confidence / 2, dof))
+
+    def quantile(dof):
+        return float(student.ppf(0.5 + confidence / 2, dof))
+
+    q = quantile(dof)
     verdicts = {}
     for r in done:
         n_a, n_b = len(r[f'{name}_runs_mm']), len(r[f'{name}_exact_runs_mm'])
@@ -643,8 +647,7 @@ def ratio_statistics(rows, name: str, limit: float = OPERATOR_RATIO_LIMIT,
     family = float(np.exp(logs.mean()))
     interval = None
     if len(logs) > 1:
-        half = float(student.ppf(0.5 + confidence / 2, len(logs) - 1)
-                     * logs.std(ddof=1) / math.sqrt(len(logs)))
+        half = quantile(len(logs) - 1) * float(logs.std(ddof=1)) / math.sqrt(len(logs))
         interval = [family * math.exp(-half), family * math.exp(half)]
     return {f'{name}_run_spread': spread, f'{name}_run_spread_dof': dof,
             f'{name}_ratio_family': family, f'{name}_ratio_family_interval': interval,
@@ -734,7 +737,7 @@ def operator_family(args, t0: float) -> int:
                        plate_ratio_single_max=worst('plate_ratio_single_max'),
                        ratio_confidence=RATIO_CONFIDENCE,
                        **ratio_statistics(rows, 'stair'), **ratio_statistics(rows, 'plate'))
-    for name in ('stair', 'plate') if n > 1 else ():
+    for name in ('stair', 'plate'):  # with --repeats: what the runs' scatter settles
         if summary.get(f'{name}_run_spread') is None:
             continue
         fam = summary[f'{name}_ratio_family_interval'] or [None, None]
